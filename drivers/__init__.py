@@ -1,0 +1,1 @@
+"""Device drivers (Qt-free): one class per device kind, transport injected."""

@@ -1,0 +1,11 @@
+"""velab: water-hammer tests on viscoelastic pipes.
+
+Rig control, HDF5 run files and calibration of the pipe-wall rheology
+(spring + m Kelvin-Voigt elements) by the Akaike information criterion.
+"""
+
+__version__ = "0.1.0"
+
+from velab.errors import VelabError  # noqa: E402
+
+__all__ = ["VelabError", "__version__"]

@@ -1,0 +1,1 @@
+"""Calibration of the Sm pipe-wall models and model selection by AIC."""

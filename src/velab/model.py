@@ -1,0 +1,199 @@
+"""Frequency-domain transient model of a reservoir-pipe-valve rig (physics.md sections 3-5).
+
+The head just upstream of the valve is h(s) = Z(s) q(s), with the pipe's
+impedance Z(s) = -Zc tanh(mu L). The pipe wall enters only through the
+viscoelastic function phi(s) = (a^2 rho alpha D / e) sum_k J_k / (1 + s tau_k).
+
+Time series are rebuilt with the *derivative trick*: the flow increments
+dq_n = q_n - q_(n-1) have compact support (the manoeuvre), so their zero-padded
+FFT times Z, inverse-transformed and summed, gives the head without the
+wrap-around a plain FFT of the step-like q(t) would suffer.
+
+An exponential window (s = sigma + i omega, numerical Laplace inversion) damps
+whatever the finite FFT would still wrap around.
+
+Band limit: the sigmoid's spectrum falls like exp(-pi |omega| / beta); the
+calibration evaluates Z only below that band (see :class:`ValveHeadModel`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft as sfft
+
+from velab.config import GRAVITY_M_S2, Material, Rig
+
+
+def spring_modulus_pa(rig: Rig, wave_speed_m_s: float) -> float:
+    """E0 that gives wave speed a in the thin-walled, K >> E0 limit: a^2 rho alpha D / e."""
+    p = rig.pipe
+    return wave_speed_m_s**2 * rig.fluid.density_kg_m3 * p.constraint_alpha * p.inner_diameter_m / p.wall_thickness_m
+
+
+def creep_scale(rig: Rig, wave_speed_m_s: float) -> float:
+    """Factor a^2 rho alpha D / e that turns a creep compliance J_k (1/Pa) into its share of phi."""
+    return spring_modulus_pa(rig, wave_speed_m_s)
+
+
+def phi(omega, rig: Rig, material: Material) -> np.ndarray:
+    """Complex viscoelastic function phi(i omega) of the pipe wall (dimensionless)."""
+    s = 1j * np.asarray(omega, dtype=float)
+    J = np.array([e.J_per_pa for e in material.elements])
+    tau = np.array([e.tau_s for e in material.elements])
+    return _phi_s(s, creep_scale(rig, material.wave_speed_m_s) * J, tau)
+
+
+def _phi_s(s: np.ndarray, J_rel: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """phi(s) = sum_k J'_k / (1 + s tau_k), J' already scaled (dimensionless)."""
+    out = np.zeros(np.shape(s), dtype=complex)
+    for Jk, tk in zip(J_rel, tau):
+        out += Jk / (1.0 + s * tk)
+    return out
+
+
+def _impedance_s(s: np.ndarray, a: float, phi_s: np.ndarray, rig: Rig) -> np.ndarray:
+    """Z(s) = -Zc tanh(mu L) for s != 0; s == 0 gets the steady -R L."""
+    p = rig.pipe
+    A = p.area_m2
+    C = GRAVITY_M_S2 * A / a**2
+    Li = 1.0 / (GRAVITY_M_S2 * A)
+    R = rig.linear_resistance
+    s = np.asarray(s, dtype=complex)
+    zero = s == 0
+    s_safe = np.where(zero, 1.0, s)
+    Y = s_safe * C * (1.0 + phi_s)  # shunt admittance per unit length
+    mu = np.sqrt(Y * (s_safe * Li + R))  # principal branch: Re(mu) >= 0
+    Z = -(mu / Y) * np.tanh(mu * p.length_m)
+    return np.where(zero, -R * p.length_m, Z)
+
+
+def impedance(omega, rig: Rig, material: Material) -> np.ndarray:
+    """Z(i omega) at the valve, in m of head per m^3/s of flow."""
+    s = 1j * np.asarray(omega, dtype=float)
+    return _impedance_s(s, material.wave_speed_m_s, phi(omega, rig, material), rig)
+
+
+def wave_speed_dispersion(omega, rig: Rig, material: Material) -> np.ndarray:
+    """Complex a(omega) = a / sqrt(1 + phi(i omega)); its omega -> 0 limit is the creep-slowed speed."""
+    return material.wave_speed_m_s / np.sqrt(1.0 + phi(omega, rig, material))
+
+
+def flow_perturbation(t_s, rig: Rig) -> np.ndarray:
+    """q(t) = Q(t) - Q0 of the sigmoid closure; 0 before the trigger (t < 0)."""
+    t = np.asarray(t_s, dtype=float)
+    m = rig.manoeuvre
+    q0 = rig.steady_flow_m3_s
+    arg = np.clip(m.beta_per_s * t + m.gamma, -700, 700)
+    q = q0 / (1.0 + np.exp(arg)) - q0
+    return np.where(t >= 0, q, 0.0)
+
+
+def valve_flow(t_s, rig: Rig) -> np.ndarray:
+    """Absolute flow through the valve, Q0 before the trigger."""
+    return rig.steady_flow_m3_s + flow_perturbation(t_s, rig)
+
+
+@dataclass(frozen=True)
+class Band:
+    """Which FFT bins are evaluated."""
+
+    n_fft: int
+    n_bins: int  # bins 0..n_bins-1 are evaluated, the rest are taken as zero
+    f_max_hz: float
+
+
+def manoeuvre_band_hz(rig: Rig, tol: float = 1e-8) -> float:
+    """Frequency above which the sigmoid's spectrum is below ``tol`` of its DC value.
+
+    The ideal sigmoid's flow spectrum is (pi/beta)/sinh(pi omega/beta) relative to
+    a step's 1/omega, i.e. it decays like 2 exp(-pi omega / beta).
+    """
+    beta = rig.manoeuvre.beta_per_s
+    omega = beta / np.pi * np.log(2.0 / tol)
+    return float(omega / (2 * np.pi))
+
+
+class ValveHeadModel:
+    """Head perturbation at the valve for one rig, manoeuvre and time grid.
+
+    Build it once per record, then call :meth:`head` for many materials: the
+    flow-increment spectrum and the band are reused, which is what makes
+    calibration fast.
+
+    Parameters
+    ----------
+    rig : the rig (pipe, fluid, steady flow, manoeuvre).
+    t_s : uniform time grid, seconds from the trigger (may start before 0).
+    band_hz : highest frequency at which Z is evaluated; ``None`` evaluates every
+        FFT bin (the full-band reference), ``"auto"`` uses
+        :func:`manoeuvre_band_hz`. Above the band only the trigger's 0.41 % step and
+        the sigmoid's slope kink have energy; leaving them out smooths the step
+        into a short causal ramp (a few mm of head at the wave fronts on the reference rig).
+    pad : zero-padding factor (>= 2, physics.md section 5).
+    sigma_T : exponential-window damping sigma times the padded length; it damps
+        what the FFT would wrap around by exp(-sigma_T).
+    flow : optional flow perturbation q(t) on the same grid (default: the rig's sigmoid).
+    """
+
+    def __init__(self, rig: Rig, t_s, *, band_hz: float | str | None = "auto", pad: float = 2.0,
+                 sigma_T: float = 8.0, flow=None):
+        t = np.asarray(t_s, dtype=float)
+        if t.ndim != 1 or t.size < 2:
+            raise ValueError("time grid must be a 1-D array of at least 2 samples")
+        self.rig = rig
+        self.t = t
+        self.dt = float(t[1] - t[0])
+        q = flow_perturbation(t, rig) if flow is None else np.asarray(flow, dtype=float)
+        self.first = int(np.searchsorted(t, -0.5 * self.dt))  # first sample at or after the trigger
+        q = q[self.first :]
+        n = q.size
+        if band_hz == "auto":
+            band_hz = manoeuvre_band_hz(rig)
+        if band_hz is not None and q.size > 1 and q[0] != 0.0:
+            # A step at the trigger has a flat spectrum: truncated, it turns into a
+            # symmetric sinc that loses half the step to negative time. Replace it by
+            # a causal raised-cosine ramp short enough to stay within the band.
+            ramp_s = 2.5 / band_hz
+            tn = np.arange(n) * self.dt
+            ramp = np.where(tn < ramp_s, 0.5 - 0.5 * np.cos(np.pi * np.minimum(tn / ramp_s, 1.0)), 1.0)
+            q = q - q[0] * (1.0 - ramp)
+        self.n = n
+        self.n_fft = sfft.next_fast_len(int(np.ceil(max(pad, 2.0) * n)), real=True)
+        self.sigma = sigma_T / (self.n_fft * self.dt)
+        tn = np.arange(n) * self.dt
+        self.growth = np.exp(self.sigma * tn)  # undoes the window after the inverse FFT
+        dq = np.diff(q, prepend=0.0)
+        self.spec = sfft.rfft(dq / self.growth, self.n_fft)
+        omega = 2 * np.pi * sfft.rfftfreq(self.n_fft, self.dt)
+        n_bins = self.spec.size if band_hz is None else min(self.spec.size, int(np.searchsorted(omega, 2 * np.pi * band_hz)) + 1)
+        self.band = Band(self.n_fft, n_bins, float(omega[n_bins - 1] / (2 * np.pi)))
+        self.s_band = self.sigma + 1j * omega[:n_bins]
+        self._spec_band = self.spec[:n_bins]
+        self._buf = np.zeros(self.spec.size, dtype=complex)
+
+    def head_params(self, a: float, J_rel, tau) -> np.ndarray:
+        """Head perturbation h(t) for wave speed a and KV elements (J'_k = J_k a^2 rho alpha D/e, tau_k)."""
+        nb = self.band.n_bins
+        Z = _impedance_s(self.s_band, a, _phi_s(self.s_band, J_rel, tau), self.rig)
+        self._buf[:nb] = Z * self._spec_band
+        dh = sfft.irfft(self._buf, self.n_fft)[: self.n] * self.growth
+        out = np.zeros(self.t.size)
+        np.cumsum(dh, out=out[self.first :])
+        return out
+
+    def head(self, material: Material) -> np.ndarray:
+        """Head perturbation h(t) (m) at the valve for a pipe-wall material."""
+        a = material.wave_speed_m_s
+        J_rel = np.array([e.J_per_pa for e in material.elements]) * creep_scale(self.rig, a)
+        tau = np.array([e.tau_s for e in material.elements])
+        return self.head_params(a, J_rel, tau)
+
+
+def valve_head(t_s, rig: Rig, material: Material, *, band_hz: float | str | None = None) -> np.ndarray:
+    """Head perturbation at the valve (m above the steady head) on the grid t_s (s from the trigger).
+
+    Full band by default: this is the reference used to synthesise runs.
+    """
+    return ValveHeadModel(rig, t_s, band_hz=band_hz).head(material)
