@@ -1,0 +1,1 @@
+"""Subcommands of the velab CLI that belong to the application core."""
