@@ -479,3 +479,22 @@ def load_material_doc(path: Path, doc: dict) -> Material:
         else:
             raise r.fail(where.strip(), "give either E_pa + eta_pa_s or J_per_pa + tau_s")
     return Material(wave_speed_m_s=top["wave_speed_m_s"], elements=tuple(elements), name=top["name"])
+
+
+def rig_from_dict(d: dict) -> Rig:
+    """Inverse of :meth:`Rig.to_dict` (run files store the rig as JSON)."""
+    try:
+        return Rig(
+            name=d["name"],
+            pipe=Pipe(**d["pipe"]),
+            fluid=Fluid(**d["fluid"]),
+            steady_flow_m3_s=float(d["steady_flow_m3_s"]),
+            reservoir_head_m=float(d["reservoir_head_m"]),
+            manoeuvre=Manoeuvre(**d["manoeuvre"]),
+            transducer=Transducer(**d["transducer"]),
+            nominal_wave_speed_m_s=float(d["nominal_wave_speed_m_s"]),
+            friction=d.get("friction", "blasius"),
+            source=d.get("source", ""),
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ConfigError(f"rig description: invalid or incomplete ({exc})") from None

@@ -1,0 +1,53 @@
+"""``velab import``: an archived CSV record into a run file."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from velab.commands.common import prepare_output
+from velab.config import load_rig
+from velab.csvimport import PRESSURE_UNITS, read_csv_record
+from velab.runfile import write_run
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "import",
+        help="import an archived CSV record (time, pressure) as a run file",
+        description="Import a CSV with a header row: time in s, and pressure head in m or gauge pressure in "
+        "Pa, kPa or bar (--units; converted with rho g of the rig's fluid). The trigger instant is given by "
+        "--trigger (default t = 0); the steady head is the mean before it.",
+    )
+    p.add_argument("csv", help="CSV file")
+    p.add_argument("--rig", required=True, help="rig name or TOML file describing the pipe the record comes from")
+    p.add_argument("--units", choices=list(PRESSURE_UNITS), default="m", help="pressure column units (default m of head)")
+    p.add_argument("--trigger", type=float, default=0.0, help="trigger instant on the file's time axis, s (default 0)")
+    p.add_argument("--time-column", help="name of the time column (default: the first)")
+    p.add_argument("--value-column", help="name of the pressure column (default: the second)")
+    p.add_argument("--title", help="run title (default: the CSV file name)")
+    p.add_argument("-o", "--output", required=True, help="run file to write (.h5)")
+    p.add_argument("--force", action="store_true", help="replace an existing output file")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    rig = load_rig(args.rig)
+    out = prepare_output(args.output, args.force)
+    rec = read_csv_record(args.csv, rig, units=args.units, time_column=args.time_column, value_column=args.value_column)
+    t = rec.time_s - args.trigger
+    if not (t[0] <= 0 <= t[-1]):
+        from velab.errors import DataError
+
+        raise DataError(f"--trigger {args.trigger:g} s is outside the record ({rec.time_s[0]:g} .. {rec.time_s[-1]:g} s)")
+    write_run(
+        out, rig, t, rec.head_m, status="imported", title=args.title or Path(args.csv).name,
+        sample_rate_hz=rec.sample_rate_hz,
+        source={"kind": "csv", "file": str(Path(args.csv).resolve()), "time_column": rec.time_column,
+                "value_column": rec.value_column, "units": rec.units, "trigger_s": args.trigger},
+    )
+    n_pre = int(np.count_nonzero(t < 0))
+    print(f"wrote {out}: {t.size} samples at {rec.sample_rate_hz:g} Hz, {n_pre} before the trigger")
+    return 0
