@@ -1,0 +1,155 @@
+"""Bench configurations: which devices velab talks to, how, and with which profile.
+
+``configs/benches/<name>.toml``::
+
+    name = "simulated rig"
+    simulate = "default"            # optional: sim config that ``--simulate`` starts in-process
+
+    [devices.pressure_adc]
+    kind = "modbus_adc"             # driver registry key (velab.drivers.bench.DRIVERS)
+    profile = "modbus_adc"          # configs/devices/<profile>.toml
+    transport = "tcp"               # "tcp" (host, port) or "rtu" (port = path | socket://host:port)
+    host = "127.0.0.1"
+    port = 15020
+    unit = 1
+    timeout_s = 0.5
+    retries = 2
+    reconnect = true
+    # driver options: word_order = "CDAB", [devices.X.channels.ch0] zero_offset = 150.0 ...
+
+``open_device(bench.devices["flowmeter"])`` builds the bus and the driver. Other
+device kinds (the streaming ADC) add themselves with ``register_driver``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from velab.drivers.base import ProfileError
+
+
+@dataclass(frozen=True)
+class BenchDevice:
+    name: str
+    kind: str
+    profile: str | None
+    settings: dict = field(default_factory=dict)  # everything else of the [devices.X] table
+
+
+@dataclass(frozen=True)
+class Bench:
+    name: str
+    devices: dict
+    simulate: str | None = None
+    path: str = ""
+
+    @classmethod
+    def from_dict(cls, d: dict, path: str = "<bench>") -> "Bench":
+        devs = d.get("devices")
+        if not isinstance(devs, dict) or not devs:
+            raise ProfileError(f"{path}: [devices]: missing or empty")
+        out = {}
+        for name, t in devs.items():
+            if not isinstance(t, dict) or "kind" not in t:
+                raise ProfileError(f"{path}: [devices.{name}] kind: missing key")
+            t = dict(t)
+            kind = t.pop("kind")
+            profile = t.pop("profile", None)
+            out[name] = BenchDevice(name, kind, profile, t)
+        return cls(str(d.get("name", Path(path).stem)), out, d.get("simulate"), str(path))
+
+    def to_dict(self) -> dict:
+        d = {"name": self.name, "devices": {}}
+        if self.simulate:
+            d["simulate"] = self.simulate
+        for n, dev in self.devices.items():
+            d["devices"][n] = {"kind": dev.kind, **({"profile": dev.profile} if dev.profile else {}), **dev.settings}
+        return d
+
+    def of_kind(self, kind: str) -> list[BenchDevice]:
+        return [d for d in self.devices.values() if d.kind == kind]
+
+
+def load_bench(name_or_path: str | os.PathLike) -> Bench:
+    from velab.config import CONFIG_ROOT, read_toml
+    from velab.errors import ConfigError
+
+    p = Path(name_or_path)
+    if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
+        p = Path(CONFIG_ROOT) / "benches" / f"{name_or_path}.toml"
+    try:
+        path, doc = read_toml(p)
+    except ConfigError as exc:
+        raise ProfileError(str(exc)) from None
+    return Bench.from_dict(doc, str(path))
+
+
+# ------------------------------------------------------------------ driver registry
+
+DRIVERS: dict[str, Callable[[BenchDevice, bool], object]] = {}
+_OPTION_KEYS = ("word_order", "channels", "density_kg_m3", "name")
+
+
+def register_driver(kind: str, factory: Callable[[BenchDevice, bool], object]) -> None:
+    """factory(device, connect) -> driver instance."""
+    DRIVERS[kind] = factory
+
+
+def _modbus_factory(cls):
+    def make(dev: BenchDevice, connect: bool = True):
+        from velab.drivers.modbus import BusSettings, open_bus
+        from velab.drivers.profile import load_profile
+
+        profile = load_profile(dev.profile or cls.default_profile)
+        conn = {k: v for k, v in dev.settings.items() if k not in _OPTION_KEYS}
+        conn.setdefault("unit", profile.default_unit)
+        settings = BusSettings.from_dict(conn, f"[devices.{dev.name}]")
+        if settings.extra:
+            raise ProfileError(f"[devices.{dev.name}]: unknown key {sorted(settings.extra)[0]!r}")
+        bus = open_bus(settings, connect=connect, name=f"{dev.name} ({settings.endpoint})")
+        opts = {k: v for k, v in dev.settings.items() if k in _OPTION_KEYS}
+        opts.setdefault("name", dev.name)
+        return cls(bus, profile, unit=settings.unit, **opts)
+
+    return make
+
+
+def open_device(dev: BenchDevice, connect: bool = True):
+    """Build the driver for one bench device (and connect its transport)."""
+    if not DRIVERS:
+        _register_builtin()
+    if dev.kind not in DRIVERS:
+        _try_plugins()
+    try:
+        factory = DRIVERS[dev.kind]
+    except KeyError:
+        raise ProfileError(f"[devices.{dev.name}] kind: unknown device kind {dev.kind!r} "
+                           f"(known: {', '.join(sorted(DRIVERS))})") from None
+    return factory(dev, connect)
+
+
+def _register_builtin() -> None:
+    from velab.drivers.flowmeter import Flowmeter
+    from velab.drivers.modbus_adc import ModbusADC
+    from velab.drivers.valve import ValveActuator
+
+    for cls in (ModbusADC, Flowmeter, ValveActuator):
+        DRIVERS.setdefault(cls.kind, _modbus_factory(cls))
+
+
+def _try_plugins() -> None:
+    """Driver modules owned elsewhere (the serial streaming ADC) register themselves on import."""
+    import importlib
+
+    for mod in ("velab.drivers.streaming_adc",):
+        try:
+            importlib.import_module(mod)
+        except ModuleNotFoundError as exc:
+            if exc.name != mod:
+                raise
+
+
+_register_builtin()

@@ -1,0 +1,273 @@
+"""The whole simulated rig, in-process: one SimulatedRig, every device served on its endpoints.
+
+    with SimulatedBench.from_config("default", ephemeral=True) as sim:
+        sim.endpoints              # [Endpoint(device, kind, transport, address, unit), ...]
+        bench = sim.bench()        # a velab.drivers.bench.Bench pointing at the live endpoints
+        adc = open_device(bench.devices["pressure_adc"])
+        sim.rig                    # the SimulatedRig (state, trigger_time, faults)
+        sim.faults["flowmeter"]    # DeviceFaults of one device (protocol faults)
+
+Sim config (``configs/sim/<name>.toml``)::
+
+    rig = "perugia"
+    material = "A"
+    seed = 0
+    clock = "realtime"            # or "manual" (tests)
+    host = "127.0.0.1"
+    [model]                       # SimulatedRig keyword arguments
+    pressure_noise_fs = 2e-4
+    [devices.<name>]
+    kind = "flowmeter"            # a key of SIM_DEVICES
+    unit = 2
+    endpoints = [{ transport = "rtu-pty", link = "/tmp/velab-sim/flowmeter", baudrate = 19200 },
+                 { transport = "rtu-socket", port = 15023 }, { transport = "tcp", port = 15022 }]
+    [faults.<device name>] / [faults.rig]   # see velab.simulators.faults
+
+Device kinds are a registry (``register_sim_device``): the streaming-ADC simulator
+adds ``kind = "streaming_adc"`` by registering a factory
+``factory(name, rig, cfg: dict, host: str) -> handle`` where the handle has
+``start() -> list[Endpoint]``, ``stop()`` and ``faults``; the module
+``velab.simulators.streaming_adc`` is imported (if present) before the config is read.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from velab.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    device: str
+    kind: str
+    transport: str  # "tcp" | "rtu-socket" | "rtu-pty" | other kinds' own
+    address: str  # tcp://host:port, socket://host:port, /dev/pts/N
+    unit: int | None = None
+    port: int | None = None
+    link: str | None = None  # stable symlink to a pty path
+    baudrate: int | None = None
+
+    def bench_settings(self) -> dict:
+        """The [devices.X] connection keys that reach this endpoint."""
+        if self.transport == "tcp":
+            return {"transport": "tcp", "host": self.address.split("//")[1].rsplit(":", 1)[0], "port": self.port,
+                    "unit": self.unit}
+        return {"transport": "rtu", "port": self.link or self.address, "unit": self.unit,
+                "baudrate": self.baudrate or 19200}
+
+
+SIM_DEVICES: dict[str, Callable] = {}
+
+
+def register_sim_device(kind: str, factory: Callable) -> None:
+    """factory(name, rig, cfg, host) -> handle with start() -> list[Endpoint], stop(), faults."""
+    SIM_DEVICES[kind] = factory
+
+
+class ModbusSimHandle:
+    """One simulated Modbus device served on one or more endpoints."""
+
+    def __init__(self, name: str, device, endpoints_cfg: list[dict], host: str):
+        from velab.simulators.modbus_server import ModbusDeviceServer
+        from velab.simulators.pty_bridge import PtyPair
+
+        self.name, self.device, self.host = name, device, host
+        self.faults = device.faults
+        self.servers: list = []
+        self.ptys: list = []
+        self._links: list[str] = []
+        self._cfg = endpoints_cfg
+        self._Server, self._Pty = ModbusDeviceServer, PtyPair
+
+    def start(self) -> list[Endpoint]:
+        eps = []
+        for ep in self._cfg:
+            tr = ep.get("transport", "tcp")
+            baud = int(ep.get("baudrate", 19200))
+            if tr == "tcp" or tr == "rtu-socket":
+                srv = self._Server(self.device, tr, host=self.host, port=int(ep.get("port", 0)), baudrate=baud,
+                                   wire_delay=bool(ep.get("wire_delay", False))).start()
+                self.servers.append(srv)
+                eps.append(Endpoint(self.name, self.device.kind, tr, srv.endpoint, self.device.unit, srv.port,
+                                    baudrate=baud if tr != "tcp" else None))
+            elif tr == "rtu-pty":
+                pair = self._Pty(baudrate=baud if ep.get("wire_delay", False) else None).start()
+                self.ptys.append(pair)
+                srv = self._Server(self.device, "rtu", serial_path=pair.device_path, baudrate=baud).start()
+                self.servers.append(srv)
+                link = ep.get("link")
+                if link:
+                    Path(link).parent.mkdir(parents=True, exist_ok=True)
+                    if os.path.islink(link):
+                        os.unlink(link)
+                    os.symlink(pair.host_path, link)
+                    self._links.append(link)
+                eps.append(Endpoint(self.name, self.device.kind, tr, pair.host_path, self.device.unit,
+                                    link=link, baudrate=baud))
+            else:
+                raise ConfigError(f"[devices.{self.name}] endpoints: unknown transport {tr!r} "
+                                  f"(tcp, rtu-socket, rtu-pty)")
+        return eps
+
+    def stop(self) -> None:
+        for s in self.servers:
+            s.stop()
+        for p in self.ptys:
+            p.stop()
+        for link in self._links:
+            try:
+                if os.path.islink(link):
+                    os.unlink(link)
+            except OSError:
+                pass
+        self.servers, self.ptys, self._links = [], [], []
+
+    def disconnect(self) -> None:
+        for s in self.servers:
+            s.disconnect()
+
+    def reconnect(self) -> None:
+        for s in self.servers:
+            s.reconnect()
+
+
+_DEVICE_KEYS = {"kind", "profile", "unit", "word_order", "endpoints", "sample_rate_hz", "buffer_channels"}
+
+
+def _modbus_factory(cls_path: str):
+    def make(name, rig, cfg, host):
+        mod, cls = cls_path.rsplit(".", 1)
+        Cls = getattr(importlib.import_module(mod), cls)
+        unknown = sorted(set(cfg) - _DEVICE_KEYS)
+        if unknown:
+            raise ConfigError(f"[devices.{name}] {unknown[0]}: unknown key (known: {', '.join(sorted(_DEVICE_KEYS))})")
+        kw = {}
+        if Cls.kind == "modbus_adc":
+            kw = {k: cfg[k] for k in ("sample_rate_hz", "buffer_channels") if k in cfg}
+        dev = Cls(name, rig, cfg.get("profile") or Cls.__init__.__defaults__[0], cfg.get("unit"),
+                  cfg.get("word_order"), **kw)
+        return ModbusSimHandle(name, dev, cfg.get("endpoints") or [{"transport": "tcp", "port": 0}], host)
+
+    return make
+
+
+register_sim_device("modbus_adc", _modbus_factory("velab.simulators.modbus_devices.SimModbusADC"))
+register_sim_device("flowmeter", _modbus_factory("velab.simulators.modbus_devices.SimFlowmeter"))
+register_sim_device("valve_actuator", _modbus_factory("velab.simulators.modbus_devices.SimValveActuator"))
+
+
+def _load_plugins() -> None:
+    for mod in ("velab.simulators.streaming_adc",):
+        try:
+            importlib.import_module(mod)
+        except ModuleNotFoundError as exc:
+            if exc.name != mod:
+                raise
+
+
+def load_sim_config(name_or_path) -> tuple[Path, dict]:
+    from velab.config import CONFIG_ROOT, read_toml
+
+    p = Path(name_or_path)
+    if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
+        p = Path(CONFIG_ROOT) / "sim" / f"{name_or_path}.toml"
+    return read_toml(p)
+
+
+class SimulatedBench:
+    """Start every simulated device of a sim config in-process; a context manager."""
+
+    def __init__(self, config: dict, *, ephemeral: bool = False, clock=None, host: str | None = None,
+                 path: str = "<sim config>"):
+        from velab.config import load_material, load_rig
+        from velab.simulators.clock import make_clock
+        from velab.simulators.faults import FaultPlan
+        from velab.simulators.rig import SimulatedRig
+
+        _load_plugins()
+        self.config = config
+        self.path = path
+        known = {"name", "description", "rig", "material", "seed", "clock", "host", "model", "devices", "faults"}
+        unknown = sorted(set(config) - known)
+        if unknown:
+            raise ConfigError(f"{path}: {unknown[0]}: unknown key (known: {', '.join(sorted(known))})")
+        self.host = host or config.get("host", "127.0.0.1")
+        self.clock = clock or make_clock(config.get("clock", "realtime"))
+        self.rig = SimulatedRig(load_rig(config.get("rig", "perugia")), load_material(config.get("material", "A")),
+                                self.clock, seed=int(config.get("seed", 0)), **config.get("model", {}))
+        self.handles: dict[str, object] = {}
+        devices = config.get("devices") or {}
+        if not devices:
+            raise ConfigError(f"{path}: [devices]: no simulated devices")
+        for name, cfg in devices.items():
+            cfg = dict(cfg)
+            kind = cfg.get("kind")
+            if kind not in SIM_DEVICES:
+                raise ConfigError(f"{path}: [devices.{name}] kind: unknown simulated device kind {kind!r} "
+                                  f"(known: {', '.join(sorted(SIM_DEVICES))})")
+            if ephemeral:
+                cfg["endpoints"] = [{**e, "port": 0, "link": None} for e in cfg.get("endpoints", [{"transport": "tcp"}])]
+            self.handles[name] = SIM_DEVICES[kind](name, self.rig, cfg, self.host)
+        self.faults = {n: h.faults for n, h in self.handles.items()}
+        self.plan = FaultPlan.from_dict(config.get("faults"), f"{path}: [faults]")
+        self.plan.apply(self.rig, self.faults)
+        self.endpoints: list[Endpoint] = []
+
+    @classmethod
+    def from_config(cls, name_or_path="default", **kw) -> "SimulatedBench":
+        path, doc = load_sim_config(name_or_path)
+        return cls(doc, path=str(path), **kw)
+
+    def start(self) -> "SimulatedBench":
+        try:
+            for h in self.handles.values():
+                self.endpoints.extend(h.start())
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def stop(self) -> None:
+        for h in self.handles.values():
+            h.stop()
+
+    def __enter__(self) -> "SimulatedBench":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def endpoint(self, device: str, transport: str | None = None) -> Endpoint:
+        for e in self.endpoints:
+            if e.device == device and (transport is None or e.transport == transport):
+                return e
+        raise KeyError(f"no endpoint for {device!r} over {transport or 'any transport'}")
+
+    def bench(self, prefer: tuple[str, ...] | None = None, **device_options):
+        """A velab Bench whose devices point at this simulation's live endpoints.
+
+        Each device uses its first endpoint in config order, or the first of ``prefer``
+        (e.g. ("rtu-pty", "tcp")) it has; ``device_options[name]`` adds/overrides keys.
+        """
+        from velab.drivers.bench import Bench, BenchDevice
+
+        devices = {}
+        for name, h in self.handles.items():
+            eps = [e for e in self.endpoints if e.device == name]
+            if prefer:
+                eps.sort(key=lambda e: prefer.index(e.transport) if e.transport in prefer else len(prefer))
+            if not eps:
+                continue
+            dev = getattr(h, "device", None)
+            profile = dev.profile.path if dev is not None else None
+            settings = eps[0].bench_settings()
+            if dev is not None and getattr(dev, "profile", None) is not None:
+                settings["word_order"] = dev.profile.word_order.value
+            settings.update(device_options.get(name, {}))
+            devices[name] = BenchDevice(name, eps[0].kind, profile, settings)
+        return Bench(f"simulated ({self.path})", devices, path=self.path)

@@ -1,0 +1,182 @@
+"""The simulators' Modbus server layer: the only simulator module that imports pymodbus.
+
+``ModbusDeviceServer`` serves one simulated device (anything with ``layout()``,
+``read(address, count)``, ``write(address, values)``, ``unit`` and ``faults``) on one
+endpoint, in a daemon thread with its own asyncio loop:
+
+* ``transport="tcp"``: Modbus TCP on host:port (port 0 = ephemeral);
+* ``transport="rtu-socket"``: RTU framing over a TCP listener, reached with
+  ``socket://host:port`` (pyserial URL);
+* ``transport="rtu"``: RTU on a serial device path, e.g. the device end of a
+  :class:`velab.simulators.pty_bridge.PtyPair`.
+
+Register values are produced at request time by the device's ``read`` (no updater
+thread). Faults (``DeviceFaults``) act here: reply delay and exception replies in
+the pymodbus ``action`` callback, corrupted / garbled / missing replies in
+``trace_packet``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import threading
+
+from pymodbus.constants import ExcCodes
+from pymodbus.framer import FramerType
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+log = logging.getLogger(__name__)
+
+# pymodbus logs every garbled frame at ERROR level; fault-injection tests make many.
+logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+
+class ModbusDeviceServer:
+    def __init__(self, device, transport: str = "tcp", *, host: str = "127.0.0.1", port: int = 0,
+                 serial_path: str | None = None, baudrate: int = 19200, wire_delay: bool = False):
+        if transport not in ("tcp", "rtu-socket", "rtu"):
+            raise ValueError(f"transport must be tcp, rtu-socket or rtu, got {transport!r}")
+        if transport == "rtu" and not serial_path:
+            raise ValueError("transport 'rtu' needs serial_path")
+        self.device = device
+        self.transport = transport
+        self.host = host
+        self.port = port
+        self.serial_path = serial_path
+        self.baudrate = baudrate
+        self.wire_delay = wire_delay
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._server = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._fault_now = False
+        self.requests = 0
+
+    # ------------------------------------------------------------ endpoint
+    @property
+    def endpoint(self) -> str:
+        if self.transport == "tcp":
+            return f"tcp://{self.host}:{self.port}"
+        if self.transport == "rtu-socket":
+            return f"socket://{self.host}:{self.port}"
+        return self.serial_path
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    # ------------------------------------------------------------ pymodbus glue
+    def _sim_device(self) -> SimDevice:
+        blocks = [SimData(addr, count=n, values=0, datatype=DataType.REGISTERS) for addr, n in self.device.layout()]
+        return SimDevice(id=self.device.unit, simdata=blocks, action=self._action)
+
+    async def _action(self, fc, start, address, count, registers, values):
+        self.requests += 1
+        faults = self.device.faults
+        if self._fault_now:
+            if faults.delay_s:
+                await asyncio.sleep(faults.delay_s)
+            if faults.exception_code:
+                return ExcCodes(faults.exception_code)
+        if self.wire_delay and self.transport != "tcp":
+            # request + reply bytes on the wire (the pty bridge can do this instead)
+            n_bytes = 8 + (5 + 2 * count if values is None else 8 + 2 * len(values))
+            await asyncio.sleep(n_bytes * 10.0 / self.baudrate)
+        try:
+            if values:
+                code = self.device.write(address, list(values))
+                return ExcCodes(code) if code else None
+            live = self.device.read(address, count)
+        except Exception:  # noqa: BLE001 - a simulator bug must show, as a device failure reply
+            log.exception("simulated device %s failed", getattr(self.device, "name", "?"))
+            return ExcCodes.DEVICE_FAILURE
+        off = address - start
+        registers[off:off + count] = [int(v) & 0xFFFF for v in live]
+        return None
+
+    def _trace_packet(self, sending: bool, data: bytes) -> bytes:
+        faults = self.device.faults
+        if not sending:
+            self._fault_now = faults.consume()
+            return data
+        if not self._fault_now:
+            return data
+        if faults.silent:
+            return b""
+        if faults.garble:
+            return bytes((b ^ 0x5A) for b in data)
+        if faults.corrupt_crc and data:
+            return data[:-1] + bytes([data[-1] ^ 0xFF])
+        return data
+
+    async def _main(self) -> None:
+        kw = dict(trace_packet=self._trace_packet)
+        try:
+            if self.transport == "tcp":
+                self._server = ModbusTcpServer(self._sim_device(), address=(self.host, self.port), **kw)
+            elif self.transport == "rtu-socket":
+                self._server = ModbusSerialServer(self._sim_device(), framer=FramerType.RTU,
+                                                  port=f"socket://{self.host}:{self.port}", baudrate=self.baudrate, **kw)
+            else:
+                self._server = ModbusSerialServer(self._sim_device(), framer=FramerType.RTU,
+                                                  port=self.serial_path, baudrate=self.baudrate, **kw)
+            await self._server.serve_forever(background=True)
+            if self.transport != "rtu":
+                self.port = self._server.transport.sockets[0].getsockname()[1]
+        except BaseException as exc:  # noqa: BLE001 - reported to start()
+            self._error = exc
+            self._ready.set()
+            return
+        self._ready.set()
+        await self._server.serving
+
+    def _run(self) -> None:
+        self._loop = asyncio.new_event_loop()
+        try:
+            self._loop.run_until_complete(self._main())
+        finally:
+            self._loop.close()
+
+    # ------------------------------------------------------------ lifecycle
+    def start(self, timeout_s: float = 5.0) -> "ModbusDeviceServer":
+        if self.running:
+            return self
+        self._ready.clear()
+        self._error = None
+        self._thread = threading.Thread(target=self._run, name=f"modbus-sim-{self.endpoint}", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(timeout_s):
+            raise RuntimeError(f"simulated device server {self.endpoint} did not start within {timeout_s} s")
+        if self._error is not None:
+            self._thread.join(1.0)
+            raise RuntimeError(f"cannot start simulated device server on {self.endpoint}: {self._error}") from self._error
+        return self
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        if not self.running or self._loop is None:
+            return
+        fut = asyncio.run_coroutine_threadsafe(self._server.shutdown(), self._loop)
+        try:
+            fut.result(timeout_s)
+        except Exception:  # noqa: BLE001 - shutting down anyway
+            pass
+        self._thread.join(timeout_s)
+        self._thread = None
+
+    def disconnect(self) -> None:
+        """Drop every client and stop listening (a device power-cycling or a cable pulled)."""
+        self.stop()
+
+    def reconnect(self) -> None:
+        """Listen again on the same endpoint."""
+        self.start()
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()

@@ -1,0 +1,415 @@
+"""ONE physical model of the whole simulated rig: reservoir - HDPE pipe - butterfly valve.
+
+Every simulated device (Modbus ADC, flowmeter, valve actuator, the colleague's
+streaming ADC) samples this object; none has physics of its own.
+
+* Before the trigger: steady flow Q0, head ``rig.steady_head_m`` at the transducer.
+* The valve runs the commanded sigmoid, as an *effective opening* (linear valve
+  characteristic: Q = Q0 * opening / 100)::
+
+      opening(tau) = end + (100 - end) / (1 + exp(beta tau + gamma)),   tau = t - trigger_time
+
+  With end = 0 the flow is exactly velab's sigmoid Q0 / (1 + exp(beta tau + gamma)).
+* The head after the trigger is ``rig.steady_head_m + h(tau)``, h from velab's own
+  frequency-domain model (``velab.model.ValveHeadModel``) for the commanded
+  manoeuvre, computed once per arm/hold on a fine grid and interpolated.
+* Transducer: gauge pressure = head * rho * g, 4-20 mA over 0..full scale, plus
+  Gaussian noise that is a deterministic function of (seed, channel, time), so any
+  two devices sampling the same instant see the same value.
+
+Times are seconds on the clock's axis (``clock.now()``). Thread-safe: device
+servers run in their own threads.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from velab.config import GRAVITY_M_S2, Manoeuvre, Material, Rig
+from velab.model import ValveHeadModel
+
+N_ANALOG = 4  # ch0 pressure, ch1 valve position, ch2-3 spare
+
+
+class ValveState(enum.IntEnum):
+    IDLE = 0
+    ARMED = 1
+    RUNNING = 2
+    DONE = 3
+    HOLDING = 4
+    ABORTED = 5
+    FAULT = 6
+
+
+# fault bits of the actuator (shared with the actuator simulator and driver profile)
+FAULT_FOLLOWING_ERROR = 0x01
+FAULT_DRIVE = 0x02
+FAULT_SUPPLY_PRESSURE = 0x04
+FAULT_PARAMETERS = 0x10
+
+
+class CommandRefused(Exception):
+    """A valve command not allowed in the current state (the actuator answers a Modbus exception)."""
+
+    def __init__(self, message: str, code: int = 3):
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass
+class RigFaults:
+    """Model-level faults (the protocol-level ones are in simulators.faults.DeviceFaults).
+
+    stuck_channels : analog channel -> time from which it holds its value (stuck sensor)
+    channel_mA : analog channel -> forced loop current (out of range: 22.0; open loop: 0.0; NaN)
+    flow_nan : the flowmeter reports NaN
+    flow_value : the flowmeter reports this value (out of range)
+    flow_stuck_at : the flowmeter freezes at its value at this time
+    flow_alarm_bits : alarm bits the flowmeter raises (bit0 empty pipe ...)
+    valve_fault_after_s : the valve seizes this long after the trigger; state FAULT
+    valve_fault_bits : fault bits then reported
+    """
+
+    stuck_channels: dict = field(default_factory=dict)
+    channel_mA: dict = field(default_factory=dict)
+    flow_nan: bool = False
+    flow_value: float | None = None
+    flow_stuck_at: float | None = None
+    flow_alarm_bits: int = 0
+    valve_fault_after_s: float | None = None
+    valve_fault_bits: int = FAULT_FOLLOWING_ERROR
+
+    def clear(self) -> None:
+        self.__init__()
+
+
+@dataclass(frozen=True)
+class _Transient:
+    """One triggered manoeuvre: opening and head on a fine grid of tau."""
+
+    trigger_time: float
+    beta: float
+    gamma: float
+    end_pct: float
+    dt: float
+    opening: np.ndarray  # % open on the grid
+    head: np.ndarray  # head perturbation (m) on the grid
+    volume: np.ndarray  # integral of Q from the trigger (m3) on the grid
+    freeze_tau: float | None  # hold / seizure instant (opening frozen after it)
+    done_tau: float  # opening within 0.1 % of the end: state DONE
+
+
+def _splitmix64(x: np.ndarray) -> np.ndarray:
+    with np.errstate(over="ignore"):
+        x = x + np.uint64(0x9E3779B97F4A7C15)
+        x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        return x ^ (x >> np.uint64(31))
+
+
+def hashed_normal(seed: int, stream: int, t: np.ndarray) -> np.ndarray:
+    """Standard normal noise, a pure function of (seed, stream, t rounded to 1 us)."""
+    idx = np.round(np.asarray(t, dtype=float) * 1e6).astype(np.int64).astype(np.uint64)
+    with np.errstate(over="ignore"):
+        key = idx * np.uint64(0x100000001B3) + np.uint64((seed * 1_000_003 + stream * 7919) & 0xFFFFFFFFFFFF)
+    h = _splitmix64(key)
+    u1 = ((h >> np.uint64(40)).astype(np.float64) + 0.5) / 2.0**24
+    u2 = ((h & np.uint64(0xFFFFFF)).astype(np.float64) + 0.5) / 2.0**24
+    return np.sqrt(-2.0 * np.log(u1)) * np.cos(2 * np.pi * u2)
+
+
+class SimulatedRig:
+    """The whole rig's physics, sampled by every simulated device.
+
+    Parameters
+    ----------
+    rig, material : velab configuration (``load_rig("perugia")``, ``load_material("A")``).
+    clock : a ``velab.simulators.clock`` clock; all times are on its axis.
+    seed : noise seed.
+    pressure_noise_fs : transducer noise, standard deviation as a fraction of full scale.
+    flow_noise_rel : flowmeter noise, relative standard deviation.
+    flow_update_s : flowmeter refresh period (MAG 6000: 0.5 s).
+    grid_dt_s, transient_s : grid of the precomputed transient.
+    """
+
+    def __init__(self, rig: Rig, material: Material, clock, seed: int = 0, *,
+                 pressure_noise_fs: float = 2e-4, position_noise_pct: float = 0.02,
+                 flow_noise_rel: float = 2e-3, flow_update_s: float = 0.5,
+                 grid_dt_s: float = 2e-4, transient_s: float = 20.0):
+        self.rig = rig
+        self.material = material
+        self.clock = clock
+        self.seed = int(seed)
+        self.pressure_noise_fs = pressure_noise_fs
+        self.position_noise_pct = position_noise_pct
+        self.flow_noise_rel = flow_noise_rel
+        self.flow_update_s = flow_update_s
+        self.grid_dt_s = grid_dt_s
+        self.transient_s = transient_s
+        self.faults = RigFaults()
+        self._lock = threading.RLock()
+        m = rig.manoeuvre
+        self._beta, self._gamma, self._end = m.beta_per_s, m.gamma, 0.0
+        self._state = ValveState.IDLE
+        self._armed: _Transient | None = None
+        self._tr: _Transient | None = None
+        self._stopped_state: ValveState | None = None  # HOLDING / ABORTED set by command
+        self._vol_base = 0.0
+        self._t_base = clock.now()
+        self._trigger_count = 0
+        self._fault_bits_latched = 0
+
+    # ------------------------------------------------------------ derived constants
+    @property
+    def rho_g(self) -> float:
+        return self.rig.fluid.density_kg_m3 * GRAVITY_M_S2
+
+    @property
+    def full_scale_pa(self) -> float:
+        return self.rig.transducer.full_scale_pa
+
+    @property
+    def trigger_time(self) -> float | None:
+        tr = self._tr
+        return None if tr is None else tr.trigger_time
+
+    @property
+    def trigger_count(self) -> int:
+        return self._trigger_count
+
+    @property
+    def manoeuvre(self) -> tuple[float, float, float]:
+        """(beta 1/s, gamma, end position % open) currently commanded."""
+        return self._beta, self._gamma, self._end
+
+    # ------------------------------------------------------------ valve commands
+    def set_manoeuvre(self, beta_per_s: float, gamma: float, end_position_pct: float = 0.0) -> None:
+        with self._lock:
+            if self.state() not in (ValveState.IDLE, ValveState.DONE, ValveState.ABORTED):
+                raise CommandRefused(f"manoeuvre cannot change while {self.state().name}", code=6)
+            if not (beta_per_s > 0 and math.isfinite(beta_per_s) and math.isfinite(gamma)
+                    and 0.0 <= end_position_pct <= 100.0):
+                raise CommandRefused(f"invalid manoeuvre beta={beta_per_s} gamma={gamma} end={end_position_pct}")
+            self._beta, self._gamma, self._end = float(beta_per_s), float(gamma), float(end_position_pct)
+
+    def arm(self) -> None:
+        """Precompute the transient of the commanded manoeuvre (so the trigger is instant)."""
+        with self._lock:
+            st = self.state()
+            if st is ValveState.FAULT:
+                raise CommandRefused("actuator in FAULT: reset first", code=4)
+            if st not in (ValveState.IDLE, ValveState.ARMED):
+                raise CommandRefused(f"cannot arm while {st.name} (reset first)")
+            fault_tau = self.faults.valve_fault_after_s
+            self._armed = self._compute(0.0, self._beta, self._gamma, self._end, freeze_tau=fault_tau)
+            self._state = ValveState.ARMED
+
+    def trigger(self, at: float | None = None) -> float:
+        with self._lock:
+            if self.state() is not ValveState.ARMED or self._armed is None:
+                raise CommandRefused(f"cannot trigger while {self.state().name} (arm first)")
+            t = self.clock.now() if at is None else float(at)
+            a = self._armed
+            self._tr = _Transient(t, a.beta, a.gamma, a.end_pct, a.dt, a.opening, a.head, a.volume, a.freeze_tau, a.done_tau)
+            self._armed = None
+            self._state = ValveState.RUNNING
+            self._stopped_state = None
+            self._trigger_count += 1
+            return t
+
+    def hold(self, at: float | None = None) -> None:
+        """Freeze the valve where it is (HOLDING); the transient follows the frozen opening."""
+        self._stop(ValveState.HOLDING, at)
+
+    def abort(self, at: float | None = None) -> None:
+        """Cancel an armed manoeuvre, or stop a running one where it is (ABORTED)."""
+        with self._lock:
+            if self.state() is ValveState.ARMED:
+                self._armed = None
+                self._state = ValveState.ABORTED
+                self._stopped_state = None
+                return
+        self._stop(ValveState.ABORTED, at)
+
+    def _stop(self, new_state: ValveState, at: float | None) -> None:
+        with self._lock:
+            st = self.state()
+            if st is not ValveState.RUNNING:
+                if st in (ValveState.HOLDING, ValveState.ABORTED) and new_state is ValveState.ABORTED:
+                    self._stopped_state = ValveState.ABORTED
+                    return
+                raise CommandRefused(f"no running manoeuvre to stop ({new_state.name}) while {st.name}")
+            tr = self._tr
+            t = self.clock.now() if at is None else float(at)
+            tau = max(0.0, t - tr.trigger_time)
+            if tr.freeze_tau is None or tau < tr.freeze_tau:
+                new = self._compute(tr.trigger_time, tr.beta, tr.gamma, tr.end_pct, freeze_tau=tau)
+                self._tr = new
+            self._stopped_state = new_state
+
+    def reset(self) -> None:
+        """Back to steady state, valve open (the operator re-opened it and waited; a simplification)."""
+        with self._lock:
+            now = self.clock.now()
+            self._vol_base = self.totalizer_m3(now)
+            self._t_base = now
+            self._tr = None
+            self._armed = None
+            self._stopped_state = None
+            self._state = ValveState.IDLE
+            self.faults.valve_fault_after_s = None
+
+    def state(self, t: float | None = None) -> ValveState:
+        """The valve state at time t (default now)."""
+        with self._lock:
+            if self._tr is None:
+                return self._state
+            tr = self._tr
+            t = self.clock.now() if t is None else t
+            tau = t - tr.trigger_time
+            fault_tau = self.faults.valve_fault_after_s
+            if fault_tau is not None and tr.freeze_tau is not None and tau >= tr.freeze_tau and \
+                    abs(tr.freeze_tau - fault_tau) < 1e-12:
+                return ValveState.FAULT
+            if self._stopped_state is not None:
+                return self._stopped_state
+            return ValveState.DONE if tau >= tr.done_tau else ValveState.RUNNING
+
+    def fault_bits(self, t: float | None = None) -> int:
+        return self.faults.valve_fault_bits if self.state(t) is ValveState.FAULT else 0
+
+    def time_since_trigger(self, t: float | None = None) -> float:
+        tr = self._tr
+        if tr is None:
+            return 0.0
+        return max(0.0, (self.clock.now() if t is None else t) - tr.trigger_time)
+
+    # ------------------------------------------------------------ the transient
+    def _opening(self, tau: np.ndarray, beta, gamma, end, freeze_tau) -> np.ndarray:
+        tau = np.asarray(tau, dtype=float)
+        if freeze_tau is not None:
+            tau = np.minimum(tau, freeze_tau)
+        arg = np.clip(beta * tau + gamma, -700, 700)
+        return end + (100.0 - end) / (1.0 + np.exp(arg))
+
+    def _compute(self, trigger_time, beta, gamma, end, freeze_tau) -> _Transient:
+        dt = self.grid_dt_s
+        tau = np.arange(0.0, self.transient_s + dt / 2, dt)
+        opening = self._opening(tau, beta, gamma, end, freeze_tau)
+        rig_c = self.rig.with_changes(manoeuvre=Manoeuvre(beta_per_s=beta, gamma=gamma))
+        q0 = self.rig.steady_flow_m3_s
+        standard = end == 0.0 and freeze_tau is None
+        flow = None if standard else q0 * opening / 100.0 - q0
+        head = ValveHeadModel(rig_c, tau, flow=flow).head(self.material)
+        qabs = q0 * opening / 100.0
+        volume = np.concatenate([[0.0], np.cumsum(0.5 * (qabs[1:] + qabs[:-1]) * dt)])
+        done_tau = (math.log(999.0) - gamma) / beta
+        return _Transient(trigger_time, beta, gamma, end, dt, opening, head, volume, freeze_tau, done_tau)
+
+    def _interp(self, tr: _Transient, arr: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        x = np.clip(tau / tr.dt, 0.0, arr.size - 1.0)
+        i = np.minimum(x.astype(np.int64), arr.size - 2)
+        f = x - i
+        return arr[i] * (1 - f) + arr[i + 1] * f
+
+    # ------------------------------------------------------------ signals (vectorised)
+    def valve_position(self, t) -> np.ndarray:
+        """Valve opening, % (100 = open), without noise."""
+        t = np.asarray(t, dtype=float)
+        tr = self._tr
+        if tr is None:
+            return np.full(t.shape, 100.0)
+        tau = t - tr.trigger_time
+        pos = self._interp(tr, tr.opening, np.maximum(tau, 0.0))
+        return np.where(tau < 0, 100.0, pos)
+
+    def flow_m3_s(self, t) -> np.ndarray:
+        """True flow through the valve (m3/s), without meter noise or refresh."""
+        return self.rig.steady_flow_m3_s * self.valve_position(t) / 100.0
+
+    def head_m(self, t) -> np.ndarray:
+        """Head at the transducer (m), without noise."""
+        t = np.asarray(t, dtype=float)
+        h0 = self.rig.steady_head_m
+        tr = self._tr
+        if tr is None:
+            return np.full(t.shape, h0)
+        tau = t - tr.trigger_time
+        return np.where(tau < 0, h0, h0 + self._interp(tr, tr.head, np.maximum(tau, 0.0)))
+
+    def pressure_pa(self, t) -> np.ndarray:
+        """Gauge pressure at the transducer (Pa), with transducer noise."""
+        t = np.asarray(t, dtype=float)
+        p = self.head_m(t) * self.rho_g
+        if self.pressure_noise_fs:
+            p = p + self.pressure_noise_fs * self.full_scale_pa * hashed_normal(self.seed, 0, t)
+        return p
+
+    def analog_inputs(self, t: np.ndarray) -> np.ndarray:
+        """Loop currents (mA), shape (n, 4), at times t (clock seconds).
+
+        ch0: pressure transducer, 4-20 mA over 0..rig.transducer.full_scale_pa (gauge);
+        ch1: valve position feedback, 4-20 mA over 0..100 % open; ch2, ch3: spare, 4 mA.
+        """
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        out = np.full((t.size, N_ANALOG), 4.0)
+        out[:, 0] = 4.0 + 16.0 * self.pressure_pa(t) / self.full_scale_pa
+        pos = self.valve_position(t)
+        if self.position_noise_pct:  # feedback potentiometer noise; the travel is mechanically limited
+            pos = np.clip(pos + self.position_noise_pct * hashed_normal(self.seed, 1, t), 0.0, 100.0)
+        out[:, 1] = 4.0 + 16.0 * pos / 100.0
+        f = self.faults
+        for ch, t_stuck in list(f.stuck_channels.items()):
+            mask = t >= t_stuck
+            if mask.any():
+                out[mask, ch] = self._channel_value(ch, float(t_stuck))
+        for ch, mA in list(f.channel_mA.items()):
+            out[:, ch] = mA
+        return out
+
+    def _channel_value(self, ch: int, t: float) -> float:
+        saved = self.faults.stuck_channels.pop(ch)
+        try:
+            return float(self.analog_inputs(np.array([t]))[0, ch])
+        finally:
+            self.faults.stuck_channels[ch] = saved
+
+    # ------------------------------------------------------------ flowmeter
+    def flowmeter_update_time(self, t: float) -> float:
+        """The instant of the meter's last refresh at or before t."""
+        return math.floor(t / self.flow_update_s) * self.flow_update_s
+
+    def flowmeter_value(self, t: float) -> float:
+        """What the flowmeter shows at time t: refreshed every flow_update_s, with noise."""
+        f = self.faults
+        if f.flow_nan:
+            return float("nan")
+        if f.flow_value is not None:
+            return float(f.flow_value)
+        tu = self.flowmeter_update_time(t)
+        if f.flow_stuck_at is not None and tu > f.flow_stuck_at:
+            tu = self.flowmeter_update_time(f.flow_stuck_at)
+        q = float(self.flow_m3_s(np.array([tu]))[0])
+        if self.flow_noise_rel:
+            q *= 1.0 + self.flow_noise_rel * float(hashed_normal(self.seed, 2, np.array([tu]))[0])
+        return q
+
+    def totalizer_m3(self, t: float) -> float:
+        """Volume through the meter since the simulation started (m3)."""
+        q0 = self.rig.steady_flow_m3_s
+        tr = self._tr
+        if tr is None or t <= tr.trigger_time:
+            return self._vol_base + q0 * max(0.0, t - self._t_base)
+        before = q0 * max(0.0, tr.trigger_time - self._t_base)
+        tau = t - tr.trigger_time
+        grid_end = (tr.volume.size - 1) * tr.dt
+        if tau <= grid_end:
+            after = float(self._interp(tr, tr.volume, np.array([tau]))[0])
+        else:
+            after = float(tr.volume[-1]) + q0 * tr.opening[-1] / 100.0 * (tau - grid_end)
+        return self._vol_base + before + after
