@@ -171,7 +171,7 @@ class SweepResult:
         lines = [
             f"n = {self.n} samples, window = {self.window_s:g} s from the trigger "
             f"({self.sample_rate_hz:g} Hz), method = {self.method}",
-            f"{'model':<6}{'k':>3}{'F (m^2)':>13}{'AIC':>13}{'AICc':>13}{'BIC':>13}{'dAIC':>9}"
+            f"{'model':<6}{'k':>3}{'F (m^2)':>13}{'AIC':>13}{'AICc':>13}{'BIC':>13}{'dAIC':>10}"
             f"{'weight':>8}  {'support':<18}{'a (m/s)':>9}{'lag1':>7}",
         ]
         best = self.best.name
@@ -179,7 +179,7 @@ class SweepResult:
             mark = "*" if f.name == best else " "
             lines.append(
                 f"{f.name + mark:<6}{f.k:>3}{f.F:>13.6e}{f.aic:>13.2f}{f.aicc:>13.2f}{f.bic:>13.2f}"
-                f"{f.delta_aic:>9.2f}{f.weight:>8.3f}  {f.support:<18}{f.wave_speed_m_s:>9.2f}"
+                f"{f.delta_aic:>10.2f}{f.weight:>8.3f}  {f.support:<18}{f.wave_speed_m_s:>9.2f}"
                 f"{f.lag1_autocorr:>7.3f}"
             )
         lines.append(f"best model (minimum AIC): {best}")
@@ -191,12 +191,12 @@ class SweepResult:
                     lines.append(
                         f"{f.name:<6}{i:>2}{el['E']:>12.4e}{el['eta']:>12.4e}{el['tau']:>11.4g}{el['J']:>12.4e}"
                     )
-        lag = max((abs(f.lag1_autocorr) for f in self.models), default=0.0)
+        lag = self.best.lag1_autocorr
         lines.append("")
         lines.append(
-            "caveat: AIC assumes independent Gaussian residuals; "
-            f"lag-1 autocorrelation of the residuals up to {lag:.2f}"
-            + (" (correlated: AIC over-rewards extra parameters)" if lag > 0.2 else "")
+            f"caveat: AIC assumes independent Gaussian residuals (n = {self.n}); lag-1 autocorrelation of the "
+            f"best model's residuals {lag:.2f}"
+            + (" -- correlated: AIC over-rewards extra parameters" if abs(lag) > 0.2 else "")
         )
         lines.extend(self.notes)
         return "\n".join(lines)

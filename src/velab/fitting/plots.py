@@ -1,0 +1,70 @@
+"""Report figures of a calibration, after the paper's Figures 2-5 (matplotlib, no GUI)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from velab.config import Rig
+from velab.fitting.results import SweepResult
+from velab.model import phi, valve_head
+
+
+def report_figure(t, h, rig: Rig, result: SweepResult, path) -> None:
+    """Write a 2 x 2 figure: measured vs fitted head; delta AIC vs m; J vs tau; |phi(omega)|.
+
+    The format follows the file suffix (.png, .pdf, .svg).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 8), layout="constrained")
+    ax = fig.subplots(2, 2)
+    t = np.asarray(t, dtype=float)
+    h = np.asarray(h, dtype=float)
+    full = [f for f in result.models if not f.reduced]
+    best = result.best
+
+    a0 = ax[0, 0]
+    a0.plot(t, h, color="0.6", lw=0.6, label="measured")
+    for f in full:
+        if f.m in (1, 2, 3) or f is best:
+            a0.plot(t, valve_head(t, rig, f.material()), lw=0.9, label=f"{f.name} (F={f.F:.3g} m²)")
+    a0.set_xlabel("t (s)")
+    a0.set_ylabel("h (m)")
+    a0.set_title("measured and calibrated head")
+    a0.legend(fontsize=7)
+
+    a1 = ax[0, 1]
+    for red, mk in ((False, "o"), (True, "s")):
+        sel = [f for f in result.models if f.reduced == red]
+        if sel:
+            a1.plot([f.m for f in sel], [f.delta_aic for f in sel], mk + "-", label="reduced" if red else "Sm")
+    a1.set_yscale("symlog", linthresh=1.0)
+    a1.axhline(2, color="0.7", ls=":")
+    a1.axhline(10, color="0.7", ls="--")
+    a1.set_xlabel("m (Kelvin-Voigt elements)")
+    a1.set_ylabel("ΔAIC")
+    a1.set_title(f"ΔAIC (n = {result.n}, window {result.window_s:g} s); best {best.name}")
+    a1.legend(fontsize=7)
+
+    a2 = ax[1, 0]
+    for f in full:
+        if f.m:
+            a2.loglog(f.tau_s, f.J_per_pa, "o-", ms=4, label=f.name)
+    a2.set_xlabel("τ (s)")
+    a2.set_ylabel("J (1/Pa)")
+    a2.set_title("calibrated creep elements")
+    a2.legend(fontsize=7)
+
+    a3 = ax[1, 1]
+    omega = 2 * np.pi * np.logspace(-2, 2, 300)
+    for f in full:
+        if f.m:
+            a3.loglog(omega / (2 * np.pi), np.abs(phi(omega, rig, f.material())), label=f.name)
+    a3.set_xlabel("f (Hz)")
+    a3.set_ylabel("|φ(iω)|")
+    a3.set_title("viscoelastic function")
+    a3.legend(fontsize=7)
+    fig.savefig(path)
