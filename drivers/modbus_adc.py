@@ -27,7 +27,8 @@ from velab.drivers.modbus import MAX_READ_REGISTERS
 from velab.drivers.modbus_device import ModbusDevice, RangeError
 
 # quality codes used in SampleBlock.quality
-QUALITY_CODES = (Quality.OK, Quality.OVER_RANGE, Quality.UNDER_RANGE, Quality.OPEN_LOOP, Quality.NAN, Quality.FAULT)
+QUALITY_CODES = (Quality.OK, Quality.OVER_RANGE, Quality.UNDER_RANGE, Quality.OPEN_LOOP, Quality.NAN, Quality.FAULT,
+                 Quality.STALE)
 _QCODE = {q: i for i, q in enumerate(QUALITY_CODES)}
 
 
@@ -95,6 +96,11 @@ class ModbusADC(ModbusDevice):
         self.ai_address = int(pol["ai_address"])
         self.status_address = int(pol["status_address"])
         self.status_bits = {int(k): v for k, v in pol.get("status_bits", {}).items()}
+        # a live transducer's noise moves the last bits: unchanged raw counts mean a stuck sensor
+        self.stale_after_s = float(pol.get("stale_after_s", 2.0))
+        self.stale_samples = int(buf_cfg.get("stale_samples", 200)) if (buf_cfg := p.sections.get("buffer")) else 200
+        self._last_raw: dict[int, tuple[int, float]] = {}
+        self._run: dict[int, tuple[int, int]] = {}  # channel -> (raw value, run length) across blocks
         buf = p.section("buffer")
         self.ring_address = int(buf["ring_address"])
         self.ring_registers = int(buf["ring_registers"])
@@ -146,8 +152,13 @@ class ModbusADC(ModbusDevice):
         for c in self.channels:
             bits = (status[2 * c.index] << 16) | status[2 * c.index + 1]
             signal = float(c.signal(raw[c.index]))
-            out[c.name] = Reading(c.calibration.value(signal), c.calibration.units, ts,
-                                  self._status_quality(bits, c, signal), raw=raw[c.index])
+            q = self._status_quality(bits, c, signal)
+            last = self._last_raw.get(c.index)
+            if last is None or last[0] != raw[c.index]:
+                self._last_raw[c.index] = (raw[c.index], ts)
+            elif q is Quality.OK and ts - last[1] > self.stale_after_s:
+                q = Quality.STALE
+            out[c.name] = Reading(c.calibration.value(signal), c.calibration.units, ts, q, raw=raw[c.index])
         return out
 
     def _status_quality(self, bits: int, c: Channel, signal: float) -> Quality:
@@ -277,9 +288,27 @@ class ModbusADC(ModbusDevice):
             q[s < cal.signal_lo - cal.range_margin * span] = _QCODE[Quality.UNDER_RANGE]
             if cal.open_loop_below is not None:
                 q[s < cal.open_loop_below] = _QCODE[Quality.OPEN_LOOP]
+            self._flag_stuck(j, raw[:, j], q)
         idx = first + np.arange(raw.shape[0])
         return SampleBlock(first, fs, raw, signal, values, quality, self._t0_host + idx / fs,
                            self._t0_dev + idx / fs, lost, tuple(c.name for c in chans))
+
+    def _flag_stuck(self, ch: int, raw: np.ndarray, q: np.ndarray) -> None:
+        """Runs of identical raw counts longer than stale_samples (across blocks) -> STALE."""
+        if raw.size == 0:
+            return
+        prev_val, prev_len = self._run.get(ch, (None, 0))
+        change = np.flatnonzero(np.diff(raw.astype(np.int64))) + 1
+        starts = np.concatenate([[0], change])
+        ends = np.concatenate([change, [raw.size]])
+        for a, b in zip(starts, ends):
+            carried = prev_len if (a == 0 and raw[0] == prev_val) else 0
+            if carried + (b - a) > self.stale_samples:
+                first = max(a, a + self.stale_samples - carried)
+                q[first:b][q[first:b] == 0] = _QCODE[Quality.STALE]
+        last_start = starts[-1]
+        run = raw.size - last_start + (prev_len if last_start == 0 and raw[0] == prev_val else 0)
+        self._run[ch] = (int(raw[-1]), int(run))
 
     def head_m(self, block: SampleBlock, channel: str = "pressure") -> np.ndarray:
         return pressure_to_head_m(block.column(channel), self.density_kg_m3)

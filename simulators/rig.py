@@ -360,8 +360,8 @@ class SimulatedRig:
         out = np.full((t.size, N_ANALOG), 4.0)
         out[:, 0] = 4.0 + 16.0 * self.pressure_pa(t) / self.full_scale_pa
         pos = self.valve_position(t)
-        if self.position_noise_pct:  # feedback potentiometer noise; the travel is mechanically limited
-            pos = np.clip(pos + self.position_noise_pct * hashed_normal(self.seed, 1, t), 0.0, 100.0)
+        if self.position_noise_pct:  # feedback potentiometer noise
+            pos = pos + self.position_noise_pct * hashed_normal(self.seed, 1, t)
         out[:, 1] = 4.0 + 16.0 * pos / 100.0
         f = self.faults
         for ch, t_stuck in list(f.stuck_channels.items()):

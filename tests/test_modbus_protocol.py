@@ -1,0 +1,179 @@
+"""Byte-exact Modbus frames (PyMeasure expected_protocol style): requests out, replies in, error frames."""
+
+import struct
+
+import pytest
+
+from velab.drivers.base import DeviceDisconnected, DeviceException, DeviceTimeout, ProtocolError
+from velab.drivers.flowmeter import Flowmeter
+from velab.drivers.modbus import ModbusClient, WordOrder, crc16, decode_registers, encode_value
+from velab.drivers.modbus_device import RangeError
+from velab.drivers.testing import ExpectedProtocolTransport, expected_protocol
+from velab.drivers.valve import ValveActuator
+
+
+def rtu(*parts: bytes | int) -> bytes:
+    body = b"".join(bytes([p]) if isinstance(p, int) else p for p in parts)
+    return body + crc16(body)
+
+
+def test_crc_known_vector():
+    # 01 03 00 00 00 01 -> CRC 84 0A (the classic Modbus example)
+    assert crc16(bytes.fromhex("010300000001")) == bytes.fromhex("840a")
+
+
+def test_rtu_read_holding_exact_bytes():
+    req = bytes.fromhex("02030bba0002")
+    reply = rtu(2, 3, 4, bytes.fromhex("406d0000"))
+    with expected_protocol([(req + crc16(req), reply)]) as t:
+        bus = ModbusClient(t, "rtu", unit=2, timeout_s=0.05, retries=0)
+        regs = bus.read_holding(3002, 2)
+    assert regs == [0x406D, 0x0000]
+    assert decode_registers(regs, "float32") == pytest.approx(3.703125)
+
+
+def test_rtu_read_input_and_write_multiple_exact_bytes():
+    read_req = rtu(1, 4, bytes.fromhex("00000003"))
+    read_rep = rtu(1, 4, 6, bytes.fromhex("000100020003"))
+    write_req = rtu(1, 0x10, bytes.fromhex("000a0002"), 4, bytes.fromhex("42000000"))
+    write_rep = rtu(1, 0x10, bytes.fromhex("000a0002"))
+    with expected_protocol([(read_req, read_rep), (write_req, write_rep)]) as t:
+        bus = ModbusClient(t, "rtu", unit=1, timeout_s=0.05, retries=0)
+        assert bus.read_input(0, 3) == [1, 2, 3]
+        bus.write_registers(10, encode_value(32.0, "float32"))
+
+
+def test_tcp_mbap_frames_and_transaction_ids():
+    pairs = []
+    for tid in (1, 2):
+        req = struct.pack(">HHHB", tid, 0, 6, 3) + bytes.fromhex("030014 0005".replace(" ", ""))
+        rep = struct.pack(">HHHB", tid, 0, 13, 3) + bytes([3, 10]) + bytes(10)
+        pairs.append((req, rep))
+    with expected_protocol(pairs) as t:
+        bus = ModbusClient(t, "tcp", unit=3, timeout_s=0.05, retries=0)
+        assert bus.read_holding(20, 5) == [0] * 5
+        assert bus.read_holding(20, 5) == [0] * 5
+
+
+def test_tcp_skips_late_reply_to_an_earlier_request():
+    late = struct.pack(">HHHB", 7, 0, 5, 1) + bytes([3, 2, 0, 9])
+    req = struct.pack(">HHHB", 1, 0, 6, 1) + bytes.fromhex("030000 0001".replace(" ", ""))
+    rep = struct.pack(">HHHB", 1, 0, 5, 1) + bytes([3, 2, 0, 42])
+    with expected_protocol([(req, late + rep)]) as t:
+        assert ModbusClient(t, "tcp", unit=1, timeout_s=0.05, retries=0).read_holding(0, 1) == [42]
+
+
+@pytest.mark.parametrize("code,name", [(2, "illegal data address"), (3, "illegal data value"), (6, "busy")])
+def test_rtu_exception_reply_is_device_exception_not_retried(code, name):
+    req = rtu(2, 3, bytes.fromhex("0bba0002"))
+    with expected_protocol([(req, rtu(2, 0x83, code))]) as t:
+        bus = ModbusClient(t, "rtu", unit=2, timeout_s=0.05, retries=3)
+        with pytest.raises(DeviceException, match=name) as ei:
+            bus.read_holding(3002, 2)
+    assert ei.value.code == code and bus.stats.retries == 0
+
+
+def test_tcp_exception_reply():
+    req = struct.pack(">HHHB", 1, 0, 9, 3) + bytes.fromhex("10000000010200ff")
+    rep = struct.pack(">HHHB", 1, 0, 3, 3) + bytes([0x90, 4])
+    with expected_protocol([(req, rep)]) as t:
+        with pytest.raises(DeviceException, match="exception 4") as ei:
+            ModbusClient(t, "tcp", unit=3, timeout_s=0.05).write_registers(0, [255])
+    assert ei.value.code == 4
+
+
+def test_bad_crc_is_retried_then_protocol_error():
+    req = rtu(2, 3, bytes.fromhex("0bba0002"))
+    good = rtu(2, 3, 4, bytes.fromhex("406d0000"))
+    bad = good[:-1] + bytes([good[-1] ^ 0xFF])
+    with expected_protocol([(req, bad), (req, good)]) as t:
+        bus = ModbusClient(t, "rtu", unit=2, timeout_s=0.05, retries=1)
+        assert bus.read_holding(3002, 2) == [0x406D, 0]
+    assert bus.stats.protocol_errors == 1 and bus.stats.retries == 1
+    with expected_protocol([(req, bad), (req, bad)]) as t:
+        with pytest.raises(ProtocolError, match="CRC error.*after 2 attempts"):
+            ModbusClient(t, "rtu", unit=2, timeout_s=0.05, retries=1).read_holding(3002, 2)
+
+
+def test_silent_device_times_out_within_bound():
+    import time
+
+    req = rtu(2, 3, bytes.fromhex("0bba0002"))
+    with expected_protocol([(req, None), (req, None)]) as t:
+        bus = ModbusClient(t, "rtu", unit=2, timeout_s=0.05, retries=1)
+        t0 = time.monotonic()
+        with pytest.raises(DeviceTimeout, match="no reply"):
+            bus.read_holding(3002, 2)
+        assert time.monotonic() - t0 < 0.5
+    assert bus.stats.timeouts == 2
+
+
+@pytest.mark.parametrize("reply,match", [
+    (rtu(5, 3, 4, bytes(4)), "from unit 5"),
+    (rtu(2, 4, 4, bytes(4)), "function code 4"),
+    (bytes.fromhex("020304406d"), "truncated"),
+])
+def test_malformed_replies_are_protocol_errors(reply, match):
+    req = rtu(2, 3, bytes.fromhex("0bba0002"))
+    with expected_protocol([(req, reply)]) as t:
+        with pytest.raises(ProtocolError, match=match):
+            ModbusClient(t, "rtu", unit=2, timeout_s=0.05, retries=0).read_holding(3002, 2)
+
+
+def test_disconnect_without_reconnect_raises():
+    class Dead(ExpectedProtocolTransport):
+        def write(self, data):
+            self.close()
+            raise DeviceDisconnected("gone")
+
+    t = Dead([])
+    t.open()
+    with pytest.raises(DeviceDisconnected, match="gone"):
+        ModbusClient(t, "rtu", reconnect=False, retries=2).read_holding(0, 1)
+
+
+def test_argument_checks_before_sending():
+    with expected_protocol([]) as t:
+        bus = ModbusClient(t, "rtu")
+        with pytest.raises(ValueError, match="count must be 1..125"):
+            bus.read_holding(0, 126)
+        with pytest.raises(ValueError, match="0..65535"):
+            bus.write_registers(0, [70000])
+
+
+VALUES = {"float32": 3.25, "int32": -123456, "uint32": 0xDEADBEEF, "float64": -1.5e-3, "uint16": 0xBEEF}
+EXPECTED = {  # float32 3.25 = 40 50 00 00
+    WordOrder.ABCD: [0x4050, 0x0000], WordOrder.CDAB: [0x0000, 0x4050],
+    WordOrder.BADC: [0x5040, 0x0000], WordOrder.DCBA: [0x0000, 0x5040],
+}
+
+
+@pytest.mark.parametrize("order", list(WordOrder))
+def test_word_orders(order):
+    assert encode_value(3.25, "float32", order) == EXPECTED[order]
+    assert encode_value(0x11223344, "uint32", order) == {
+        "ABCD": [0x1122, 0x3344], "CDAB": [0x3344, 0x1122], "BADC": [0x2211, 0x4433], "DCBA": [0x4433, 0x2211]}[order.value]
+    for dtype, v in VALUES.items():
+        assert decode_registers(encode_value(v, dtype, order), dtype, order) == pytest.approx(v)
+
+
+def test_flowmeter_cdab_word_order_exact_bytes():
+    req = rtu(2, 3, bytes.fromhex("0bba0002"))
+    alarm_req = rtu(2, 3, bytes.fromhex("0c1c0001"))
+    flow = rtu(2, 3, 4, bytes.fromhex("0000406d"))  # 3.703125 low word first
+    with expected_protocol([(req, flow), (alarm_req, rtu(2, 3, 2, bytes.fromhex("0000")))]) as t:
+        fm = Flowmeter(ModbusClient(t, "rtu", unit=2, timeout_s=0.05), word_order="CDAB")
+        r = fm.read_flow()
+    assert r.value == pytest.approx(3.703125) and r.units == "m3/s" and r.quality.name == "OVER_RANGE"
+
+
+def test_valve_manoeuvre_is_one_write_and_ranges_checked_before_sending():
+    body = encode_value(32.0, "float32") + encode_value(-5.5, "float32") + encode_value(0.0, "float32")
+    req = rtu(3, 0x10, bytes.fromhex("000a0006"), 12, b"".join(struct.pack(">H", w) for w in body))
+    with expected_protocol([(req, rtu(3, 0x10, bytes.fromhex("000a0006")))]) as t:
+        v = ValveActuator(ModbusClient(t, "rtu", unit=3, timeout_s=0.05))
+        v.set_manoeuvre(32.0, -5.5, 0.0)
+        with pytest.raises(RangeError, match="beta.*above the profile maximum"):
+            v.set_manoeuvre(500.0, -5.5)
+        with pytest.raises(RangeError, match="end_position"):
+            v.set_manoeuvre(32.0, -5.5, 120.0)
