@@ -305,7 +305,7 @@ class SimulatedRig:
         q0 = self.rig.steady_flow_m3_s
         standard = end == 0.0 and freeze_tau is None
         flow = None if standard else q0 * opening / 100.0 - q0
-        head = ValveHeadModel(rig_c, tau, flow=flow).head(self.material)
+        head = ValveHeadModel(rig_c, tau, flow=flow, band_hz=None).head(self.material)  # full band, as valve_head
         qabs = q0 * opening / 100.0
         volume = np.concatenate([[0.0], np.cumsum(0.5 * (qabs[1:] + qabs[:-1]) * dt)])
         done_tau = (math.log(999.0) - gamma) / beta

@@ -1,0 +1,107 @@
+"""The one physical model of the simulated rig."""
+
+import numpy as np
+import pytest
+
+from velab.config import Manoeuvre, load_material, load_rig
+from velab.model import valve_head
+from velab.simulators.clock import ManualClock, RealTimeClock
+from velab.simulators.rig import CommandRefused, SimulatedRig, ValveState
+
+
+@pytest.fixture
+def rig():
+    return SimulatedRig(load_rig("perugia"), load_material("A"), ManualClock(), seed=1)
+
+
+def test_steady_state_analog_inputs(rig):
+    t = np.linspace(0, 1, 1000)
+    ai = rig.analog_inputs(t)
+    r = rig.rig
+    assert ai.shape == (1000, 4)
+    p = (ai[:, 0] - 4) / 16 * r.transducer.full_scale_pa
+    assert p.mean() == pytest.approx(r.steady_head_m * r.fluid.density_kg_m3 * 9.81, rel=1e-3)
+    assert p.std() == pytest.approx(2e-4 * 6e5, rel=0.15)
+    assert ai[:, 1].mean() == pytest.approx(20.0, abs=0.01)
+    assert np.all(ai[:, 2:] == 4.0)
+    assert rig.flow_m3_s(t) == pytest.approx(r.steady_flow_m3_s)
+
+
+def test_noise_is_a_function_of_time_not_of_call_order(rig):
+    t = np.array([0.1, 0.2, 0.3])
+    a = rig.analog_inputs(t)
+    rig.analog_inputs(np.linspace(0, 5, 777))
+    assert np.array_equal(rig.analog_inputs(t[::-1])[::-1], a)
+    other = SimulatedRig(rig.rig, rig.material, ManualClock(), seed=2)
+    assert not np.array_equal(other.analog_inputs(t)[:, 0], a[:, 0])
+
+
+def test_transient_is_velab_model_for_commanded_manoeuvre(rig):
+    rig.set_manoeuvre(40.0, -6.0)
+    rig.arm()
+    rig.clock.advance(2.0)
+    t0 = rig.trigger()
+    assert rig.trigger_time == t0 == 2.0 and rig.state() is ValveState.RUNNING
+    tau = np.arange(0, 3, 1e-3)
+    ref = valve_head(np.arange(0, 20 + 1e-4, 2e-4), rig.rig.with_changes(manoeuvre=Manoeuvre(40.0, -6.0)), rig.material)
+    ref_i = np.interp(tau, np.arange(ref.size) * 2e-4, ref)
+    assert rig.head_m(t0 + tau) - rig.rig.steady_head_m == pytest.approx(ref_i, abs=0.02)
+    assert rig.head_m(np.array([t0 - 0.1]))[0] == rig.rig.steady_head_m
+    q = rig.flow_m3_s(t0 + tau)
+    q0 = rig.rig.steady_flow_m3_s
+    assert q == pytest.approx(q0 / (1 + np.exp(40.0 * tau - 6.0)), rel=1e-6, abs=1e-9)
+    rig.clock.advance(1.0)
+    assert rig.state() is ValveState.DONE
+
+
+def test_hold_freezes_valve_and_flow(rig):
+    rig.arm()
+    rig.trigger()
+    rig.clock.advance(0.17)
+    rig.hold()
+    t = rig.clock.now() + np.array([0.0, 1.0, 5.0])
+    pos = rig.valve_position(t)
+    assert pos == pytest.approx([pos[0]] * 3) and 30 < pos[0] < 70
+    assert rig.state() is ValveState.HOLDING
+    # the surge is smaller than for a full closure
+    full = SimulatedRig(rig.rig, rig.material, ManualClock(), seed=1)
+    full.arm()
+    full.trigger()
+    tt = np.linspace(0, 3, 3000)
+    assert rig.head_m(tt).max() < full.head_m(tt).max()
+
+
+def test_commands_refused_in_wrong_state(rig):
+    with pytest.raises(CommandRefused):
+        rig.trigger()
+    rig.arm()
+    with pytest.raises(CommandRefused) as ei:
+        rig.set_manoeuvre(10.0, -3.0)
+    assert ei.value.code == 6
+    rig.abort()
+    assert rig.state() is ValveState.ABORTED
+    rig.reset()
+    assert rig.state() is ValveState.IDLE and rig.trigger_time is None
+
+
+def test_flowmeter_refresh_noise_and_totaliser(rig):
+    rig.clock.advance(10.0)
+    assert rig.flowmeter_value(10.1) == rig.flowmeter_value(10.4)
+    assert rig.flowmeter_value(10.1) != rig.flowmeter_value(10.6)
+    assert rig.totalizer_m3(10.0) == pytest.approx(10.0 * rig.rig.steady_flow_m3_s)
+    rig.arm()
+    rig.trigger()
+    v_end = rig.totalizer_m3(10.0 + 5.0)
+    assert 10.0 * rig.rig.steady_flow_m3_s < v_end < 10.2 * rig.rig.steady_flow_m3_s + 0.2 * rig.rig.steady_flow_m3_s
+
+
+def test_clocks():
+    c = ManualClock()
+    c.sleep(0.5)
+    assert c.now() == 0.5
+    with pytest.raises(ValueError):
+        c.advance(-1)
+    r = RealTimeClock()
+    a = r.now()
+    r.sleep(0.01)
+    assert r.now() - a >= 0.009
