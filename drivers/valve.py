@@ -14,16 +14,15 @@ actuator itself answers commands it cannot take with a Modbus exception
 
 from __future__ import annotations
 
+import enum
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from velab.drivers.base import DeviceFault, DeviceTimeout, Quality, Reading
 from velab.drivers.modbus_device import ModbusDevice, RangeError
 
 # the state codes and commands are those of configs/devices/valve_actuator.toml
-import enum
-
 
 class ValveState(enum.IntEnum):
     IDLE = 0
@@ -125,8 +124,6 @@ class ValveActuator(ModbusDevice):
         faults = tuple(self.profile.reg("faults").bit_names(head[1]))
         position = self._reading(pos, body[0:2], ts)
         if state is ValveState.FAULT and position.quality is Quality.OK:
-            from dataclasses import replace
-
             position = replace(position, quality=Quality.FAULT)
         tst = self.profile.reg("time_since_trigger").to_value(body[2:4])
         return ValveStatus(state, position, faults, float(tst), int(body[4]))

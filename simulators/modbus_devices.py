@@ -12,10 +12,9 @@ import math
 
 import numpy as np
 
-from velab.drivers.modbus import WordOrder, encode_value
 from velab.drivers.profile import Profile, load_profile
 from velab.simulators.faults import DeviceFaults
-from velab.simulators.rig import CommandRefused, SimulatedRig, ValveState
+from velab.simulators.rig import CommandRefused, SimulatedRig
 
 ILLEGAL_ADDRESS, ILLEGAL_VALUE, DEVICE_FAILURE, DEVICE_BUSY = 2, 3, 4, 6
 

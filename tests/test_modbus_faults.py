@@ -9,7 +9,6 @@ import pytest
 from velab.drivers.base import (DeviceDisconnected, DeviceException, DeviceFault, DeviceTimeout, ProtocolError,
                                 Quality)
 from velab.drivers.bench import open_device
-from velab.drivers.modbus_adc import QUALITY_CODES
 from velab.drivers.valve import ValveState
 from velab.simulators.bench import SimulatedBench
 from velab.simulators.clock import ManualClock
