@@ -8,7 +8,8 @@ Serves the exact wire protocol of :mod:`velab.drivers.streaming_adc` over
   udev name for a USB-serial device that is unplugged and plugged back.
 
 The analogue inputs come from ``source(t) -> (n, 4)`` in mA (the interface of
-``velab.simulators.rig.SimulatedRig.analog_inputs``); they are quantised to the
+``velab.simulators.rig.SimulatedRig.analog_inputs``; pass ``clock=`` to put the
+device time on that clock's axis: t = clock.now() at START + i / fs); they are quantised to the
 ADC's int16 counts. Pacing: ``realtime=True`` emits frames when the device clock
 says they are due; ``realtime=False`` (fast mode) streams as fast as the reader
 consumes, the device clock still advancing by 1/fs per sample. ``baud`` adds the
@@ -188,6 +189,7 @@ class StreamingADCSimulator:
         firmware: str = "1.0",
         fifo_frames: int = 64,
         fast_backlog_bytes: int = 1 << 16,
+        clock=None,
     ):
         self.source = source or default_source
         self.realtime = realtime
@@ -197,6 +199,8 @@ class StreamingADCSimulator:
         self.firmware = firmware
         self.fifo_frames = fifo_frames
         self.fast_backlog_bytes = fast_backlog_bytes
+        self.clock = clock  # optional: source time = clock.now() at START + device time
+        self._t_source0 = 0.0
         self.stats = SimStats()
         self.url: str | None = None
         self.pty_link: str | None = None
@@ -284,6 +288,7 @@ class StreamingADCSimulator:
         self.index = 0
         self.frame_no = 0
         self.t_start = time.monotonic()
+        self._t_source0 = float(self.clock.now()) if self.clock is not None else 0.0
         self.mask = channel_mask(self.channels)
         self.fs_counts = np.array([RAW_FULL_SCALE / RANGES_FS[self.ranges[c]][0] for c in self.channels])
         self.frame_len = frame_length(len(self.channels), self.block)
@@ -295,7 +300,7 @@ class StreamingADCSimulator:
     frame_no = 0
 
     def _quantise(self, t: np.ndarray) -> np.ndarray:
-        sig = np.asarray(self.source(t), dtype=float)[:, self.channels]
+        sig = np.asarray(self.source(t + self._t_source0), dtype=float)[:, self.channels]
         for ch, t0, t1, val in self.faults.input_faults:
             if ch in self.channels:
                 sel = (t >= t0) & (t < t1)
@@ -306,10 +311,15 @@ class StreamingADCSimulator:
         counts[bad] = RAW_INVALID
         return counts.astype("<i2")
 
-    def _generate(self, n_frames: int, out: bytearray, fifo_limit: int | None) -> None:
+    def _generate(self, n_frames: int, out: bytearray, fifo_limit: int | None) -> int:
         """Make the next n_frames frames (device clock advances for every one of them)."""
         f = self.faults
         k = self.block
+        for limit in (f.silent_after_frames, f.disconnect_after_frames if self._disconnects_left > 0 else None):
+            if limit is not None:
+                n_frames = min(n_frames, limit - self.frame_no)  # stop exactly at the fault point
+        if n_frames <= 0:
+            return 0
         t = (self.index + np.arange(n_frames * k)) / self.rate_hz
         counts = self._quantise(t).reshape(n_frames, k, len(self.channels))
         st = self.stats
@@ -357,6 +367,7 @@ class StreamingADCSimulator:
                 junk[0:2] = b"\xa5\x5a"
                 out += junk
                 st.garbage_bytes += len(junk)
+        return n_frames
 
     # ------------------------------------------------------------ one connection
 
@@ -382,13 +393,12 @@ class StreamingADCSimulator:
                     timeout = min(timeout, max(0.0, nxt - time.monotonic()))
                 elif len(out) < self.fast_backlog_bytes:
                     room = (self.fast_backlog_bytes - len(out)) // self.frame_len
-                    self._generate(max(1, min(room, 64)), out, None)
-                    timeout = 0.0
-                if f.silent_after_frames is not None and self.frame_no >= f.silent_after_frames:
-                    silent = True
-                    out.clear()
+                    if self._generate(max(1, min(room, 64)), out, None):
+                        timeout = 0.0
+                if f.silent_after_frames is not None and self.frame_no >= f.silent_after_frames and not out:
+                    silent = True  # everything before the fault point was sent; now nothing more
                 if (f.disconnect_after_frames is not None and self._disconnects_left > 0
-                        and self.frame_no >= f.disconnect_after_frames):
+                        and self.frame_no >= f.disconnect_after_frames and not out):
                     self._disconnects_left -= 1
                     self.stats.disconnects += 1
                     return "disconnect"  # what is still in `out` never reaches the host
