@@ -718,7 +718,7 @@ class StreamingADC:
     # ---------------------------------------------------------------- streaming
 
     def start(self, callback: Callable[[SampleBlock], None] | None = None,
-              on_error: Callable[[DeviceError], None] | None = None) -> None:
+              on_error: Callable[[DeviceError], None] | None = None, *, wait_when_full: bool = False) -> None:
         """Start the stream and the reader thread.
 
         With ``callback`` each SampleBlock is passed to it (in the reader thread,
@@ -726,6 +726,12 @@ class StreamingADC:
         :meth:`get_block`. A fatal error (DeviceTimeout, DeviceDisconnected after
         failed reconnection, ...) ends the reader; it is raised by ``get_block``
         and passed to ``on_error``, and kept in ``self.error``.
+
+        Queue full (the consumer is too slow): by default the block is dropped,
+        counted in ``stats.queue_dropped`` and reported as ``lost_before`` of the
+        next block. With ``wait_when_full=True`` the reader waits instead, so the
+        back-pressure reaches the device, whose FIFO overrun is then counted
+        exactly from its sample counter.
         """
         if self._thread is not None:
             raise DeviceException(f"{self.name}: already streaming", ERR_BUSY)
@@ -733,6 +739,7 @@ class StreamingADC:
             self.configure()
         self._callback = callback
         self._on_error = on_error
+        self._wait_when_full = wait_when_full
         self._queue = queue.Queue(maxsize=self.profile.queue_blocks) if callback is None else None
         self.error = None
         self._stop_error = None
@@ -841,7 +848,9 @@ class StreamingADC:
     def _run(self) -> None:
         prof = self.profile
         cfg = self.config
-        chunk = cfg.frame_len
+        # read about half a poll period of data per call (at least a frame): big blocks, bounded latency
+        per_s = cfg.rate_hz / cfg.block_samples * cfg.frame_len
+        chunk = int(max(cfg.frame_len, min(1 << 16, per_s * prof.poll_s / 2)))
         try:
             if self._rx:  # bytes that followed the START reply
                 data, self._rx = bytes(self._rx), bytearray()
@@ -1062,6 +1071,15 @@ class StreamingADC:
         try:
             self._queue.put_nowait(block)
         except queue.Full:
+            while self._wait_when_full and not self._stop_evt.is_set():
+                try:
+                    self._queue.put(block, timeout=self.profile.poll_s)
+                except queue.Full:
+                    continue
+                with self._stats_lock:
+                    self._stats.samples += block.n
+                    self._stats.blocks += 1
+                return
             # the consumer is too slow: drop this block, report it as a gap on the next one
             self._pending_lost += block.lost_before + block.n
             with self._stats_lock:
