@@ -269,9 +269,9 @@ class StreamingADCProfile:
 
 
 def default_profile(**overrides) -> StreamingADCProfile:
-    """A built-in profile (no file): pressure 4-20 mA = 0..10 bar, valve 4-20 mA = 0..100 %, two spares."""
+    """A built-in profile (no file): pressure 4-20 mA = 0..6 bar, valve 4-20 mA = 0..100 %, two spares."""
     chans = (
-        ChannelProfile("pressure", 0, "25MA", LoopCalibration(4.0, 20.0, 0.0, 1.0e6, "Pa", range_margin=0.02), head=True),
+        ChannelProfile("pressure", 0, "25MA", LoopCalibration(4.0, 20.0, 0.0, 6.0e5, "Pa", range_margin=0.02), head=True),
         ChannelProfile("valve_position", 1, "25MA", LoopCalibration(4.0, 20.0, 0.0, 100.0, "%", range_margin=0.02)),
         ChannelProfile("spare_2", 2, "25MA", LoopCalibration(4.0, 20.0, 4.0, 20.0, "mA")),
         ChannelProfile("spare_3", 3, "25MA", LoopCalibration(4.0, 20.0, 4.0, 20.0, "mA")),

@@ -112,6 +112,14 @@ class FaultPlan:
     input_faults: tuple = ()  # (channel, t_start_s, t_end_s, value_mA); NaN allowed
     seed: int = 1
 
+    def set(self, **kw) -> "FaultPlan":
+        """Change faults by name (the SimulatedBench's [faults.<device>] hook)."""
+        for k, v in kw.items():
+            if k not in self.__dataclass_fields__:
+                raise ValueError(f"unknown streaming ADC fault {k!r} (known: {', '.join(self.__dataclass_fields__)})")
+            setattr(self, k, frozenset(v) if isinstance(getattr(self, k), frozenset) else v)
+        return self
+
     @staticmethod
     def _hit(n: int, frames: frozenset, every: int) -> bool:
         return n in frames or (every > 0 and n % every == every - 1)
@@ -494,8 +502,10 @@ class StreamingADCSimulator:
 
     def serve_pty(self, link_path: str | None = None) -> str:
         """Create a pty; returns a stable symlink to its slave (open it with the driver)."""
+        self._own_dir = link_path is None
         if link_path is None:
             link_path = os.path.join(tempfile.mkdtemp(prefix="velab-sadc-"), "sadc")
+        os.makedirs(os.path.dirname(os.path.abspath(link_path)), exist_ok=True)
         self.pty_link = link_path
         self._master, self._slave = self._new_pty()
         self.url = link_path
@@ -555,7 +565,8 @@ class StreamingADCSimulator:
                         pass
             try:
                 os.unlink(self.pty_link)
-                os.rmdir(os.path.dirname(self.pty_link))
+                if self._own_dir:
+                    os.rmdir(os.path.dirname(self.pty_link))
             except OSError:
                 pass
 
@@ -564,6 +575,71 @@ class StreamingADCSimulator:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+# ---------------------------------------------------------------- `velab sim` registration
+
+
+class StreamingADCSimHandle:
+    """The streaming ADC as a SimulatedBench device (``kind = "streaming_adc"``).
+
+    Config keys: ``endpoints`` = list of ``{transport = "socket", port = N}`` /
+    ``{transport = "pty", link = "/tmp/velab-sim/sadc"}``; ``realtime`` (default
+    true); ``baudrate`` (adds wire time); ``serial_no``. The analogue inputs are
+    the rig's ``analog_inputs`` on the rig's clock.
+    """
+
+    KEYS = {"kind", "endpoints", "realtime", "baudrate", "serial_no", "profile"}
+
+    def __init__(self, name: str, rig, cfg: dict, host: str):
+        from velab.errors import ConfigError
+
+        unknown = sorted(set(cfg) - self.KEYS)
+        if unknown:
+            raise ConfigError(f"[devices.{name}] {unknown[0]}: unknown key (known: {', '.join(sorted(self.KEYS))})")
+        self.name, self.rig, self.cfg, self.host = name, rig, cfg, host
+        self.faults = FaultPlan()
+        self.simulators: list[StreamingADCSimulator] = []
+
+    def start(self) -> list:
+        from velab.errors import ConfigError
+        from velab.simulators.bench import Endpoint
+
+        eps = []
+        for ep in self.cfg.get("endpoints") or [{"transport": "socket", "port": 0}]:
+            tr = ep.get("transport", "socket")
+            sim = StreamingADCSimulator(
+                self.rig.analog_inputs, realtime=bool(self.cfg.get("realtime", True)),
+                baud=self.cfg.get("baudrate"), faults=self.faults, clock=self.rig.clock,
+                serial_no=str(self.cfg.get("serial_no", "SIM0001")),
+            )
+            if tr in ("socket", "tcp"):
+                url = sim.serve_tcp(self.host, int(ep.get("port", 0) or 0))
+                eps.append(Endpoint(self.name, "streaming_adc", "socket", url, port=int(url.rsplit(":", 1)[1])))
+            elif tr == "pty":
+                link = sim.serve_pty(ep.get("link") or None)
+                eps.append(Endpoint(self.name, "streaming_adc", "pty", sim.slave_name, link=link))
+            else:
+                sim.close()
+                raise ConfigError(f"[devices.{self.name}] endpoints: unknown transport {tr!r} (socket, pty)")
+            self.simulators.append(sim)
+        return eps
+
+    def stop(self) -> None:
+        for sim in self.simulators:
+            sim.close()
+        self.simulators = []
+
+
+def _register() -> None:
+    try:
+        from velab.simulators.bench import register_sim_device
+    except ImportError:  # the bench is optional
+        return
+    register_sim_device("streaming_adc", StreamingADCSimHandle)
+
+
+_register()
 
 
 def _fmt_rate(hz: float) -> str:

@@ -249,7 +249,7 @@ def test_frames_to_samples_exact():
     # counts -> mA -> engineering values
     sig = raw * 25.0 / 32767
     np.testing.assert_allclose(np.concatenate([b.signal for b in got]), sig)
-    np.testing.assert_allclose(np.concatenate([b.values for b in got])[:, 0], (sig[:, 0] - 4) / 16 * 1e6)
+    np.testing.assert_allclose(np.concatenate([b.values for b in got])[:, 0], (sig[:, 0] - 4) / 16 * 6e5)
     np.testing.assert_allclose(np.concatenate([b.values for b in got])[:, 1], (sig[:, 1] - 4) / 16 * 100)
     np.testing.assert_allclose(got[0].head_m("pressure"), pressure_to_head_m(got[0].values[:, 0]))
     assert stats.samples == 12 and stats.lost == 0 and stats.crc_errors == 0 and stats.frames == 3

@@ -270,3 +270,19 @@ def test_with_simulated_rig():
     expected = rig.analog_inputs(b.device_time_s)[:, :2]
     np.testing.assert_allclose(b.signal, expected, atol=25.0 / RAW_FULL_SCALE)  # within one count
     assert b.quality == (Quality.OK, Quality.OK)
+
+
+def test_registered_in_simulated_bench():
+    bench_mod = pytest.importorskip("velab.simulators.bench")
+    with bench_mod.SimulatedBench.from_config("default", ephemeral=True) as sim:
+        for tr in ("socket", "pty"):
+            ep = sim.endpoint("streaming_adc", tr)
+            assert ep.kind == "streaming_adc"
+            with StreamingADC(ep.link or ep.address, profile()) as adc:
+                adc.configure(10_000, ["pressure", "valve_position"])
+                adc.start()
+                b = adc.get_block(timeout=5)
+                adc.stop()
+            head = b.head_m("pressure")
+            assert b.quality == (Quality.OK, Quality.OK)
+            assert abs(np.median(head) - sim.rig.rig.steady_head_m) < 1.0  # steady state before a trigger
