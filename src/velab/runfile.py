@@ -144,9 +144,9 @@ class Run:
             raise DataError(f"{self.path}: head is NaN at t = {t[i]:.4f} s in the fit window ({int(bad.sum())} samples)")
         first = int(np.argmax(inside))
         for idx, lost in self.gaps:
-            if first <= idx < first + t.size and lost > 0:
+            if first < idx < first + t.size and lost > 0:
                 raise DataError(
-                    f"{self.path}: {lost} samples lost at t = {self.time_s[idx] - self.trigger_time_s:.4f} s, "
+                    f"{self.path}: {lost} samples lost before t = {self.time_s[idx] - self.trigger_time_s:.4f} s, "
                     "inside the fit window (shorten the window)"
                 )
         dt = np.diff(t)
@@ -185,9 +185,14 @@ def open_run_file(path: str | os.PathLike, mode: str = "r") -> Iterator[h5py.Fil
     try:
         if mode == "r":
             try:
-                fh = h5py.File(path, "r", swmr=True)  # also reads a file that is being written
-            except OSError:
                 fh = h5py.File(path, "r")
+            except OSError as exc:
+                # A file a SWMR writer holds open (or left flagged when it was killed)
+                # opens only as a SWMR reader. A truncated file must not: SWMR skips
+                # the end-of-file check and its reads would retry forever.
+                if "truncated" in str(exc):
+                    raise
+                fh = h5py.File(path, "r", swmr=True)
         else:
             fh = h5py.File(path, mode)
     except OSError as exc:
@@ -482,7 +487,8 @@ class RunWriter:
         ev.create_dataset("message", shape=(0,), maxshape=(None,), dtype="S200", chunks=(256,))
         gp = e.create_group("gaps")
         gp.attrs["NX_class"] = "NXcollection"
-        gp.create_dataset("sample_index", shape=(0,), maxshape=(None,), dtype="i8", chunks=(256,))
+        d = gp.create_dataset("sample_index", shape=(0,), maxshape=(None,), dtype="i8", chunks=(256,))
+        d.attrs["units"] = "samples"
         d = gp.create_dataset("lost", shape=(0,), maxshape=(None,), dtype="i8", chunks=(256,))
         d.attrs["units"] = "samples"
         fits = e.create_group("fits")

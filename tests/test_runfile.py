@@ -1,0 +1,258 @@
+"""Run files: round trips, NeXus discoverability, streaming + SWMR, bad files."""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+from velab.cli import main
+from velab.config import load_material, load_rig
+from velab.errors import DataError
+from velab.model import valve_head
+from velab.runfile import Channel, HEAD, RunWriter, fits_group, read_run, write_run
+
+
+@pytest.fixture(scope="module")
+def synth_run(tmp_path_factory):
+    path = tmp_path_factory.mktemp("runs") / "a.h5"
+    assert main(["synth", "--material", "A", "--noise", "0", "--duration", "5", "--pretrigger", "0.5", "-o", str(path)]) == 0
+    return path
+
+
+def test_synth_noise_free_is_the_model(synth_run):
+    r = read_run(synth_run)
+    rig, mat = load_rig("perugia"), load_material("A")
+    assert r.status == "synthetic"
+    assert r.sample_rate_hz == 1000.0
+    assert r.time_s[0] == pytest.approx(-0.5) and r.time_s[-1] == pytest.approx(4.999)
+    np.testing.assert_allclose(r.head_perturbation(), valve_head(r.time_s, rig, mat), atol=1e-9)
+    assert r.steady_head_m == pytest.approx(rig.steady_head_m)
+    assert r.material == mat and r.rig == rig
+    assert r.noise_std_m == 0.0
+
+
+def test_synth_noise_is_seeded_and_shared_between_materials(tmp_path):
+    paths = {}
+    for mat in ("A", "B"):
+        paths[mat] = tmp_path / f"{mat}.h5"
+        assert main(["synth", "--material", mat, "--duration", "2", "--pretrigger", "0", "-o", str(paths[mat])]) == 0
+    rig = load_rig("perugia")
+    ra, rb = read_run(paths["A"]), read_run(paths["B"])
+    na = ra.head_m - rig.steady_head_m - valve_head(ra.time_s, rig, load_material("A"))
+    nb = rb.head_m - rig.steady_head_m - valve_head(rb.time_s, rig, load_material("B"))
+    np.testing.assert_allclose(na, nb, atol=1e-9)  # the same noise for both, as in the paper
+    assert np.std(na) == pytest.approx(0.1, rel=0.05)
+    assert abs(np.mean(na)) < 0.01
+
+
+def test_nexus_attributes_alone_lead_to_the_signal(synth_run):
+    """A generic reader follows @default and @signal/@axes and finds units everywhere."""
+    with h5py.File(synth_run, "r") as f:
+        entry = f[f.attrs["default"]]
+        assert entry.attrs["NX_class"] == "NXentry"
+        data = entry[entry.attrs["default"]]
+        assert data.attrs["NX_class"] == "NXdata"
+        signal = data[data.attrs["signal"]]
+        axis = data[data.attrs["axes"][0]]
+        assert signal.attrs["units"] == "m" and axis.attrs["units"] == "s"
+        assert signal.shape == axis.shape == (5500,)
+        assert signal.chunks is not None and signal.maxshape == (None,)
+        for name in ("title", "start_time", "end_time", "status"):
+            assert name in entry
+        # every dataset with numbers carries units (strings and index tables excepted)
+        missing = []
+
+        def visit(name, obj):
+            if isinstance(obj, h5py.Dataset) and obj.dtype.kind in "fi" and "units" not in obj.attrs:
+                missing.append(name)
+
+        f.visititems(visit)
+        assert missing == []
+        assert entry["sample/material/tau"].attrs["units"] == "s"
+        np.testing.assert_allclose(entry["sample/material/tau"][()], [2, 0.2, 0.02])
+        assert f.attrs["format_version"] == "1.0"
+        assert json.loads(entry["sample"].attrs["rig_json"])["pipe"]["length_m"] == 102.58
+
+
+@pytest.mark.skipif(shutil.which("h5dump") is None, reason="h5dump (Debian hdf5-tools) not installed")
+def test_h5dump_reads_the_run(synth_run):
+    out = subprocess.run(["h5dump", "-H", str(synth_run)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert 'GROUP "entry"' in out.stdout and 'DATASET "head"' in out.stdout
+
+
+def test_import_round_trip_keeps_values_and_units(tmp_path):
+    rig = load_rig("perugia")
+    t = np.arange(-200, 800) * 0.002
+    p_bar = 3.4 + 0.5 * np.sin(2 * np.pi * 1.7 * t) * (t >= 0)
+    csv = tmp_path / "rec.csv"
+    with open(csv, "w") as fh:
+        fh.write("time_s,p_bar\n")
+        for a, b in zip(t, p_bar):
+            fh.write(f"{float(a)!r},{float(b)!r}\n")
+    out = tmp_path / "rec.h5"
+    assert main(["import", str(csv), "--rig", "perugia", "--units", "bar", "--trigger", "0.1", "-o", str(out)]) == 0
+    r = read_run(out)
+    assert r.status == "imported"
+    assert r.sample_rate_hz == pytest.approx(500.0)
+    np.testing.assert_allclose(r.time_s, t - 0.1, atol=1e-12)
+    np.testing.assert_allclose(r.head_m, p_bar * 1e5 / (rig.fluid.density_kg_m3 * 9.81), rtol=1e-12)
+    # the steady head is the mean before the trigger instant (t < 0.1 s on the file's axis)
+    expected = np.mean(p_bar[t < 0.1 - 1e-9]) * 1e5 / (rig.fluid.density_kg_m3 * 9.81)
+    assert r.steady_head_m == pytest.approx(expected, rel=1e-12)
+    assert r.source["units"] == "bar" and r.source["trigger_s"] == 0.1
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ("time,head\n0,1\n0.001,abc\n", "line 3: column 'head': not a number: 'abc'"),
+        ("time,head\n" + "".join(f"{i*0.001},1\n" for i in range(12)) + "0.012,nan\n", "line 14: column 'head': nan is not a finite"),
+        ("time,head\n" + "".join(f"{i*0.001},1\n" for i in range(12)) + "0.005,1\n", "line 14: time 0.005 s does not increase"),
+        ("time,head\n" + "".join(f"{i*0.001},1\n" for i in range(12)) + "0.02,1\n", "line 14: uneven sampling"),
+        ("time,head\n0,1\n0.001,1\n", "too few samples (2"),
+        ("0,1\n0.001,1\n", "line 1: expected a header row"),
+        ("time,head\n" + "".join(f"{i*0.001},1\n" for i in range(12)) + "0.012\n", "line 14: expected 2 columns, found 1"),
+    ],
+)
+def test_malformed_csv_one_line_with_line_number(tmp_path, capsys, body, message):
+    csv = tmp_path / "bad.csv"
+    csv.write_text(body)
+    out = tmp_path / "bad.h5"
+    rc = main(["import", str(csv), "--rig", "perugia", "-o", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert message in err and err.count("\n") == 1, err
+    assert not out.exists()
+
+
+def test_existing_run_is_never_overwritten(synth_run, capsys):
+    before = synth_run.read_bytes()
+    rc = main(["synth", "-o", str(synth_run)])
+    assert rc == 2 and "already exists" in capsys.readouterr().err
+    assert synth_run.read_bytes() == before
+
+
+@pytest.mark.parametrize("kind", ["missing", "text", "truncated", "foreign"])
+def test_bad_run_files_one_line(tmp_path, synth_run, capsys, kind):
+    p = tmp_path / "bad.h5"
+    if kind == "text":
+        p.write_text("not hdf5")
+    elif kind == "truncated":
+        data = synth_run.read_bytes()
+        p.write_bytes(data[: len(data) // 3])
+    elif kind == "foreign":
+        with h5py.File(p, "w") as f:
+            f["x"] = np.arange(3)
+    rc = main(["info", str(p)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert {"missing": "no such file", "text": "not an HDF5 file", "truncated": "HDF5",
+            "foreign": "not a velab run file"}[kind] in err
+
+
+def test_info_summarises(synth_run, capsys):
+    assert main(["info", str(synth_run)]) == 0
+    out = capsys.readouterr().out
+    assert "status       synthetic" in out and "material     A (S3, truth)" in out
+    assert "5500 at 1000 Hz" in out and "fits         none" in out
+
+
+def test_fit_window_errors(synth_run):
+    r = read_run(synth_run)
+    t, h = r.fit_window(2.0)
+    assert t.size == 2000 and t[0] == pytest.approx(0.0)
+    with pytest.raises(DataError, match="longer than the record"):
+        r.fit_window(6.0)
+    r.head_m[1200] = np.nan
+    with pytest.raises(DataError, match="NaN at t = 0.7"):
+        r.fit_window(2.0)
+
+
+def test_fits_group_touches_only_fits(synth_run, tmp_path):
+    p = tmp_path / "copy.h5"
+    shutil.copy(synth_run, p)
+    before = read_run(p)
+    with fits_group(p) as g:
+        fg = g.create_group("trial")
+        fg.attrs["method"] = "x"
+    after = read_run(p)
+    assert after.fit_names == ["trial"]
+    np.testing.assert_array_equal(before.head_m, after.head_m)
+    np.testing.assert_array_equal(before.time_s, after.time_s)
+
+
+WRITER = textwrap.dedent(
+    """
+    import sys, time, numpy as np
+    from velab.config import load_rig
+    from velab.runfile import RunWriter, Channel, HEAD
+    w = RunWriter(sys.argv[1], load_rig("perugia"), sample_rate_hz=1000.0,
+                  channels=(HEAD, Channel("valve_position", "1")), title="stream")
+    i = 0
+    while True:
+        t = (np.arange(100) + i) / 1000.0
+        w.append(t, head=30 + t, valve_position=np.ones(100))
+        i += 100
+        w.flush()
+        print(i, flush=True)
+        time.sleep(0.005)
+    """
+)
+
+
+def test_swmr_reader_follows_a_live_writer_and_survives_sigkill(tmp_path):
+    path = tmp_path / "live.h5"
+    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(path)], stdout=subprocess.PIPE, text=True)
+    try:
+        flushed = 0
+        while flushed < 2000:
+            flushed = int(proc.stdout.readline())
+        live = read_run(path)  # opened while the writer holds it in SWMR mode
+        assert live.incomplete and live.n_samples >= 2000
+        np.testing.assert_allclose(live.head_m, 30 + live.time_s)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+        last = flushed
+        for line in proc.stdout:
+            last = int(line)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    r = read_run(path)
+    assert r.incomplete
+    assert r.n_samples >= last  # everything flushed before the kill is there
+    np.testing.assert_allclose(r.head_m, 30 + r.time_s)
+    assert r.channels["valve_position"].size == r.n_samples
+    rc = main(["info", str(path)])
+    assert rc == 0
+
+
+def test_writer_events_gaps_and_close_status(tmp_path):
+    path = tmp_path / "w.h5"
+    rig = load_rig("perugia")
+    w = RunWriter(path, rig, sample_rate_hz=100.0, channels=(HEAD, Channel("raw", "counts", "i4", group="instrument/pressure_transducer")),
+                  slow_channels=(Channel("flow", "m^3/s"),), trigger_time_s=0.0)
+    w.append(np.arange(-10, 10) / 100.0, head=np.full(20, 30.0), raw=np.arange(20))
+    w.gap(20, 5)
+    w.append(np.arange(15, 30) / 100.0, head=np.full(15, 31.0), raw=np.arange(15))
+    w.append_slow("flow", [0.0, 0.5], [3.6e-3, 3.5e-3])
+    w.event(0.0, "trigger", "sigmoid beta 32 gamma -5.5")
+    w.close("aborted", "pressure ceiling")
+    r = read_run(path)
+    assert r.status == "aborted" and r.status_reason == "pressure ceiling"
+    assert r.gaps == [(20, 5)]
+    assert r.events == [(0.0, "trigger", "sigmoid beta 32 gamma -5.5")]
+    assert r.channels["raw"].dtype.kind == "i" and r.channel_units["raw"] == "counts"
+    with h5py.File(path, "r") as f:
+        np.testing.assert_allclose(f["entry/instrument/flow/value"][()], [3.6e-3, 3.5e-3])
+    with pytest.raises(DataError, match="5 samples lost before t = 0.15"):
+        r.fit_window(0.3)
