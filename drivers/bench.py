@@ -17,6 +17,11 @@
     reconnect = true
     # driver options: word_order = "CDAB", [devices.X.channels.ch0] zero_offset = 150.0 ...
 
+    [recorder]                      # optional: which device plays which role in `velab record`
+    pressure_source = "streaming_adc"   # device name (kind streaming_adc or modbus_adc)
+    valve = "valve"
+    flowmeter = "flowmeter"
+
 ``open_device(bench.devices["flowmeter"])`` builds the bus and the driver. Other
 device kinds (the streaming ADC) add themselves with ``register_driver``.
 """
@@ -45,6 +50,7 @@ class Bench:
     devices: dict
     simulate: str | None = None
     path: str = ""
+    recorder: dict = field(default_factory=dict)  # the [recorder] table: roles (pressure_source ...)
 
     @classmethod
     def from_dict(cls, d: dict, path: str = "<bench>") -> "Bench":
@@ -59,12 +65,17 @@ class Bench:
             kind = t.pop("kind")
             profile = t.pop("profile", None)
             out[name] = BenchDevice(name, kind, profile, t)
-        return cls(str(d.get("name", Path(path).stem)), out, d.get("simulate"), str(path))
+        rec = d.get("recorder") or {}
+        if not isinstance(rec, dict):
+            raise ProfileError(f"{path}: [recorder]: must be a table")
+        return cls(str(d.get("name", Path(path).stem)), out, d.get("simulate"), str(path), dict(rec))
 
     def to_dict(self) -> dict:
         d = {"name": self.name, "devices": {}}
         if self.simulate:
             d["simulate"] = self.simulate
+        if self.recorder:
+            d["recorder"] = dict(self.recorder)
         for n, dev in self.devices.items():
             d["devices"][n] = {"kind": dev.kind, **({"profile": dev.profile} if dev.profile else {}), **dev.settings}
         return d

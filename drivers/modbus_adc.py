@@ -23,13 +23,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from velab.drivers.base import LoopCalibration, ProfileError, Quality, Reading, pressure_to_head_m
+from velab.drivers.blocks import QUALITY_CODE, QUALITY_CODES, SampleBlock, worst_quality  # noqa: F401
 from velab.drivers.modbus import MAX_READ_REGISTERS
 from velab.drivers.modbus_device import ModbusDevice, RangeError
 
-# quality codes used in SampleBlock.quality
-QUALITY_CODES = (Quality.OK, Quality.OVER_RANGE, Quality.UNDER_RANGE, Quality.OPEN_LOOP, Quality.NAN, Quality.FAULT,
-                 Quality.STALE)
-_QCODE = {q: i for i, q in enumerate(QUALITY_CODES)}
+# per-sample quality codes (SampleBlock.sample_quality): velab.drivers.blocks.QUALITY_CODES
+_QCODE = QUALITY_CODE
 
 
 @dataclass(frozen=True)
@@ -43,35 +42,6 @@ class Channel:
 
     def signal(self, raw):
         return self.range_lo + (self.range_hi - self.range_lo) * np.asarray(raw, dtype=float) / 65535.0
-
-
-@dataclass
-class SampleBlock:
-    """New samples from the buffer. Rows are samples, columns the buffered channels."""
-
-    first_index: int
-    fs_hz: float
-    raw: np.ndarray  # (n, nch) uint16
-    signal: np.ndarray  # (n, nch) mA
-    values: np.ndarray  # (n, nch) engineering units (channel calibration)
-    quality: np.ndarray  # (n, nch) uint8 index into QUALITY_CODES
-    host_time_s: np.ndarray  # (n,) host epoch seconds: host_t0 + i / fs
-    device_time_s: np.ndarray  # (n,) device clock: t0 + i / fs
-    lost_before: int = 0  # samples lost just before this block (overrun)
-    channel_names: tuple = ()
-
-    def __len__(self) -> int:
-        return self.raw.shape[0]
-
-    @property
-    def index(self) -> np.ndarray:
-        return self.first_index + np.arange(len(self))
-
-    def column(self, name: str) -> np.ndarray:
-        return self.values[:, self.channel_names.index(name)]
-
-    def quality_of(self, i: int, ch: int = 0) -> Quality:
-        return QUALITY_CODES[int(self.quality[i, ch])]
 
 
 @dataclass
@@ -289,9 +259,14 @@ class ModbusADC(ModbusDevice):
             if cal.open_loop_below is not None:
                 q[s < cal.open_loop_below] = _QCODE[Quality.OPEN_LOOP]
             self._flag_stuck(j, raw[:, j], q)
-        idx = first + np.arange(raw.shape[0])
-        return SampleBlock(first, fs, raw, signal, values, quality, self._t0_host + idx / fs,
-                           self._t0_dev + idx / fs, lost, tuple(c.name for c in chans))
+        n = raw.shape[0]
+        return SampleBlock(
+            segment=0, first_index=first, rate_hz=fs, host_time_s=self._t0_host + (first + n - 1) / fs,
+            raw=raw, signal=signal, values=values, channels=tuple(c.name for c in chans),
+            units=tuple(c.calibration.units for c in chans),
+            quality=tuple(worst_quality(quality[:, j]) for j in range(nch)), lost_before=lost,
+            overrun=lost > 0, density_kg_m3=self.density_kg_m3, sample_quality=quality, device_t0_s=self._t0_dev,
+        )
 
     def _flag_stuck(self, ch: int, raw: np.ndarray, q: np.ndarray) -> None:
         """Runs of identical raw counts longer than stale_samples (across blocks) -> STALE."""

@@ -51,6 +51,7 @@ from velab.drivers.base import (
     Quality,
     pressure_to_head_m,
 )
+from velab.drivers.blocks import SampleBlock
 from velab.errors import ConfigError
 
 # ============================================================== protocol constants
@@ -425,61 +426,7 @@ def load_profile(name_or_path: str | Path = "streaming_adc") -> StreamingADCProf
 # ============================================================== data delivered
 
 
-@dataclass(frozen=True, eq=False)
-class SampleBlock:
-    """A contiguous run of samples (no gap inside), all channels.
-
-    Row ``i`` was sampled at device time ``(first_index + i) / rate_hz`` seconds
-    after the START of stream ``segment`` (the device sample clock); it arrived
-    on the host at about ``host_time_s`` (``time.time()`` when the last byte of
-    the block was read). ``lost_before`` samples per channel are missing between
-    the previous block and this one: exact from the device counter, except in the
-    first block after a reconnection (``restarted``), where the device counter
-    restarted and the gap is an estimate from host time (also in
-    ``StreamStats.lost_estimated``). Missing samples are never filled in.
-    """
-
-    segment: int  # 0 for the first START, +1 after each reconnection
-    first_index: int  # device sample counter of row 0 (since START of this segment)
-    rate_hz: float
-    host_time_s: float
-    raw: np.ndarray  # (n, ch) int16 ADC counts; -32768 = invalid conversion
-    signal: np.ndarray  # (n, ch) float64 mA or V; NaN where raw is invalid
-    values: np.ndarray  # (n, ch) float64 engineering units; NaN where invalid
-    channels: tuple[str, ...]
-    units: tuple[str, ...]
-    quality: tuple[Quality, ...]  # per channel, worst over the block
-    lost_before: int = 0
-    restarted: bool = False  # first block of a segment after a reconnection (lost_before estimated)
-    overrun: bool = False  # the device reported a FIFO overrun just before this block
-    flags: int = 0  # OR of the frames' flag bytes
-    density_kg_m3: float = 998.2
-
-    @property
-    def n(self) -> int:
-        return self.raw.shape[0]
-
-    @property
-    def t0_s(self) -> float:
-        return self.first_index / self.rate_hz
-
-    @property
-    def device_time_s(self) -> np.ndarray:
-        return (self.first_index + np.arange(self.n)) / self.rate_hz
-
-    @property
-    def next_index(self) -> int:
-        return self.first_index + self.n
-
-    def column(self, channel: str) -> np.ndarray:
-        return self.values[:, self.channels.index(channel)]
-
-    def head_m(self, channel: str = "pressure") -> np.ndarray:
-        """Pressure head (m of water) of a channel whose values are in Pa."""
-        i = self.channels.index(channel)
-        if self.units[i] != "Pa":
-            raise ValueError(f"channel {channel!r} is in {self.units[i]}, not Pa")
-        return pressure_to_head_m(self.values[:, i], self.density_kg_m3)
+# SampleBlock: velab.drivers.blocks (shared with the Modbus ADC)
 
 
 @dataclass
@@ -1111,3 +1058,42 @@ __all__ = [
     "StreamingADC", "StreamingADCProfile", "StreamingADCProfileError", "actual_rate", "auto_block",
     "channel_mask", "crc16", "default_profile", "encode_frame", "frame_length", "load_profile", "mask_channels",
 ]
+
+
+# ---------------------------------------------------------------- bench registration
+
+_BENCH_KEYS = {"url", "port", "rate_hz", "block_samples", "baudrate", "name"}
+
+
+def _bench_factory(dev, connect: bool = True) -> "StreamingADC":
+    """``[devices.X] kind = "streaming_adc"``: ``url`` (or ``port``) = pyserial URL / path;
+    optional ``rate_hz``, ``block_samples``, ``baudrate`` override the profile."""
+    from velab.drivers.base import ProfileError
+
+    unknown = sorted(set(dev.settings) - _BENCH_KEYS)
+    if unknown:
+        raise ProfileError(f"[devices.{dev.name}]: unknown key {unknown[0]!r} (known: {', '.join(sorted(_BENCH_KEYS))})")
+    prof = load_profile(dev.profile or "streaming_adc")
+    over = {}
+    url = dev.settings.get("url") or dev.settings.get("port")
+    if url:
+        over["url"] = str(url)
+    for k in ("rate_hz", "block_samples", "baudrate"):
+        if k in dev.settings:
+            over[k] = type(getattr(prof, k))(dev.settings[k])
+    prof = replace(prof, **over)
+    if not prof.url:
+        raise ProfileError(f"[devices.{dev.name}] url: missing (a pyserial URL such as socket://host:port or a port path)")
+    adc = StreamingADC(prof.url, prof, name=str(dev.settings.get("name", dev.name)))
+    if connect:
+        adc.open()
+    return adc
+
+
+def _register_bench() -> None:
+    from velab.drivers.bench import register_driver
+
+    register_driver("streaming_adc", _bench_factory)
+
+
+_register_bench()

@@ -54,6 +54,8 @@ class Endpoint:
 
     def bench_settings(self) -> dict:
         """The [devices.X] connection keys that reach this endpoint."""
+        if self.kind == "streaming_adc":  # a serial stream: a pyserial URL (socket://) or the pty path
+            return {"url": self.address if self.transport == "socket" else (self.link or self.address)}
         if self.transport == "tcp":
             return {"transport": "tcp", "host": self.address.split("//")[1].rsplit(":", 1)[0], "port": self.port,
                     "unit": self.unit}

@@ -74,9 +74,55 @@ class ManualClock:
         return self._epoch + t
 
 
+class ScaledClock:
+    """Simulated time running ``scale`` times faster than real time (``scale=1``: real time).
+
+    The ONE time base of a fast simulated rig: the valve's trigger instant, the ADC's
+    sample clock and the flowmeter's refresh all read ``now()``, so a 24 s run takes
+    24 / scale s of wall time while every device stays consistent with every other.
+    ``sleep(dt)`` waits dt / scale real seconds. Thread-safe (no shared mutable state).
+    """
+
+    def __init__(self, scale: float = 1.0, start: float = 0.0):
+        if not scale > 0:
+            raise ValueError(f"clock scale must be positive, got {scale}")
+        self.scale = float(scale)
+        self._t0 = time.perf_counter()
+        self._start = float(start)
+        self._epoch0 = time.time() - start
+
+    def now(self) -> float:
+        return self._start + (time.perf_counter() - self._t0) * self.scale
+
+    def sleep(self, dt: float) -> None:
+        if dt > 0:
+            time.sleep(dt / self.scale)
+
+    def host_time(self, t: float) -> float:
+        return self._epoch0 + t
+
+
+def clock_scale(clock) -> float:
+    """How many simulated seconds pass per real second (inf for a manual clock)."""
+    if isinstance(clock, ManualClock):
+        return float("inf")
+    return float(getattr(clock, "scale", 1.0))
+
+
 def make_clock(kind: str = "realtime") -> Clock:
+    """'realtime', 'manual', 'fast' (x12) or 'scaled:K' (K x real time)."""
     if kind == "realtime":
         return RealTimeClock()
     if kind == "manual":
         return ManualClock()
-    raise ValueError(f"clock must be 'realtime' or 'manual', got {kind!r}")
+    if kind == "fast":
+        return ScaledClock(FAST_SCALE)
+    if isinstance(kind, str) and kind.startswith("scaled:"):
+        try:
+            return ScaledClock(float(kind.split(":", 1)[1]))
+        except ValueError:
+            pass
+    raise ValueError(f"clock must be 'realtime', 'manual', 'fast' or 'scaled:K', got {kind!r}")
+
+
+FAST_SCALE = 12.0

@@ -96,7 +96,7 @@ class FaultPlan:
         for name, faults in d.items():
             if not isinstance(faults, dict):
                 raise ConfigError(f"{where}.{name}: must be a table of device faults")
-            DeviceFaults().set(**faults)  # validates the keys
+            _validate_device_faults(faults)
         return cls(devices=d, rig=rig)
 
     def apply(self, rig_sim, device_faults: dict) -> None:
@@ -105,4 +105,24 @@ class FaultPlan:
         for name, kw in self.devices.items():
             if name not in device_faults:
                 raise ConfigError(f"[faults.{name}]: no such simulated device (have: {', '.join(device_faults)})")
-            device_faults[name].set(**kw)
+            try:
+                device_faults[name].set(**kw)
+            except ValueError as exc:  # another kind's fault names (the streaming ADC's FaultPlan)
+                raise ConfigError(f"[faults.{name}]: {exc}") from None
+
+
+def _validate_device_faults(faults: dict) -> None:
+    """Modbus protocol faults, or the streaming ADC's (velab.simulators.streaming_adc.FaultPlan)."""
+    try:
+        DeviceFaults().set(**faults)
+        return
+    except ConfigError as exc:
+        first = exc
+    try:
+        from velab.simulators.streaming_adc import FaultPlan as StreamFaults
+    except ImportError:
+        raise first from None
+    try:
+        StreamFaults().set(**faults)
+    except (ValueError, TypeError):
+        raise first from None

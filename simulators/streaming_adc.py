@@ -394,11 +394,18 @@ class StreamingADCSimulator:
             timeout = 0.05
             if self.running and not silent:
                 if self.realtime:
-                    due = int((now - self.t_start) * self.rate_hz) // self.block - self.frame_no
+                    # paced by the device clock: the simulation clock if one was given
+                    # (one time base with the rig, possibly faster than real time)
+                    dev_now = (self.clock.now() - self._t_source0) if self.clock is not None else now - self.t_start
+                    due = int(dev_now * self.rate_hz) // self.block - self.frame_no
                     if due > 0:
                         self._generate(min(due, 4096), out, self.fifo_frames * self.frame_len)
-                    nxt = self.t_start + (self.frame_no + 1) * self.block / self.rate_hz
-                    timeout = min(timeout, max(0.0, nxt - time.monotonic()))
+                    if self.clock is not None:
+                        scale = getattr(self.clock, "scale", 1.0)
+                        wait = ((self.frame_no + 1) * self.block / self.rate_hz - (self.clock.now() - self._t_source0)) / scale
+                    else:
+                        wait = self.t_start + (self.frame_no + 1) * self.block / self.rate_hz - time.monotonic()
+                    timeout = min(timeout, max(0.0, wait))
                 elif len(out) < self.fast_backlog_bytes:
                     room = (self.fast_backlog_bytes - len(out)) // self.frame_len
                     if self._generate(max(1, min(room, 64)), out, None):

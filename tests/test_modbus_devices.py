@@ -180,7 +180,7 @@ def test_adc_buffer_timestamps_and_transient(sim):
         assert adc.stats.lost == 0 and adc.stats.samples == idx.size
         dev_t = np.concatenate([b.device_time_s for b in got])
         assert np.allclose(dev_t, t_start + idx / 2000.0)
-        host_t = np.concatenate([b.host_time_s for b in got])
+        host_t = np.concatenate([b.host_times_s for b in got])
         assert np.allclose(np.diff(host_t), 1 / 2000.0, rtol=0, atol=1e-6)  # epoch float resolution
         p = np.concatenate([b.column("pressure") for b in got])
         truth = sim.rig.pressure_pa(dev_t)

@@ -204,7 +204,7 @@ def test_adc_stuck_sensor_is_flagged_stale(sim):
     try:
         adc.start_buffer()
         sim.clock.advance(0.05)
-        assert (adc.read_buffer().quality[:, 0] == 0).all()
+        assert (adc.read_buffer().sample_quality[:, 0] == 0).all()
         sim.rig.faults.stuck_channels = {0: sim.clock.now()}
         sim.clock.advance(0.2)
         b = adc.read_buffer()
