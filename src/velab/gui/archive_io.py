@@ -1,0 +1,145 @@
+"""File work of the archive browser, run on worker threads (no Qt here).
+
+Reading a run (also one still being written: SWMR), reading its stored fits,
+re-fitting it, exporting a CSV and the report figure.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from velab.errors import DataError
+
+
+@dataclass
+class LoadedRun:
+    run: object  # velab.runfile.Run
+    summary: str
+    fits: dict = field(default_factory=dict)  # fit group name -> SweepResult
+    fit_errors: dict = field(default_factory=dict)
+
+
+def load_run(path) -> LoadedRun:
+    from velab.commands.info import describe
+    from velab.fitting.store import read_fit_group
+    from velab.runfile import open_run_file, read_run
+
+    run = read_run(path)
+    try:
+        summary = describe(run)
+    except Exception as exc:  # describe() also opens the file for the fits; a live file may race
+        summary = f"{run.path}\n  (summary unavailable: {exc})"
+    fits, errors = {}, {}
+    try:
+        with open_run_file(path) as fh:
+            group = fh["entry"].get("fits")
+            if group is not None:
+                for name, g in group.items():
+                    if isinstance(g, h5py.Group):
+                        try:
+                            fits[name] = read_fit_group(g)
+                        except Exception as exc:
+                            errors[name] = str(exc)
+    except (OSError, KeyError) as exc:
+        errors["(file)"] = str(exc)
+    return LoadedRun(run, summary, fits, errors)
+
+
+@dataclass
+class RefitOptions:
+    models: str = "0-6"
+    window_s: float | None = 20.0
+    method: str = "auto"
+    reduced: bool = False
+    starts: int | None = None
+    polish: bool = True
+    save: bool = True
+    name: str | None = None
+
+
+@dataclass
+class RefitOutcome:
+    result: object  # SweepResult
+    t: np.ndarray
+    h: np.ndarray
+    rig: object
+    saved_as: str | None
+    note: str = ""
+
+
+def refit(path, opts: RefitOptions, progress=None) -> RefitOutcome:
+    """Calibrate the run at ``path`` again; save the fit group unless the run is still being written."""
+    from velab.fitting import fit_sweep, parse_models
+    from velab.fitting.store import save_fit
+    from velab.runfile import read_run
+
+    run = read_run(path)
+    window = opts.window_s
+    if window is not None and window > run.duration_after_trigger_s:
+        raise DataError(f"{path}: window {window:g} s is longer than the record after the trigger "
+                        f"({run.duration_after_trigger_s:.3f} s)")
+    t, h = run.fit_window(window)
+    result = fit_sweep(t, h, run.rig, models=parse_models(opts.models), window_s=None, method=opts.method,
+                       reduced=opts.reduced, starts=opts.starts, polish=opts.polish, progress=progress)
+    result.settings["window_s_requested"] = window
+    saved, note = None, ""
+    if opts.save:
+        if run.incomplete:
+            note = "not saved: the run is still being written (or its writer never closed it)"
+        else:
+            try:
+                saved = save_fit(path, result, opts.name)
+            except OSError as exc:
+                note = f"not saved: cannot write the fit into the run: {exc}"
+    return RefitOutcome(result, t, h, run.rig, saved, note)
+
+
+def export_csv(run, path) -> Path:
+    """Write the run's samples (time from the trigger, head, head perturbation, other channels) as CSV."""
+    path = Path(path)
+    cols = {"time_s": run.time_s, "head_m": run.head_m, "head_perturbation_m": run.head_perturbation()}
+    for name, values in run.channels.items():
+        if np.shape(values) == np.shape(run.time_s):
+            unit = run.channel_units.get(name, "")
+            cols[f"{name}_{unit}".rstrip("_").replace("/", "per").replace("%", "pct").replace(" ", "")] = values
+    names = list(cols)
+    data = np.column_stack([np.asarray(cols[k], dtype=float) for k in names])
+    with open(path, "w", newline="") as fh:
+        fh.write(f"# velab run {run.path.name}: {run.title}\n")
+        fh.write(f"# status {run.status}; start {run.start_time}; rig {run.rig.name}; "
+                 f"{run.sample_rate_hz:g} Hz; steady head {run.steady_head_m:.4f} m; time from the trigger\n")
+        w = csv.writer(fh)
+        w.writerow(names)
+        fmt = ["%.6f"] + ["%.6g"] * (len(names) - 1)
+        np.savetxt(fh, data, delimiter=",", fmt=fmt)
+    return path
+
+
+def export_report_figure(path_run, result, path) -> Path:
+    """The 2 x 2 report figure (velab.fitting.plots) of ``result`` on the run at ``path_run``."""
+    from velab.fitting.plots import report_figure
+    from velab.runfile import read_run
+
+    path = Path(path)
+    if path.suffix.lower() not in (".png", ".pdf", ".svg"):
+        raise DataError(f"{path}: use a .png, .pdf or .svg file name")
+    run = read_run(path_run)
+    window = result.window_s if result.window_s and math.isfinite(result.window_s) else None
+    window = min(window, run.duration_after_trigger_s) if window else None
+    t, h = run.fit_window(window)
+    report_figure(t, h, run.rig, result, path)
+    return path
+
+
+def list_runs(folder) -> list[Path]:
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    files = [p for p in folder.iterdir() if p.suffix.lower() in (".h5", ".hdf5", ".nxs") and p.is_file()]
+    return sorted(files, key=lambda p: p.stat().st_mtime, reverse=True)

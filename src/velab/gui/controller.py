@@ -1,0 +1,214 @@
+"""The bridge between the recorder engine (velab.recorder, Qt-free) and the window.
+
+ScopeFoundry's split: the engine does all device I/O and file writing on its own
+threads and publishes :class:`RecorderEvent`s on a queue; the GUI drains that queue
+on a QTimer (every ``tick_ms``, with a bounded amount of work per tick), re-emits
+the events as Qt signals, posts commands (which return ``concurrent.futures.Future``)
+and polls their completion on the same timer. Nothing here blocks on a device.
+
+One Recorder records one run, so the controller makes a new one (through
+``factory(**settings)``) for each run; it keeps the previous one until the next
+connect so that its devices can be shown.
+"""
+
+from __future__ import annotations
+
+import queue
+import time
+import traceback
+from typing import Callable
+
+import numpy as np
+from PySide6.QtCore import QObject, QTimer, Signal
+
+from velab.gui.messages import describe_error
+
+ACTIVE_PHASES = ("connecting", "armed", "pretrigger", "transient", "fitting")
+
+
+class RecorderController(QObject):
+    phase_changed = Signal(str)
+    samples = Signal(object, object, object, int)  # time_s, head_m, valve_position, lost
+    devices = Signal(object)  # name -> Reading
+    device_status = Signal(object)  # list of DeviceStatus
+    fit = Signal(object)  # dict(result=SweepResult, final=bool, window_s=float)
+    message = Signal(str, str)  # text, level
+    fault = Signal(object)  # event data
+    done = Signal(object)  # RunSummary
+    armed = Signal(object)  # the run file path
+    triggered = Signal(float)
+    command_failed = Signal(str, object)  # command name, exception
+
+    def __init__(self, factory: Callable, parent=None, *, tick_ms: int = 50, budget_s: float = 0.012):
+        super().__init__(parent)
+        self.factory = factory
+        self.recorder = None
+        self.phase = "idle"
+        self.budget_s = budget_s
+        self._pending: list[tuple[str, object, Callable | None]] = []
+        self._settings: dict | None = None
+        self.events_seen = 0
+        self.timer = QTimer(self)
+        self.timer.setInterval(tick_ms)
+        self.timer.timeout.connect(self.drain)
+        self.timer.start()
+
+    # ------------------------------------------------------------------ commands
+    def busy(self) -> bool:
+        return self.phase in ACTIVE_PHASES or any(name in ("connect", "arm") for name, _, _ in self._pending)
+
+    def connect_devices(self, settings: dict) -> None:
+        """Make a fresh Recorder for ``settings`` and connect its devices (in the background)."""
+        if self.busy():
+            self.message.emit(f"Cannot reconnect while the recorder is {self.phase}.", "warning")
+            return
+        self._replace(settings)
+        self._post("connect", lambda: self.recorder.connect(), self.device_status.emit)
+
+    def arm(self, settings: dict) -> None:
+        """Arm a run with ``settings`` (connecting first with a new Recorder if needed)."""
+        if self.busy():
+            self.message.emit(f"Cannot arm: the recorder is {self.phase}.", "warning")
+            return
+        fresh = self.recorder is None or settings != self._settings or self.phase not in ("connected",)
+        if fresh:
+            self._replace(settings)
+            self._post("connect", lambda: self.recorder.connect(),
+                       lambda st: (self.device_status.emit(st), self._post("arm", lambda: self.recorder.arm(),
+                                                                           self.armed.emit)))
+        else:
+            self._post("arm", lambda: self.recorder.arm(), self.armed.emit)
+
+    def trigger(self) -> None:
+        if self.recorder is None:
+            return
+        self._post("trigger", lambda: self.recorder.trigger(), self.triggered.emit)
+
+    def stop(self) -> None:
+        if self.recorder is None:
+            return
+        self._post("stop", lambda: self.recorder.stop(), None)
+
+    def abort(self, reason: str = "operator abort") -> None:
+        if self.recorder is None:
+            return
+        self._post("abort", lambda: self.recorder.abort(reason), None)
+
+    def predict_surge(self, beta_per_s=None, gamma=None):
+        """The recorder's pure surge prediction, or None before a recorder exists."""
+        if self.recorder is None:
+            return None
+        return self.recorder.predict_surge(beta_per_s=beta_per_s, gamma=gamma)
+
+    def close(self) -> None:
+        """Closing the window: abort an active run, release the devices (engine threads end)."""
+        self.timer.stop()
+        rec, self.recorder = self.recorder, None
+        if rec is None:
+            return
+        try:
+            if self.phase in ACTIVE_PHASES:
+                rec.abort("window closed")
+            rec.close()
+        except Exception:  # closing must not raise
+            traceback.print_exc()
+
+    # ------------------------------------------------------------------ internals
+    def _replace(self, settings: dict) -> None:
+        old, self.recorder = self.recorder, None
+        if old is not None:
+            try:
+                old.close()
+            except Exception as exc:
+                self.message.emit(f"Closing the previous recorder: {describe_error(exc)[1]}", "warning")
+        self._settings = dict(settings)
+        self.recorder = self.factory(**settings)
+        self._set_phase(getattr(self.recorder, "phase", "idle"))
+
+    def _post(self, name: str, call: Callable, on_ok: Callable | None) -> None:
+        try:
+            fut = call()
+        except Exception as exc:  # a command refused synchronously (interlock, bad state)
+            self._failed(name, exc)
+            return
+        self._pending.append((name, fut, on_ok))
+
+    def _failed(self, name: str, exc: BaseException) -> None:
+        level, text = describe_error(exc)
+        self.command_failed.emit(name, exc)
+        self.message.emit(text, level)
+
+    def _set_phase(self, phase: str) -> None:
+        if phase != self.phase:
+            self.phase = phase
+            self.phase_changed.emit(phase)
+
+    def drain(self) -> None:
+        """One timer tick: finished commands, then queued events, within the time budget."""
+        if self._pending:
+            pending, self._pending = self._pending, []
+            for name, fut, on_ok in pending:
+                if not fut.done():
+                    self._pending.append((name, fut, on_ok))
+                    continue
+                exc = fut.exception()
+                if exc is not None:
+                    self._failed(name, exc)
+                elif on_ok is not None:
+                    try:
+                        on_ok(fut.result())  # may post the next command
+                    except Exception as e:  # a GUI callback must not kill the timer
+                        self.message.emit(f"Internal error after {name}: {e}", "error")
+                        traceback.print_exc()
+        rec = self.recorder
+        if rec is None:
+            return
+        q = rec.events
+        deadline = time.perf_counter() + self.budget_s
+        blocks_t, blocks_h, blocks_v, lost = [], [], [], 0
+        while time.perf_counter() < deadline:
+            try:
+                ev = q.get_nowait()
+            except queue.Empty:
+                break
+            self.events_seen += 1
+            kind = ev.kind
+            if kind == "samples":
+                d = ev.data
+                blocks_t.append(np.asarray(d["time_s"]))
+                blocks_h.append(np.asarray(d["head_m"]))
+                v = d.get("valve_position")
+                blocks_v.append(np.asarray(v) if v is not None else np.full(np.shape(d["time_s"]), np.nan))
+                lost += int(d.get("lost", 0) or 0)
+                continue
+            if blocks_t:  # keep the order of samples and other events
+                self._emit_samples(blocks_t, blocks_h, blocks_v, lost)
+                blocks_t, blocks_h, blocks_v, lost = [], [], [], 0
+            self._dispatch(ev)
+        if blocks_t:
+            self._emit_samples(blocks_t, blocks_h, blocks_v, lost)
+        ph = getattr(rec, "phase", None)
+        if isinstance(ph, str):
+            self._set_phase(ph)
+
+    def _emit_samples(self, ts, hs, vs, lost) -> None:
+        self.samples.emit(np.concatenate(ts), np.concatenate(hs), np.concatenate(vs), lost)
+
+    def _dispatch(self, ev) -> None:
+        kind, data = ev.kind, ev.data
+        if kind == "phase":
+            phase = data if isinstance(data, str) else (data.get("phase") if isinstance(data, dict) else str(data))
+            self._set_phase(phase)
+        elif kind == "device":
+            self.devices.emit(data)
+        elif kind == "fit":
+            self.fit.emit(data)
+        elif kind == "message":
+            if isinstance(data, dict):
+                self.message.emit(str(data.get("text", data.get("message", data))), str(data.get("level", "info")))
+            else:
+                self.message.emit(str(data), "info")
+        elif kind == "fault":
+            self.fault.emit(data)
+        elif kind == "done":
+            self.done.emit(data)

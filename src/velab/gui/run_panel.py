@@ -1,0 +1,170 @@
+"""Run controls: run metadata, manoeuvre and recording parameters, the predicted surge, and
+Arm / Trigger / Stop / Abort."""
+
+from __future__ import annotations
+
+from PySide6.QtCore import QSettings, Qt, Signal
+from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QGridLayout, QGroupBox, QLabel,
+                               QLineEdit, QPushButton, QVBoxLayout, QWidget)
+
+RATES_HZ = (1000.0, 2000.0, 5000.0, 10000.0)
+
+
+def _spin(lo, hi, value, decimals=2, suffix="", step=None, special=None) -> QDoubleSpinBox:
+    s = QDoubleSpinBox()
+    s.setRange(lo, hi)
+    s.setDecimals(decimals)
+    s.setValue(value)
+    if suffix:
+        s.setSuffix(suffix)
+    if step:
+        s.setSingleStep(step)
+    if special:
+        s.setSpecialValueText(special)
+    s.setKeyboardTracking(False)
+    return s
+
+
+class RunPanel(QWidget):
+    """The form; ``settings()`` gives the RecordSettings keyword arguments."""
+
+    arm_clicked = Signal()
+    trigger_clicked = Signal()
+    stop_clicked = Signal()
+    abort_clicked = Signal()
+    changed = Signal()
+
+    def __init__(self, qsettings: QSettings, rig=None, parent=None):
+        super().__init__(parent)
+        self.qs = qsettings
+        self.rig = rig
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(0, 0, 0, 0)
+
+        meta = QGroupBox("Run")
+        mf = QFormLayout(meta)
+        self.title_edit = QLineEdit()
+        self.title_edit.setPlaceholderText("e.g. closure 3, 2 bar")
+        self.operator_edit = QLineEdit(qsettings.value("run/operator", ""))
+        self.specimen_edit = QLineEdit(qsettings.value("run/specimen", ""))
+        self.specimen_edit.setPlaceholderText("pipe or specimen ID")
+        self.notes_edit = QLineEdit()
+        self.notes_edit.setPlaceholderText("notes stored with the run")
+        mf.addRow("title", self.title_edit)
+        mf.addRow("operator", self.operator_edit)
+        mf.addRow("specimen", self.specimen_edit)
+        mf.addRow("notes", self.notes_edit)
+        lay.addWidget(meta)
+
+        man = QGroupBox("Manoeuvre and recording")
+        g = QFormLayout(man)
+        beta0 = rig.manoeuvre.beta_per_s if rig is not None else 0.0
+        gamma0 = rig.manoeuvre.gamma if rig is not None else 0.0
+        self.beta_spin = _spin(0, 1000, float(qsettings.value("run/beta_per_s", beta0) or 0), 2, " 1/s", 1,
+                               special="rig default")
+        self.gamma_spin = _spin(0, 100, float(qsettings.value("run/gamma", gamma0) or 0), 3, "", 0.05,
+                                special="rig default")
+        self.end_spin = _spin(0, 100, float(qsettings.value("run/end_position_pct", 0.0)), 1, " %", 5)
+        self.duration_spin = _spin(0.5, 600, float(qsettings.value("run/duration_s", 30.0)), 1, " s", 5)
+        self.pre_spin = _spin(0.1, 60, float(qsettings.value("run/pretrigger_s", 2.0)), 1, " s", 0.5)
+        self.rate_combo = QComboBox()
+        for r in RATES_HZ:
+            self.rate_combo.addItem(f"{r:g} Hz", r)
+        rate = float(qsettings.value("run/sample_rate_hz", 1000.0))
+        self.rate_combo.setCurrentIndex(max(0, self.rate_combo.findData(rate)))
+        self.fit_check = QCheckBox("calibrate EL, S1..S6 after the run")
+        self.fit_check.setChecked(qsettings.value("run/fit", "true") in (True, "true"))
+        self.fit_window_spin = _spin(0.5, 600, float(qsettings.value("run/fit_window_s", 20.0)), 1, " s", 1)
+        self.out_edit = QLineEdit(qsettings.value("run/out_dir", "runs"))
+        g.addRow("closure rate β", self.beta_spin)
+        g.addRow("shape γ", self.gamma_spin)
+        g.addRow("end position", self.end_spin)
+        g.addRow("duration", self.duration_spin)
+        g.addRow("pre-trigger", self.pre_spin)
+        g.addRow("sample rate", self.rate_combo)
+        g.addRow(self.fit_check)
+        g.addRow("fit window", self.fit_window_spin)
+        g.addRow("run folder", self.out_edit)
+        lay.addWidget(man)
+
+        self.prediction = QLabel("Predicted surge: —")
+        self.prediction.setWordWrap(True)
+        self.prediction.setTextFormat(Qt.RichText)
+        self.prediction.setMargin(4)
+        lay.addWidget(self.prediction)
+
+        buttons = QGridLayout()
+        self.arm_button = QPushButton("Arm")
+        self.trigger_button = QPushButton("Trigger")
+        self.stop_button = QPushButton("Stop")
+        self.abort_button = QPushButton("Abort")
+        self.arm_button.setToolTip("check the interlocks, open the run file and start the pre-trigger record")
+        self.trigger_button.setToolTip("start the valve manoeuvre")
+        self.stop_button.setToolTip("end the recording normally (the run is kept and fitted)")
+        self.abort_button.setToolTip("abort: valve to the safe state, run marked aborted")
+        self.abort_button.setStyleSheet("QPushButton { color: white; background: #b3261e; font-weight: bold; }"
+                                        "QPushButton:disabled { background: #d9a3a0; }")
+        self.trigger_button.setStyleSheet("QPushButton { font-weight: bold; }")
+        buttons.addWidget(self.arm_button, 0, 0)
+        buttons.addWidget(self.trigger_button, 0, 1)
+        buttons.addWidget(self.stop_button, 1, 0)
+        buttons.addWidget(self.abort_button, 1, 1)
+        lay.addLayout(buttons)
+        lay.addStretch(1)
+        self.arm_button.clicked.connect(self.arm_clicked)
+        self.trigger_button.clicked.connect(self.trigger_clicked)
+        self.stop_button.clicked.connect(self.stop_clicked)
+        self.abort_button.clicked.connect(self.abort_clicked)
+        for w in (self.beta_spin, self.gamma_spin, self.end_spin):
+            w.valueChanged.connect(self.changed)
+        self.set_phase("idle")
+
+    def settings(self) -> dict:
+        """RecordSettings keyword arguments from the form."""
+        beta = self.beta_spin.value() or None
+        gamma = self.gamma_spin.value() or None
+        return dict(
+            duration_s=self.duration_spin.value(), pretrigger_s=self.pre_spin.value(),
+            sample_rate_hz=float(self.rate_combo.currentData()), beta_per_s=beta, gamma=gamma,
+            end_position_pct=self.end_spin.value(), out_dir=self.out_edit.text().strip() or "runs",
+            title=self.title_edit.text().strip(), operator=self.operator_edit.text().strip(),
+            specimen=self.specimen_edit.text().strip(), notes=self.notes_edit.text().strip(),
+            fit=self.fit_check.isChecked(), fit_window_s=self.fit_window_spin.value(),
+        )
+
+    def save(self) -> None:
+        s = self.settings()
+        for key in ("operator", "specimen", "duration_s", "pretrigger_s", "sample_rate_hz", "end_position_pct",
+                    "out_dir", "fit_window_s"):
+            self.qs.setValue(f"run/{key}", s[key])
+        self.qs.setValue("run/beta_per_s", s["beta_per_s"] or 0.0)
+        self.qs.setValue("run/gamma", s["gamma"] or 0.0)
+        self.qs.setValue("run/fit", "true" if s["fit"] else "false")
+
+    def show_prediction(self, pred) -> None:
+        """A SurgePrediction (or None)."""
+        if pred is None:
+            self.prediction.setText("Predicted surge: connect the bench to get the interlock's prediction.")
+            self.prediction.setStyleSheet("")
+            return
+        ok = bool(getattr(pred, "allowed", True))
+        head = getattr(pred, "peak_head_m", float("nan"))
+        surge = getattr(pred, "surge_m", float("nan"))
+        ppa = getattr(pred, "peak_pressure_pa", float("nan"))
+        lim = getattr(pred, "limit_pa", float("nan"))
+        msg = getattr(pred, "message", "")
+        verdict = "<b>within limits</b>" if ok else "<b>REFUSED by the interlock</b>"
+        self.prediction.setText(
+            f"Predicted surge {surge:.1f} m → peak head {head:.1f} m ({ppa / 1e5:.2f} bar; limit {lim / 1e5:.2f} bar): "
+            f"{verdict}" + (f"<br>{msg}" if msg else ""))
+        self.prediction.setStyleSheet("background:#e4f4e0;" if ok else "background:#fde2e1; color:#6b0d0a;")
+
+    def set_phase(self, phase: str) -> None:
+        active = phase in ("connecting", "armed", "pretrigger", "transient", "fitting")
+        self.arm_button.setEnabled(not active)
+        self.trigger_button.setEnabled(phase in ("armed", "pretrigger"))
+        self.stop_button.setEnabled(phase in ("armed", "pretrigger", "transient"))
+        self.abort_button.setEnabled(phase in ("armed", "pretrigger", "transient", "fitting"))
+        for w in (self.beta_spin, self.gamma_spin, self.end_spin, self.duration_spin, self.pre_spin,
+                  self.rate_combo, self.out_edit, self.fit_check, self.fit_window_spin):
+            w.setEnabled(not active)

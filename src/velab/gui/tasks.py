@@ -1,0 +1,104 @@
+"""Background work for the GUI: run a function on a worker thread, get the result as a signal.
+
+The GUI thread never reads or writes run files, fits or talks to devices; it hands
+the work to :func:`submit`, which runs it on the GUI's own QThreadPool and delivers
+``done(result)``, ``failed(exc)`` and ``progress(done, total, text)`` back on the GUI
+thread (queued signals). A task keeps itself alive until it has reported.
+"""
+
+from __future__ import annotations
+
+import traceback
+from typing import Callable
+
+from PySide6.QtCore import QObject, QRunnable, QThreadPool, Signal, Slot
+
+_POOL: QThreadPool | None = None
+_LIVE: set["Task"] = set()
+
+
+def pool() -> QThreadPool:
+    global _POOL
+    if _POOL is None:
+        _POOL = QThreadPool()
+        _POOL.setMaxThreadCount(2)
+    return _POOL
+
+
+class TaskSignals(QObject):
+    done = Signal(object)
+    failed = Signal(object)  # the exception; its traceback text is in exc.__velab_traceback__
+    progress = Signal(int, int, str)
+    finished = Signal()
+
+
+class _Relay(QObject):
+    """Lives on the GUI thread: the worker's signals are queued to it, it calls the callbacks."""
+
+    def __init__(self, task: "Task", on_done, on_error, on_progress):
+        super().__init__()
+        self.task, self.on_done, self.on_error, self.on_progress = task, on_done, on_error, on_progress
+
+    @Slot(object)
+    def done(self, result) -> None:
+        if self.on_done is not None:
+            self.on_done(result)
+
+    @Slot(object)
+    def failed(self, exc) -> None:
+        if self.on_error is not None:
+            self.on_error(exc)
+
+    @Slot(int, int, str)
+    def progress(self, d: int, t: int, s: str) -> None:
+        if self.on_progress is not None:
+            self.on_progress(d, t, s)
+
+    @Slot()
+    def finished(self) -> None:
+        _LIVE.discard(self.task)
+
+
+class Task(QRunnable):
+    """``fn(*args, progress=callback, **kwargs)`` if ``with_progress`` else ``fn(*args, **kwargs)``."""
+
+    def __init__(self, fn: Callable, *args, with_progress: bool = False, **kwargs):
+        super().__init__()
+        self.setAutoDelete(False)
+        self.fn, self.args, self.kwargs = fn, args, kwargs
+        self.with_progress = with_progress
+        self.signals = TaskSignals()
+
+    def run(self) -> None:  # worker thread
+        try:
+            kw = dict(self.kwargs)
+            if self.with_progress:
+                kw["progress"] = lambda d, t, s="": self.signals.progress.emit(int(d), int(t), str(s))
+            result = self.fn(*self.args, **kw)
+        except BaseException as exc:  # reported, never raised into Qt
+            try:
+                exc.__velab_traceback__ = traceback.format_exc()
+            except Exception:
+                pass
+            self.signals.failed.emit(exc)
+        else:
+            self.signals.done.emit(result)
+        self.signals.finished.emit()
+
+
+def submit(fn: Callable, *args, on_done=None, on_error=None, on_progress=None, **kwargs) -> Task:
+    """Run ``fn`` in the GUI's thread pool; callbacks run on the GUI thread."""
+    task = Task(fn, *args, with_progress=on_progress is not None, **kwargs)
+    relay = task.relay = _Relay(task, on_done, on_error, on_progress)
+    task.signals.done.connect(relay.done)
+    task.signals.failed.connect(relay.failed)
+    task.signals.progress.connect(relay.progress)
+    task.signals.finished.connect(relay.finished)
+    _LIVE.add(task)
+    pool().start(task)
+    return task
+
+
+def wait_idle(ms: int = 30000) -> bool:
+    """Wait for every queued task (closing the window, tests)."""
+    return pool().waitForDone(ms)

@@ -1,0 +1,42 @@
+"""``velab gui``: the operator's window (PySide6 + pyqtgraph). Qt is imported only when it runs."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from velab.errors import VelabError
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "gui",
+        help="the operator's window: run tests at the bench, browse and re-fit archived runs",
+        description="Open the operator GUI. With --simulate or --config it records runs through the same "
+        "recorder engine as `velab record`; without them it is an archive browser. Needs the [gui] extra "
+        "(PySide6, pyqtgraph). See docs/gui.md.",
+    )
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--config", metavar="BENCH.toml", help="bench configuration (devices, limits)")
+    src.add_argument("--simulate", action="store_true", help="record from the built-in simulated rig")
+    p.add_argument("--sim-config", default="default", help="simulated rig configuration (with --simulate)")
+    p.add_argument("--material", default=None, help="pipe material of the simulated rig, e.g. A (with --simulate)")
+    p.add_argument("--rig", default=None, help="rig configuration name or TOML (default: the bench's)")
+    p.add_argument("--open", metavar="RUN.h5", help="open this run in the archive browser")
+    p.add_argument("--settings", metavar="FILE.ini", help=argparse.SUPPRESS)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.config and not Path(args.config).is_file():
+        raise VelabError(f"{args.config}: no such bench configuration")
+    if args.open and not Path(args.open).is_file():
+        raise VelabError(f"{args.open}: no such run file")
+    try:
+        import PySide6  # noqa: F401
+        import pyqtgraph  # noqa: F401
+    except ImportError as exc:
+        raise VelabError(f"the GUI needs PySide6 and pyqtgraph (pip install 'velab[gui]'): {exc}") from None
+    from velab.gui.app import run_gui
+
+    return run_gui(args)
