@@ -1,1 +1,16 @@
-"""Calibration of the Sm pipe-wall models and model selection by AIC."""
+"""Calibration of the Sm pipe-wall models and model selection by AIC.
+
+Public API (pure computation, no Qt, no I/O, thread-safe)::
+
+    from velab.fitting import fit_sweep
+    result = fit_sweep(t, h, rig, models=range(7), window_s=20, method="auto",
+                       reduced=False, progress=None, initial=None)
+    result.best, result.report(), result.to_dict(), result["S3"].tau_s
+
+See docs/fitting.md for the method, the JSON schema and the fit-group layout.
+"""
+
+from velab.fitting.results import ModelFit, SweepResult, support_category
+from velab.fitting.sweep import METHODS, fit_sweep, parse_models
+
+__all__ = ["fit_sweep", "ModelFit", "SweepResult", "METHODS", "parse_models", "support_category"]

@@ -49,7 +49,7 @@ MAX_M = 6
 # Shortest retardation time calibrated, as a fraction of the valve's closure time: an
 # element much faster than anything the manoeuvre excites cannot be told from the
 # spring, and lets the optimiser trade a fast element against a higher wave speed.
-TAU_MIN_FACTOR = 0.05
+TAU_MIN_FACTOR = 0.1
 
 
 # --------------------------------------------------------------------------- data

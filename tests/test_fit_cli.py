@@ -1,0 +1,137 @@
+"""`velab fit` on run files: JSON schema, fit groups, info, many files, bad inputs."""
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from velab.cli import main
+from velab.config import load_rig
+from velab.runfile import read_run, write_run
+
+
+@pytest.fixture(scope="module")
+def run_a(tmp_path_factory):
+    p = tmp_path_factory.mktemp("fit") / "a.h5"
+    assert main(["synth", "--material", "A", "--duration", "6", "--seed", "5", "-o", str(p)]) == 0
+    return p
+
+
+def _json(capsys, argv):
+    capsys.readouterr()
+    code = main(argv)
+    out = capsys.readouterr()
+    return code, out
+
+
+def test_fit_json_schema_and_fit_group(run_a, capsys):
+    with h5py.File(run_a) as fh:
+        head_before = fh["entry/data/head"][()]
+    code, out = _json(capsys, ["fit", str(run_a), "--models", "0-3", "--window", "5", "--json"])
+    assert code == 0, out.err
+    doc = json.loads(out.out)
+    assert doc["n"] == 5000 and doc["window"] == pytest.approx(5.0)
+    names = [m["name"] for m in doc["models"]]
+    assert names == ["EL", "S1", "S2", "S3"]
+    assert doc["best"] in names
+    for m in doc["models"]:
+        for key in ("m", "k", "F", "aic", "delta_aic", "weight", "wave_speed", "elements"):
+            assert key in m
+        assert len(m["elements"]) == m["m"]
+        for el in m["elements"]:
+            assert set(el) >= {"E", "eta", "tau", "J"}
+            assert el["tau"] == pytest.approx(el["eta"] / el["E"])
+    best = min(doc["models"], key=lambda m: m["aic"])
+    assert best["name"] == doc["best"] and best["delta_aic"] == 0
+    # the fit is stored, the recorded data untouched
+    with h5py.File(run_a) as fh:
+        assert np.array_equal(fh["entry/data/head"][()], head_before)
+        g = fh["entry/fits"][doc["fit_name"]]
+        assert g.attrs["NX_class"] == "NXprocess" and g.attrs["n"] == 5000
+        assert g.attrs["best_model"] == doc["best"]
+        assert json.loads(g.attrs["settings"])["models"] == [0, 1, 2, 3]
+        s3 = g["S3"]
+        assert s3.attrs["k"] == 7 and s3["tau_s"].shape == (3,) and s3["E_pa"].attrs["units"] == "Pa"
+        assert s3.attrs["F"] == pytest.approx(doc["models"][3]["F"])
+    # re-fitting with another window adds a group; the same settings replace it
+    assert main(["fit", str(run_a), "--models", "0-1", "--window", "4", "--json"]) == 0
+    assert main(["fit", str(run_a), "--models", "0-1", "--window", "4", "--json"]) == 0
+    with h5py.File(run_a) as fh:
+        assert sorted(fh["entry/fits"]) == ["auto_w4s", "auto_w5s"]
+        assert list(fh["entry/fits/auto_w4s"]) == ["EL", "S1"]
+        assert np.array_equal(fh["entry/data/head"][()], head_before)
+    capsys.readouterr()
+    assert main(["info", str(run_a)]) == 0
+    info = capsys.readouterr().out
+    assert "auto_w5s" in info and "auto_w4s" in info
+
+
+def test_fit_table_and_plot(run_a, tmp_path, capsys):
+    png = tmp_path / "report.png"
+    code, out = _json(capsys, ["fit", str(run_a), "--models", "0-2", "--window", "5", "--no-save",
+                               "--plot", str(png)])
+    assert code == 0
+    assert "best model (minimum AIC)" in out.out and "lag-1" in out.out and "n = 5000" in out.out
+    assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def _nan_run(tmp_path):
+    r = read_run_cached()
+    head = r.head_m.copy()
+    head[r.time_s.searchsorted(1.0)] = np.nan
+    p = tmp_path / "nan.h5"
+    write_run(p, load_rig("perugia"), r.time_s, head, status="imported", sample_rate_hz=r.sample_rate_hz)
+    return p
+
+
+_CACHE = {}
+
+
+def read_run_cached():
+    return _CACHE["run"]
+
+
+def test_bad_inputs_one_line_errors(run_a, tmp_path, capsys):
+    _CACHE["run"] = read_run(run_a)
+    text = tmp_path / "text.h5"
+    text.write_text("not an hdf5 file\n")
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as fh:
+        fh["x"] = np.arange(3)
+    trunc = tmp_path / "trunc.h5"
+    data = run_a.read_bytes()
+    trunc.write_bytes(data[: len(data) // 2])
+    cases = {
+        "missing": [str(tmp_path / "nope.h5")],
+        "not hdf5": [str(text)],
+        "not a run": [str(other)],
+        "truncated": [str(trunc)],
+        "window": [str(run_a), "--window", "60"],
+        "nan": [str(_nan_run(tmp_path)), "--window", "5"],
+    }
+    for label, args in cases.items():
+        capsys.readouterr()
+        code = main(["fit", *args, "--models", "0-1", "--no-save"])
+        err = capsys.readouterr().err.strip()
+        assert code != 0, label
+        assert err.startswith("velab: ") and "\n" not in err and "Traceback" not in err, (label, err)
+
+
+def test_many_files_one_bad(run_a, tmp_path, capsys):
+    import shutil
+
+    good = tmp_path / "good.h5"
+    shutil.copy(run_a, good)
+    bad = tmp_path / "bad.h5"
+    bad.write_text("garbage")
+    capsys.readouterr()
+    code = main(["fit", str(good), str(bad), "--models", "0-1", "--window", "3", "--jobs", "2", "--json"])
+    out = capsys.readouterr()
+    assert code != 0
+    doc = json.loads(out.out)
+    by = {r["path"]: r for r in doc["runs"]}
+    assert "error" in by[str(bad)] and by[str(good)]["best"] in ("EL", "S1")
+    assert str(bad) in out.err
+    with h5py.File(good) as fh:
+        assert "auto_w3s" in fh["entry/fits"]

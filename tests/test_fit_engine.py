@@ -1,0 +1,154 @@
+"""Calibration engine: Jacobian, parameter maps, criteria, data checks, warm start, threads."""
+
+import math
+import threading
+
+import numpy as np
+import pytest
+
+from velab.config import load_material, load_rig
+from velab.errors import DataError
+from velab.fitting import fit_sweep, parse_models, support_category
+from velab.fitting.engine import HeadEvaluator, ParamMap
+from velab.fitting.results import ModelFit, apply_criteria
+from velab.fitting.sweep import lowpass_decimate, prepare_window
+from velab.model import valve_head
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return load_rig("perugia")
+
+
+@pytest.mark.parametrize("band", ["auto", None])
+def test_analytic_jacobian_matches_finite_differences(rig, band):
+    t = np.arange(3000) / 1000.0
+    ev = HeadEvaluator(rig, t, band_hz=band)
+    A = load_material("A")
+    pm = ParamMap(3)
+    x = pm.pack(A.wave_speed_m_s, [e.E_pa for e in A.elements], [e.eta_pa_s for e in A.elements])
+    h, Jfull = ev.head_jac(*pm.unpack(x))
+    J = pm.jac(Jfull)
+    np.testing.assert_allclose(h, valve_head(t, rig, A, band_hz=band), atol=1e-10)
+    for j in range(pm.size):
+        dx = np.zeros(pm.size)
+        dx[j] = 1e-6
+        fd = (ev.head(*pm.unpack(x + dx)) - ev.head(*pm.unpack(x - dx))) / 2e-6
+        assert np.max(np.abs(fd - J[:, j])) < 1e-5 * np.max(np.abs(J[:, j])) + 1e-9
+
+
+def test_param_map_roundtrip_and_bounds():
+    pm = ParamMap(2, tau_bounds=(0.01, 1e6))
+    x = pm.pack(350.0, [4.5e9, 4.5e10], [9e9, 9e8])
+    a, E, eta = pm.unpack(x)
+    assert a == pytest.approx(350.0) and np.allclose(E, [4.5e9, 4.5e10]) and np.allclose(eta, [9e9, 9e8])
+    # outside the paper's box: E and eta are brought back inside [1e6, 1e12], tau above its bound
+    a, E, eta = pm.unpack(pm.project(pm.pack(350.0, [1e13, 1e3], [1e14, 1e2])))
+    assert np.all((E >= 1e6 * (1 - 1e-9)) & (E <= 1e12 * (1 + 1e-9)))
+    assert np.all((eta >= 1e6 * (1 - 1e-9)) & (eta <= 1e12 * (1 + 1e-9)))
+    assert np.all(eta / E >= 0.01 * (1 - 1e-9))
+    red = ParamMap(2, fixed_tau=(0.01, 0.1))
+    assert red.size == 3
+    assert np.allclose(red.unpack(red.pack(350.0, [1e9, 1e10], None))[2], [1e7, 1e9])
+
+
+def test_information_criteria_and_support():
+    fits = [ModelFit(name=f"S{m}", m=m, k=2 * m + 1, reduced=False, n=1000, F=F, wave_speed_m_s=350.0,
+                     E_pa=(), eta_pa_s=(), lag1_autocorr=0.0) for m, F in ((1, 0.02), (2, 0.01), (3, 0.01))]
+    apply_criteria(fits)
+    assert fits[1].aic == pytest.approx(1000 * math.log(0.01) + 10)
+    assert fits[1].aicc == pytest.approx(fits[1].aic + 2 * 5 * 6 / (1000 - 5 - 1))
+    assert fits[1].bic == pytest.approx(1000 * math.log(0.01) + 5 * math.log(1000))
+    assert fits[1].delta_aic == 0 and fits[2].delta_aic == pytest.approx(4.0)
+    assert sum(f.weight for f in fits) == pytest.approx(1.0)
+    assert fits[2].weight / fits[1].weight == pytest.approx(math.exp(-2))
+    assert [support_category(v) for v in (0, 1.9, 3, 5, 8, 11)] == [
+        "substantial", "substantial", "moderate", "considerably less", "little", "essentially none"]
+
+
+def test_parse_models():
+    assert parse_models("0-6") == list(range(7))
+    assert parse_models("1,3,5") == [1, 3, 5]
+    assert parse_models(range(2)) == [0, 1]
+    for bad in ("7", "a-b", "-1"):
+        with pytest.raises(DataError):
+            parse_models(bad)
+
+
+def test_window_checks():
+    t = np.arange(-100, 5000) / 1000.0
+    h = np.zeros_like(t)
+    tw, hw = prepare_window(t, h, 2.0)
+    assert tw[0] == 0.0 and tw.size == 2000
+    with pytest.raises(DataError, match="longer than the record"):
+        prepare_window(t, h, 6.0)
+    h[1000] = np.nan
+    with pytest.raises(DataError, match="NaN"):
+        prepare_window(t, h, 2.0)
+
+
+def test_lowpass_keeps_band_and_removes_noise():
+    n = 4000
+    t = np.arange(n) / 1000.0
+    slow = np.sin(2 * np.pi * 3 * t)
+    noise = np.random.default_rng(0).normal(0, 1, n)
+    d = lowpass_decimate(slow + noise, 10)
+    assert d.size == 400
+    # the in-band signal survives, 90 % of the white-noise power is removed
+    assert np.var(d - slow[::10]) == pytest.approx(0.1, rel=0.2)
+
+
+def _record(rig, material, seconds=6.0, seed=3):
+    t = np.arange(-200, int(seconds * 1000)) / 1000.0
+    h = valve_head(t, rig, load_material(material))
+    return t, h + np.random.default_rng(seed).normal(0, 0.1, t.size)
+
+
+def test_elastic_pipe_recovers_wave_speed_and_el_wins(rig):
+    t, h = _record(rig, "elastic")
+    r = fit_sweep(t, h, rig, models="0-1", window_s=5.0)
+    el = r["EL"]
+    true_a = load_material("elastic").wave_speed_m_s
+    assert abs(el.wave_speed_m_s - true_a) < 0.5
+    assert el.F == pytest.approx(0.01, rel=0.05)
+    assert r.best.name == "EL"
+    assert r["S1"].delta_aic > 0
+
+
+def test_reduced_models_warm_start_and_threads(rig):
+    t, h = _record(rig, "A")
+    r = fit_sweep(t, h, rig, models="0-2", window_s=5.0, reduced=True)
+    names = [f.name for f in r.models]
+    assert names == ["EL", "S1", "S2", "S1r", "S2r"]
+    s2r = r["S2r"]
+    assert s2r.k == 3 and s2r.reduced and np.allclose(s2r.tau_s, [0.01, 0.1])
+    assert r["S2"].F <= r["S1"].F * (1 + 1e-9)
+    doc = r.to_dict()
+    assert doc["best"] == r.best.name and doc["n"] == 5000
+    # warm start from the previous result on a longer window (online use)
+    calls = []
+    r2 = fit_sweep(t, h, rig, models="0-2", window_s=5.5, initial=r, progress=lambda *a: calls.append(a))
+    assert [c[2] for c in calls] == ["EL", "S1", "S2"] and calls[-1][:2] == (3, 3)
+    assert r2.n == 5500 and r2["S2"].F == pytest.approx(r["S2"].F, rel=0.05)
+    # thread safety: concurrent fits give the sequential result
+    seq = fit_sweep(t, h, rig, models="1", window_s=4.0).models[0].F
+    out = [None, None]
+
+    def work(i):
+        out[i] = fit_sweep(t, h, rig, models="1", window_s=4.0).models[0].F
+
+    th = [threading.Thread(target=work, args=(i,)) for i in range(2)]
+    for x in th:
+        x.start()
+    for x in th:
+        x.join()
+    assert out == [seq, seq]
+
+
+@pytest.mark.parametrize("method", ["least-squares", "nelder-mead", "evolution"])
+def test_other_methods_reach_the_same_s1(rig, method):
+    t, h = _record(rig, "hdpe_s1", seconds=4.0)
+    ref = fit_sweep(t, h, rig, models="1", window_s=3.0)
+    r = fit_sweep(t, h, rig, models="1", window_s=3.0, method=method)
+    assert r.method == method
+    assert r["S1"].F == pytest.approx(ref["S1"].F, rel=1e-4)
