@@ -551,6 +551,18 @@ class RunWriter:
         g["lost"].resize((n + 1,))
         g["lost"][n] = lost
 
+    def set_trigger_time(self, time_s: float) -> None:
+        """Overwrite /entry/manoeuvre/trigger_time (SWMR-safe: a pre-created scalar).
+
+        A recorder writes its time axis before the trigger instant is known exactly
+        (it is measured from the valve-position feedback after the manoeuvre)."""
+        self._fh["entry/manoeuvre/trigger_time"][()] = float(time_s)
+        self._trigger = float(time_s)
+
+    def set_value(self, path: str, value) -> None:
+        """Overwrite a pre-created scalar dataset under /entry (e.g. ``manoeuvre/trigger_host_time``)."""
+        self._fh[f"entry/{path}"][()] = value
+
     def set_status(self, status: str, reason: str = "") -> None:
         e = self._fh["entry"]
         _set_str(e, "status", status, STATUS_LEN)
