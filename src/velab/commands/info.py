@@ -85,14 +85,14 @@ def describe_fits(path) -> list[str]:
             a = g.attrs
             out.append(f"  fit {name}: method {_str(a.get('method', '?'))}, window {float(a.get('window_s', np.nan)):g} s, "
                        f"n {int(a.get('n', 0))}, best {_str(a.get('best_model', '?'))} ({_str(a.get('date', ''))})")
-            out.append(f"    {'model':<6}{'k':>3}{'F (m^2)':>12}{'AIC':>13}{'dAIC':>9}{'weight':>8}  {'a (m/s)':>8}  support")
+            out.append(f"    {'model':<6}{'k':>3}{'F (m^2)':>13}{'AIC':>14}{'dAIC':>12}{'weight':>8}  {'a (m/s)':>8}  support")
             models = [(k, v) for k, v in g.items() if isinstance(v, h5py.Group)]
             models.sort(key=lambda kv: int(kv[1].attrs.get("m", 0)))
             for mname, mg in models:
                 ma = mg.attrs
                 out.append(
-                    f"    {mname:<6}{int(ma.get('k', 0)):>3}{float(ma.get('F', np.nan)):>12.5g}{float(ma.get('aic', np.nan)):>13.2f}"
-                    f"{float(ma.get('delta_aic', np.nan)):>9.2f}{float(ma.get('weight', np.nan)):>8.3f}  "
+                    f"    {mname:<6}{int(ma.get('k', 0)):>3}{float(ma.get('F', np.nan)):>13.5g}{float(ma.get('aic', np.nan)):>14.2f}"
+                    f"{float(ma.get('delta_aic', np.nan)):>12.2f}{float(ma.get('weight', np.nan)):>8.3f}  "
                     f"{float(ma.get('wave_speed_m_s', np.nan)):>8.2f}  {_str(ma.get('support', ''))}"
                 )
     return out
