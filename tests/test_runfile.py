@@ -256,3 +256,20 @@ def test_writer_events_gaps_and_close_status(tmp_path):
         np.testing.assert_allclose(f["entry/instrument/flow/value"][()], [3.6e-3, 3.5e-3])
     with pytest.raises(DataError, match="5 samples lost before t = 0.15"):
         r.fit_window(0.3)
+
+
+def test_synth_matches_the_independent_moc_solver(synth_run):
+    """`velab synth --noise 0` is the paper's material A signal: an independent
+    method-of-characteristics solution agrees to 1e-3 of the Joukowsky head."""
+    from velab.moc import moc_valve_head
+
+    r = read_run(synth_run)
+    rig, mat = load_rig("perugia"), load_material("A")
+    t_moc, h_moc = moc_valve_head(rig, mat, 5.0, 1e-3)
+    after = r.time_s >= 0
+    h_synth = np.interp(t_moc, r.time_s[after], r.head_perturbation()[after])
+    keep = t_moc <= r.time_s[-1]
+    err = np.abs(h_synth[keep] - h_moc[keep]).max()
+    assert err < 1e-3 * rig.joukowsky_head_m(mat.wave_speed_m_s)
+    # and the first surge is the viscoelastic (lower than Joukowsky) peak
+    assert 16.5 < r.head_perturbation().max() < rig.joukowsky_head_m()
