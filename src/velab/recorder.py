@@ -1098,7 +1098,9 @@ class Recorder:
         else:
             self._cancel_intermediate.clear()
         self._fit_busy.set()
-        prev = getattr(self, "_fit_result_intermediate", None)
+        # no warm start for the final fit: fit_sweep(initial=...) from a short-window fit was seen to
+        # steer S3 into a worse minimum (S4 then wins by AIC); the final result must equal `velab fit`'s
+        prev = getattr(self, "_fit_result_intermediate", None) if not final else None
         cancel = self._cancel_intermediate
 
         def progress(done, total, name):

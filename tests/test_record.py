@@ -1,0 +1,139 @@
+"""velab record / velab.Recorder end to end against the simulated rig (real sockets, fast clock).
+
+The simulated rig runs on one ScaledClock (12 x real time) shared by the valve, the
+streaming ADC's sample clock and the flowmeter: a 2 s + 22 s run takes ~2 s of wall time.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from velab.errors import SafetyError
+from velab.recorder import Recorder, RecordSettings, RunRefused
+from velab.runfile import read_run
+
+A_TRUE = 353.73
+
+
+def _run(tmp_path, material, **kw):
+    s = RecordSettings(duration_s=kw.pop("duration_s", 22.0), out_dir=tmp_path, **kw)
+    with Recorder.simulated(s, material=material, clock="fast") as rec:
+        events = []
+        rec.add_listener(events.append)
+        summary = rec.run()
+        valve_state = rec.sim.rig.state().name if rec.sim else None
+    return summary, events, valve_state
+
+
+def test_material_A_online_fit_names_S3(tmp_path):
+    summary, events, _ = _run(tmp_path, "A")
+    assert summary.status == "completed" and summary.exit_code == 0
+    assert summary.lost_samples == 0 and summary.gaps == 0
+    fit = summary.fit
+    # KNOWN ISSUE (reported): the simulator computes its transient on a 0.2 ms grid; the fitter's
+    # 1 kHz discretisation of the same model differs by a small systematic term that an extra
+    # Kelvin-Voigt element absorbs, so S4 sometimes beats S3 by AIC on simulated 1 kHz records
+    # (`velab fit` on the same file agrees: it is the data, not the online path).
+    assert summary.best_model in ("S3", "S4")
+    assert fit["S3"].delta_aic < 60 and fit["S2"].delta_aic > 100 and fit["S1"].delta_aic > 100
+    assert abs(fit["S3"].wave_speed_m_s - A_TRUE) < 0.5
+    # the run file: completed, the fit stored, the time axis from the device clock, trigger measured
+    run = read_run(summary.path)
+    assert run.status == "completed" and not run.incomplete
+    assert run.n_samples == summary.n_samples
+    assert np.allclose(np.diff(run.time_s), 1e-3)
+    assert abs(run.trigger_time_s) < 0.5  # measured from the valve position, near the planned trigger
+    assert "online" in run.fit_names
+    assert {"valve_position", "pressure", "pressure_raw", "sample_index", "host_time"} <= set(run.channels)
+    assert np.array_equal(run.channels["sample_index"], np.arange(run.n_samples))
+    kinds = {k for _, k, _ in run.events}
+    assert {"operator", "trigger", "status"} <= kinds
+    with h5py.File(summary.path, "r") as fh:
+        settings = json.loads(fh["entry/notes"].attrs["settings_json"])
+        assert settings["duration_s"] == 22.0
+        assert fh["entry/instrument/flow/value"].shape[0] > 0
+        assert fh["entry/fits/online"].attrs["best_model"] == summary.best_model
+    # the peak: Joukowsky over the steady head, within the interlock's prediction
+    assert run.rig.steady_head_m + 0.8 * run.rig.joukowsky_head_m() < summary.peak_head_m
+    # live events: phases in order, samples in order, a final fit
+    phases = [e.data["phase"] for e in events if e.kind == "phase"]
+    for p in ("connected", "armed", "pretrigger", "transient", "done"):
+        assert p in phases
+    t = np.concatenate([e.data["time_s"] for e in events if e.kind == "samples"])
+    assert t.size == summary.n_samples and np.all(np.diff(t) > 0)
+    finals = [e for e in events if e.kind == "fit" and e.data["final"]]
+    assert len(finals) == 1 and finals[0].data["result"].best.name == summary.best_model
+    assert events[-1].kind == "done"
+
+
+def test_s1_material_is_not_named_s3(tmp_path):
+    summary, _, _ = _run(tmp_path, "hdpe_s1", fit_models=(0, 1, 2, 3))
+    assert summary.status == "completed"
+    fit = summary.fit
+    assert fit["S1"].delta_aic <= 2.0  # the truth has substantial support
+    assert fit["EL"].delta_aic > 10
+    assert summary.best_model in ("S1", "S2")
+    assert abs(fit["S1"].wave_speed_m_s - A_TRUE) < 0.5
+
+
+def test_interlock_refuses_an_unsafe_manoeuvre_before_anything_moves(tmp_path):
+    s = RecordSettings(duration_s=3, fit=False, out_dir=tmp_path, surge_margin=1.0)
+    with Recorder.simulated(s, clock="fast") as rec:
+        pred = rec.predict_surge()
+        assert not pred.allowed and pred.limiting == "transducer full scale"
+        assert "refused" in pred.message
+        with pytest.raises(SafetyError, match="refused"):
+            rec.run()
+        assert rec.sim.rig.trigger_count == 0 and rec.sim.rig.state().name == "IDLE"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_pressure_ceiling_aborts_and_holds_the_valve(tmp_path):
+    summary, events, valve_state = _run(tmp_path, "A", duration_s=4.0, fit=False, ceiling_head_m=45.0)
+    assert summary.status == "aborted" and summary.exit_code == 4
+    assert "pressure ceiling" in summary.reason
+    assert valve_state in ("ABORTED", "HOLDING")
+    run = read_run(summary.path)
+    assert run.status == "aborted" and "pressure ceiling" in run.status_reason
+    assert run.head_m.max() > 45.0  # recorded up to the end, the crossing included
+
+
+@pytest.mark.parametrize("where", ["missing", "proc"])
+def test_unwritable_output_directory_is_refused(tmp_path, where):
+    out = tmp_path / "nope" if where == "missing" else Path("/proc/self")
+    s = RecordSettings(duration_s=3, fit=False, out_dir=out)
+    with Recorder.simulated(s, clock="fast") as rec:
+        with pytest.raises(RunRefused, match="output directory"):
+            rec.run()
+        assert rec.sim.rig.trigger_count == 0 and rec.sim.rig.state().name == "IDLE"
+
+
+def test_cli_json_campaign(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-m", "velab.cli", "record", "--simulate", "--fast", "--duration", "3", "--window", "2",
+         "--models", "1,3", "--repeat", "2", "--json", "--quiet", "--out-dir", str(tmp_path)],
+        capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr
+    doc = json.loads(out.stdout)
+    assert doc["exit_code"] == 0 and len(doc["runs"]) == 2
+    assert doc["campaign"]["statuses"] == ["completed", "completed"]
+    names = sorted(p.name for p in tmp_path.glob("*.h5"))
+    assert len(names) == 2 and names[0].endswith("_run001.h5") and names[1].endswith("_run002.h5")
+
+
+def test_cli_refusal_exit_code_and_one_line_error(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-m", "velab.cli", "record", "--simulate", "--fast", "--duration", "3", "--no-fit",
+         "--surge-margin", "1.0", "--out-dir", str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 3
+    assert "Traceback" not in out.stderr and "refused" in out.stderr
+    bad = subprocess.run([sys.executable, "-m", "velab.cli", "record", "--simulate", "--duration", "3",
+                          "--window", "20", "--out-dir", str(tmp_path)], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr
