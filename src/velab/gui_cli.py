@@ -21,6 +21,8 @@ def register(sub) -> None:
     src.add_argument("--simulate", action="store_true", help="record from the built-in simulated rig")
     p.add_argument("--sim-config", default="default", help="simulated rig configuration (with --simulate)")
     p.add_argument("--material", default=None, help="pipe material of the simulated rig, e.g. A (with --simulate)")
+    p.add_argument("--clock", default=None, metavar="KIND",
+                   help="simulated clock: realtime (default), fast (12x) or scaled:K (with --simulate)")
     p.add_argument("--rig", default=None, help="rig configuration name or TOML (default: the bench's)")
     p.add_argument("--open", metavar="RUN.h5", help="open this run in the archive browser")
     p.add_argument("--settings", metavar="FILE.ini", help=argparse.SUPPRESS)

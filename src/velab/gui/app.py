@@ -19,14 +19,17 @@ def ensure_app():
         app.setApplicationName("velab-gui")
     import pyqtgraph as pg
 
-    pg.setConfigOptions(background="w", foreground="k", antialias=False)
+    pg.setConfigOptions(background="w", foreground="k", antialias=False, exitCleanup=False)
     return app
 
 
-def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "default", material=None, rig=None):
-    """A callable ``factory(**record_settings) -> Recorder`` (velab.recorder), and the rig it records.
+def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "default", material=None, rig=None,
+                     clock: str = "realtime"):
+    """``(factory, rig)``: ``factory(**record_settings) -> velab.recorder.Recorder`` and the rig it records.
 
-    Raises VelabError if the recorder engine is not available or the configuration is bad.
+    The factory runs on the controller's worker thread (it starts the simulated rig or
+    loads the bench); it creates the run folder if needed. Raises VelabError for a bad
+    configuration or a missing recorder engine.
     """
     try:
         from velab import recorder as rec
@@ -34,30 +37,40 @@ def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "
         if exc.name and exc.name.startswith("velab.recorder"):
             raise VelabError("the recorder engine (velab.recorder) is not installed; only the archive browser works")
         raise
+    from velab.config import load_rig
+
     if simulate:
+        from velab.simulators.bench import load_sim_config
+
+        _, doc = load_sim_config(sim_config)
+        the_rig = load_rig(rig or doc.get("rig", "perugia"))
+
         def make(**settings):
             s = rec.RecordSettings(**_coerce(settings))
-            kw = {"sim_config": sim_config}
-            if material is not None:
-                kw["material"] = material
-            return rec.Recorder.simulated(s, **kw)
-        return make, _rig(rig)
+            return rec.Recorder.simulated(s, sim_config=sim_config, material=material, clock=clock,
+                                          rig=the_rig if rig else None)
+        return make, the_rig
     if config is None:
         raise VelabError("give --config BENCH.toml or --simulate")
-    opener = getattr(rec, "Recorder", None)
-    from_config = getattr(opener, "from_config", None)
-    if from_config is None:
-        raise VelabError("this recorder cannot open a bench config from the GUI (no Recorder.from_config)")
+    from velab.drivers.base import DeviceError
+    from velab.drivers.bench import load_bench
+
+    try:
+        bench = load_bench(config)
+    except DeviceError as exc:
+        raise VelabError(str(exc)) from None
+    the_rig = load_rig(rig or "perugia")
 
     def make(**settings):
-        return from_config(config, rec.RecordSettings(**_coerce(settings)), **({"rig": rig} if rig else {}))
-    return make, _rig(rig)
+        return rec.Recorder(bench, the_rig, rec.RecordSettings(**_coerce(settings)))
+    return make, the_rig
 
 
 def _coerce(settings: dict) -> dict:
     s = dict(settings)
     if "out_dir" in s:
-        s["out_dir"] = Path(s["out_dir"])
+        s["out_dir"] = Path(s["out_dir"]).expanduser()
+        s["out_dir"].mkdir(parents=True, exist_ok=True)
     return s
 
 
@@ -76,7 +89,8 @@ def run_gui(args) -> int:
     if args.simulate or args.config:
         try:
             factory, rig = recorder_factory(config=args.config, simulate=args.simulate,
-                                            sim_config=args.sim_config, material=args.material, rig=args.rig)
+                                            sim_config=args.sim_config, material=args.material, rig=args.rig,
+                                            clock=getattr(args, "clock", None) or "realtime")
             label = f"simulated rig '{args.sim_config}'" if args.simulate else str(args.config)
             if args.config:
                 qs.setValue("last/config", str(args.config))

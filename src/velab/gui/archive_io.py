@@ -137,6 +137,16 @@ def export_report_figure(path_run, result, path) -> Path:
     return path
 
 
+def fit_window_of(path, window_s):
+    """(t, h, rig) of a run's calibration window (time from the measured trigger, head perturbation)."""
+    from velab.runfile import read_run
+
+    run = read_run(path)
+    window = min(window_s, run.duration_after_trigger_s) if window_s else None
+    t, h = run.fit_window(window)
+    return t, h, run.rig
+
+
 def list_runs(folder) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():

@@ -16,6 +16,7 @@ from __future__ import annotations
 import queue
 import time
 import traceback
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
 import numpy as np
@@ -28,6 +29,7 @@ ACTIVE_PHASES = ("connecting", "armed", "pretrigger", "transient", "fitting")
 
 class RecorderController(QObject):
     phase_changed = Signal(str)
+    phase_info = Signal(str, object)  # phase, the event's data (path, trigger_time_s, status, reason...)
     samples = Signal(object, object, object, int)  # time_s, head_m, valve_position, lost
     devices = Signal(object)  # name -> Reading
     device_status = Signal(object)  # list of DeviceStatus
@@ -48,6 +50,9 @@ class RecorderController(QObject):
         self._pending: list[tuple[str, object, Callable | None]] = []
         self._settings: dict | None = None
         self.events_seen = 0
+        # making and closing a Recorder starts/stops devices (or the simulator): never on the GUI thread
+        self._exec = ThreadPoolExecutor(max_workers=1, thread_name_prefix="velab-gui-recorder")
+        self._making = False
         self.timer = QTimer(self)
         self.timer.setInterval(tick_ms)
         self.timer.timeout.connect(self.drain)
@@ -55,29 +60,31 @@ class RecorderController(QObject):
 
     # ------------------------------------------------------------------ commands
     def busy(self) -> bool:
-        return self.phase in ACTIVE_PHASES or any(name in ("connect", "arm") for name, _, _ in self._pending)
+        return (self._making or self.phase in ACTIVE_PHASES
+                or any(name in ("connect", "arm") for name, _, _ in self._pending))
 
     def connect_devices(self, settings: dict) -> None:
-        """Make a fresh Recorder for ``settings`` and connect its devices (in the background)."""
+        """Make a fresh Recorder for ``settings`` (a new connection) and connect its devices."""
         if self.busy():
             self.message.emit(f"Cannot reconnect while the recorder is {self.phase}.", "warning")
             return
-        self._replace(settings)
-        self._post("connect", lambda: self.recorder.connect(), self.device_status.emit)
+        self._replace(settings, then=lambda: self._post("connect", lambda: self.recorder.connect(),
+                                                        self.device_status.emit))
 
     def arm(self, settings: dict) -> None:
-        """Arm a run with ``settings`` (connecting first with a new Recorder if needed)."""
+        """Arm a run with ``settings``: a fresh Recorder (connect, then arm) unless the connected one has them."""
         if self.busy():
             self.message.emit(f"Cannot arm: the recorder is {self.phase}.", "warning")
             return
-        fresh = self.recorder is None or settings != self._settings or self.phase not in ("connected",)
-        if fresh:
-            self._replace(settings)
-            self._post("connect", lambda: self.recorder.connect(),
-                       lambda st: (self.device_status.emit(st), self._post("arm", lambda: self.recorder.arm(),
-                                                                           self.armed.emit)))
-        else:
+        if self.recorder is not None and settings == self._settings and self.phase == "connected":
             self._post("arm", lambda: self.recorder.arm(), self.armed.emit)
+            return
+
+        def then():
+            self._post("connect", lambda: self.recorder.connect(),
+                       lambda st: (self.device_status.emit(st),
+                                   self._post("arm", lambda: self.recorder.arm(), self.armed.emit)))
+        self._replace(settings, then=then)
 
     def trigger(self) -> None:
         if self.recorder is None:
@@ -101,29 +108,50 @@ class RecorderController(QObject):
         return self.recorder.predict_surge(beta_per_s=beta_per_s, gamma=gamma)
 
     def close(self) -> None:
-        """Closing the window: abort an active run, release the devices (engine threads end)."""
+        """Closing the window: abort an active run, release the devices (in the background, bounded)."""
         self.timer.stop()
         rec, self.recorder = self.recorder, None
-        if rec is None:
-            return
+
+        def shut():
+            if rec is None:
+                return
+            try:
+                if self.phase in ACTIVE_PHASES:
+                    rec.abort("window closed").result(timeout=10)
+            except Exception:
+                pass
+            try:
+                rec.close()
+            except Exception:  # closing must not raise
+                traceback.print_exc()
+        fut = self._exec.submit(shut)
+        self._exec.shutdown(wait=False)
         try:
-            if self.phase in ACTIVE_PHASES:
-                rec.abort("window closed")
-            rec.close()
-        except Exception:  # closing must not raise
-            traceback.print_exc()
+            fut.result(timeout=20)
+        except Exception:
+            pass
 
     # ------------------------------------------------------------------ internals
-    def _replace(self, settings: dict) -> None:
+    def _replace(self, settings: dict, then: Callable) -> None:
+        """Close the current Recorder and make a new one, on the worker thread; then ``then()``."""
         old, self.recorder = self.recorder, None
-        if old is not None:
-            try:
-                old.close()
-            except Exception as exc:
-                self.message.emit(f"Closing the previous recorder: {describe_error(exc)[1]}", "warning")
         self._settings = dict(settings)
-        self.recorder = self.factory(**settings)
-        self._set_phase(getattr(self.recorder, "phase", "idle"))
+        self._making = True
+        self._set_phase("connecting")
+
+        def make():
+            if old is not None:
+                try:
+                    old.close()
+                except Exception:
+                    traceback.print_exc()
+            return self.factory(**settings)
+
+        def made(rec):
+            self._making = False
+            self.recorder = rec
+            then()
+        self._pending.append(("setup", self._exec.submit(make), made))
 
     def _post(self, name: str, call: Callable, on_ok: Callable | None) -> None:
         try:
@@ -134,6 +162,9 @@ class RecorderController(QObject):
         self._pending.append((name, fut, on_ok))
 
     def _failed(self, name: str, exc: BaseException) -> None:
+        if name == "setup":
+            self._making = False
+            self._set_phase("idle" if self.recorder is None else getattr(self.recorder, "phase", "idle"))
         level, text = describe_error(exc)
         self.command_failed.emit(name, exc)
         self.message.emit(text, level)
@@ -188,8 +219,8 @@ class RecorderController(QObject):
         if blocks_t:
             self._emit_samples(blocks_t, blocks_h, blocks_v, lost)
         ph = getattr(rec, "phase", None)
-        if isinstance(ph, str):
-            self._set_phase(ph)
+        if isinstance(ph, str) and not self._making and q.empty():
+            self._set_phase(ph)  # the engine's phase, once its events are all in
 
     def _emit_samples(self, ts, hs, vs, lost) -> None:
         self.samples.emit(np.concatenate(ts), np.concatenate(hs), np.concatenate(vs), lost)
@@ -199,6 +230,7 @@ class RecorderController(QObject):
         if kind == "phase":
             phase = data if isinstance(data, str) else (data.get("phase") if isinstance(data, dict) else str(data))
             self._set_phase(phase)
+            self.phase_info.emit(phase, data if isinstance(data, dict) else {})
         elif kind == "device":
             self.devices.emit(data)
         elif kind == "fit":

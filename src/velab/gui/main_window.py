@@ -115,6 +115,7 @@ class MainWindow(QMainWindow):
         if recorder_factory is not None:
             self.controller = c = RecorderController(recorder_factory, self)
             c.phase_changed.connect(self._phase)
+            c.phase_info.connect(self._phase_info)
             c.samples.connect(self._samples)
             c.devices.connect(self.devices.update_readings)
             c.device_status.connect(self._device_status)
@@ -222,13 +223,20 @@ class MainWindow(QMainWindow):
     def arm(self) -> None:
         s = self._record_settings()
         pred = self._predict()
+        if isinstance(pred, BaseException):
+            self.report_exception(pred, "Cannot arm")
+            return
         if pred is not None and not getattr(pred, "allowed", True):
             # the engine refuses too; say it here before touching anything
             self.show_message(f"Refused by the interlock: {getattr(pred, 'message', '') or 'predicted surge over the limit'}",
                               "error")
+            self.update_prediction()
             return
         self.banner.hide()
         self.run_panel.save()
+        self.last_summary = None
+        self.live.clear()  # here, not on the engine's "armed": its samples may already be on their way
+        self.fit_panel.clear("Fit of the new run: after the fit window has been recorded.")
         self.show_message("Arming…")
         self.controller.arm(s)
 
@@ -236,22 +244,35 @@ class MainWindow(QMainWindow):
         return self.run_panel.settings()
 
     def _predict(self):
+        """The interlock's prediction for the form's settings (pure; the engine checks it again at arm)."""
         if self.controller is None:
             return None
         s = self.run_panel.settings()
+        rec = self.controller.recorder
         try:
+            from velab.recorder import RecordSettings, predict_surge
+        except ImportError:
             return self.controller.predict_surge(s["beta_per_s"], s["gamma"])
-        except Exception as exc:
-            self.report_exception(exc, "surge prediction")
+        rig = self.rig or getattr(rec, "rig", None)
+        if rig is None:
             return None
+        steady = getattr(rec, "_steady", None) if rec is not None else None
+        try:
+            return predict_surge(rig, RecordSettings(**{k: v for k, v in s.items() if k != "out_dir"}), steady)
+        except Exception as exc:  # settings the engine rejects (VelabError): say so in the prediction line
+            return exc
 
     def update_prediction(self) -> None:
-        self.run_panel.show_prediction(self._predict())
+        pred = self._predict()
+        if isinstance(pred, BaseException):
+            self.run_panel.show_settings_error(describe_error(pred)[1])
+        else:
+            self.run_panel.show_prediction(pred)
 
     def _device_status(self, statuses) -> None:
         self.devices.update_status(statuses)
         self.update_prediction()
-        bad = [s for s in (statuses or []) if getattr(s, "connected", True) is False]
+        bad = [s for s in (statuses or []) if getattr(s, "ok", getattr(s, "connected", True)) is False]
         if bad:
             self.show_message("Not connected: " + ", ".join(f"{getattr(s, 'name', s)} ({getattr(s, 'message', '')})"
                                                            for s in bad), "error")
@@ -259,7 +280,6 @@ class MainWindow(QMainWindow):
             self.show_message(f"Devices connected ({len(statuses or [])}).")
 
     def _armed(self, path) -> None:
-        self.live.clear()
         self.last_run_path = Path(path) if path else None
         self.show_message(f"Armed: recording to {path}. Press Trigger to close the valve.")
 
@@ -272,19 +292,25 @@ class MainWindow(QMainWindow):
                   "done": "#d8f0d2", "aborted": "#f9d0cd", "failed": "#f9d0cd", "stopped": "#eeeeee"}
         self.phase_label.setStyleSheet(f"background:{colors.get(phase, 'transparent')}; padding:2px;")
         self.run_panel.set_phase(phase)
-        if phase in ("armed", "pretrigger") and self.live.mode == "whole":
-            self.live.clear()
         if phase == "transient" and self.live.trigger_time_s is None:
             self.live.set_trigger(0.0)
 
     def _samples(self, t, h, v, lost) -> None:
         self.live.append(t, h, v, lost)
 
+    def _phase_info(self, phase: str, data) -> None:
+        t = data.get("trigger_time_s") if isinstance(data, dict) else None
+        if phase == "transient" and isinstance(t, (int, float)):
+            self.live.set_trigger(float(t))
+        if phase in ("stopped", "aborted", "failed") and isinstance(data, dict) and data.get("reason"):
+            self.show_message(f"Run {phase}: {data['reason']}", "warning" if phase == "stopped" else "error")
+
     def _refresh_plot(self) -> None:
         if self.live.refresh():
             b = self.live.buffer
             if b.n:
                 head = b.column("head_m")
+                self.devices.update_readings({"head (ADC)": _Reading(float(head[-1]), "m")})
                 rate = self.run_panel.settings()["sample_rate_hz"]
                 self.run_stats.setText(
                     f"{b.n} samples ({rate:g} Hz), t = {b.column('time_s')[-1]:.2f} s, "
@@ -295,9 +321,12 @@ class MainWindow(QMainWindow):
             dev = str(data.get("device", data.get("name", "device")))
             msg = str(data.get("message", data.get("text", data)))
         else:
-            dev, msg = "device", str(data)
+            msg = str(data)
+            head = msg.split(":", 1)[0].strip()
+            known = set(self.devices.devices) | {"flowmeter", "valve", "valve actuator", "pressure ADC", "streaming_adc"}
+            dev = head if head in known or (head and len(head) < 30 and " " not in head) else "device"
         self.devices.set_fault(dev, msg)
-        self.show_message(f"Device fault — {dev}: {msg}", "error")
+        self.show_message(f"Device fault — {msg}" if dev in msg else f"Device fault — {dev}: {msg}", "error")
 
     def _fit_event(self, data) -> None:
         result = data.get("result") if isinstance(data, dict) else data
@@ -318,8 +347,8 @@ class MainWindow(QMainWindow):
             return
         self.fit_panel.set_fit(t[sel] - trig, h[sel] - steady, rig, result,
                                title=f"{self.last_run_path.name if self.last_run_path else 'run'} — {label}")
-        if final:
-            self.show_message(f"Fit: best model {result.best.name} (a = {result.best.wave_speed_m_s:.1f} m/s)")
+        if not final:
+            self.show_message(f"Online fit on {win:g} s: best so far {result.best.name}")
 
     def _done(self, summary) -> None:
         self.last_summary = summary
@@ -336,6 +365,30 @@ class MainWindow(QMainWindow):
         self.show_message(text, level)
         if path:
             self.archive.set_folder(Path(path).parent)
+        trig = getattr(summary, "trigger_time_s", None)
+        if isinstance(trig, (int, float)):
+            self.live.set_trigger(float(trig))  # the instant measured from the valve position
         fit = getattr(summary, "fit", None)
-        if fit is not None and self.fit_panel.result is not fit:
-            self._fit_event({"result": fit, "final": True, "window_s": fit.window_s})
+        if fit is not None and path:
+            from velab.gui.archive_io import fit_window_of
+
+            tasks.submit(fit_window_of, path, fit.window_s,
+                         on_done=lambda th, f=fit, p=path: self._final_fit(p, f, *th),
+                         on_error=lambda e: self.report_exception(e, "reading the run for the fit panel"))
+        elif getattr(summary, "fit_error", ""):
+            self.show_message(summary.fit_error, "warning")
+
+    def _final_fit(self, path, fit, t, h, rig) -> None:
+        self.fit_panel.set_fit(t, h, rig, fit, title=f"{Path(path).name} — final fit (stored as /entry/fits/online)")
+        self.show_message(f"Fit: best model {fit.best.name} (a = {fit.best.wave_speed_m_s:.1f} m/s, "
+                          f"weight {fit.best.weight:.2f})")
+
+
+class _Reading:
+    __slots__ = ("value", "units", "quality", "timestamp_s")
+
+    def __init__(self, value, units, quality="ok"):
+        import time as _t
+
+        self.value, self.units, self.timestamp_s = value, units, _t.time()
+        self.quality = quality if np.isfinite(value) else "nan"

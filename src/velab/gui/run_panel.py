@@ -64,7 +64,9 @@ class RunPanel(QWidget):
                                special="rig default")
         self.gamma_spin = _spin(0, 100, float(qsettings.value("run/gamma", gamma0) or 0), 3, "", 0.05,
                                 special="rig default")
-        self.end_spin = _spin(0, 100, float(qsettings.value("run/end_position_pct", 0.0)), 1, " %", 5)
+        self.end_spin = _spin(0, 99, float(qsettings.value("run/end_position_pct", 0.0)), 1, " %", 5)
+        self.margin_spin = _spin(0, 500, float(qsettings.value("run/surge_margin_pct", 10.0)), 0, " %", 5)
+        self.margin_spin.setToolTip("safety margin added to the Joukowsky surge by the interlock")
         self.duration_spin = _spin(0.5, 600, float(qsettings.value("run/duration_s", 30.0)), 1, " s", 5)
         self.pre_spin = _spin(0.1, 60, float(qsettings.value("run/pretrigger_s", 2.0)), 1, " s", 0.5)
         self.rate_combo = QComboBox()
@@ -74,15 +76,19 @@ class RunPanel(QWidget):
         self.rate_combo.setCurrentIndex(max(0, self.rate_combo.findData(rate)))
         self.fit_check = QCheckBox("calibrate EL, S1..S6 after the run")
         self.fit_check.setChecked(qsettings.value("run/fit", "true") in (True, "true"))
+        self.models_edit = QLineEdit(qsettings.value("run/fit_models", "0-6"))
+        self.models_edit.setToolTip("models to calibrate, by number of Kelvin-Voigt elements (0 = EL): 0-6, 1-4, 1,3")
         self.fit_window_spin = _spin(0.5, 600, float(qsettings.value("run/fit_window_s", 20.0)), 1, " s", 1)
         self.out_edit = QLineEdit(qsettings.value("run/out_dir", "runs"))
         g.addRow("closure rate β", self.beta_spin)
         g.addRow("shape γ", self.gamma_spin)
         g.addRow("end position", self.end_spin)
+        g.addRow("surge margin", self.margin_spin)
         g.addRow("duration", self.duration_spin)
         g.addRow("pre-trigger", self.pre_spin)
         g.addRow("sample rate", self.rate_combo)
         g.addRow(self.fit_check)
+        g.addRow("fit models", self.models_edit)
         g.addRow("fit window", self.fit_window_spin)
         g.addRow("run folder", self.out_edit)
         lay.addWidget(man)
@@ -115,8 +121,10 @@ class RunPanel(QWidget):
         self.trigger_button.clicked.connect(self.trigger_clicked)
         self.stop_button.clicked.connect(self.stop_clicked)
         self.abort_button.clicked.connect(self.abort_clicked)
-        for w in (self.beta_spin, self.gamma_spin, self.end_spin):
+        for w in (self.beta_spin, self.gamma_spin, self.end_spin, self.margin_spin, self.duration_spin,
+                  self.pre_spin, self.fit_window_spin):
             w.valueChanged.connect(self.changed)
+        self.fit_check.toggled.connect(self.changed)
         self.set_phase("idle")
 
     def settings(self) -> dict:
@@ -130,7 +138,17 @@ class RunPanel(QWidget):
             title=self.title_edit.text().strip(), operator=self.operator_edit.text().strip(),
             specimen=self.specimen_edit.text().strip(), notes=self.notes_edit.text().strip(),
             fit=self.fit_check.isChecked(), fit_window_s=self.fit_window_spin.value(),
+            surge_margin=self.margin_spin.value() / 100.0, fit_models=self._models(),
         )
+
+    def _models(self) -> tuple:
+        from velab.errors import VelabError
+        from velab.fitting import parse_models
+
+        try:
+            return tuple(parse_models(self.models_edit.text().strip() or "0-6"))
+        except VelabError:
+            return tuple(range(7))
 
     def save(self) -> None:
         s = self.settings()
@@ -140,6 +158,8 @@ class RunPanel(QWidget):
         self.qs.setValue("run/beta_per_s", s["beta_per_s"] or 0.0)
         self.qs.setValue("run/gamma", s["gamma"] or 0.0)
         self.qs.setValue("run/fit", "true" if s["fit"] else "false")
+        self.qs.setValue("run/surge_margin_pct", self.margin_spin.value())
+        self.qs.setValue("run/fit_models", self.models_edit.text())
 
     def show_prediction(self, pred) -> None:
         """A SurgePrediction (or None)."""
@@ -155,9 +175,14 @@ class RunPanel(QWidget):
         msg = getattr(pred, "message", "")
         verdict = "<b>within limits</b>" if ok else "<b>REFUSED by the interlock</b>"
         self.prediction.setText(
-            f"Predicted surge {surge:.1f} m → peak head {head:.1f} m ({ppa / 1e5:.2f} bar; limit {lim / 1e5:.2f} bar): "
-            f"{verdict}" + (f"<br>{msg}" if msg else ""))
+            f"Predicted surge {surge:.1f} m → peak head {head:.1f} m ({ppa / 1e5:.2f} bar; "
+            f"limit {lim / 1e5:.2f} bar, {getattr(pred, 'limiting', '')}): {verdict}")
+        self.prediction.setToolTip(msg)
         self.prediction.setStyleSheet("background:#e4f4e0;" if ok else "background:#fde2e1; color:#6b0d0a;")
+
+    def show_settings_error(self, text: str) -> None:
+        self.prediction.setText(f"<b>Settings:</b> {text}")
+        self.prediction.setStyleSheet("background:#fde2e1; color:#6b0d0a;")
 
     def set_phase(self, phase: str) -> None:
         active = phase in ("connecting", "armed", "pretrigger", "transient", "fitting")
@@ -165,6 +190,6 @@ class RunPanel(QWidget):
         self.trigger_button.setEnabled(phase in ("armed", "pretrigger"))
         self.stop_button.setEnabled(phase in ("armed", "pretrigger", "transient"))
         self.abort_button.setEnabled(phase in ("armed", "pretrigger", "transient", "fitting"))
-        for w in (self.beta_spin, self.gamma_spin, self.end_spin, self.duration_spin, self.pre_spin,
-                  self.rate_combo, self.out_edit, self.fit_check, self.fit_window_spin):
+        for w in (self.beta_spin, self.gamma_spin, self.end_spin, self.margin_spin, self.duration_spin, self.pre_spin,
+                  self.rate_combo, self.out_edit, self.fit_check, self.fit_window_spin, self.models_edit):
             w.setEnabled(not active)
