@@ -83,7 +83,8 @@ class FitPanel(QWidget):
         self.table.setSelectionBehavior(QAbstractItemView.SelectRows)
         hh = self.table.horizontalHeader()
         hh.setSectionResizeMode(QHeaderView.ResizeToContents)
-        hh.setStretchLastSection(True)
+        hh.setSectionResizeMode(COLUMNS.index("support"), QHeaderView.Stretch)
+        self.table.verticalHeader().setDefaultSectionSize(22)
         self.table.itemChanged.connect(self._item_changed)
         split.addWidget(self.table)
 
@@ -91,6 +92,7 @@ class FitPanel(QWidget):
         split.addWidget(self.plots)
         split.setStretchFactor(0, 1)
         split.setStretchFactor(1, 3)
+        split.setSizes([200, 460])  # the table shows EL..S6 on a laptop screen
         self.p_head = self.plots.addPlot(row=0, col=0, title="measured and fitted head")
         self.p_aic = self.plots.addPlot(row=0, col=1, title="ΔAIC against m")
         self.p_creep = self.plots.addPlot(row=1, col=0, title="creep elements J against τ")
@@ -108,6 +110,9 @@ class FitPanel(QWidget):
         for p in (self.p_head, self.p_aic, self.p_creep, self.p_phi):
             p.showGrid(x=True, y=True, alpha=0.25)
             p.getAxis("left").setWidth(58)
+        for p in (self.p_creep, self.p_phi):
+            for ax in ("left", "bottom"):
+                p.getAxis(ax).enableAutoSIPrefix(False)
         self.p_head.setClipToView(True)
         self.p_head.setDownsampling(auto=True, mode="peak")
         self.head_legend = self.p_head.addLegend(offset=(-5, 5), labelTextSize="8pt")
@@ -225,10 +230,10 @@ class FitPanel(QWidget):
                             symbolSize=8, symbolBrush="#1f4e9c" if not red else "#888", name="reduced" if red else "Sm")
         self.p_aic.plot([best.m], [np.log10(1.0 + max(best.delta_aic, 0.0))], pen=None, symbol="star",
                         symbolSize=16, symbolBrush="#2a9d2a")
-        for level, style in ((2, Qt.DotLine), (10, Qt.DashLine)):
+        for level, style, where in ((2, Qt.DotLine, 0.35), (10, Qt.DashLine, 0.6)):
             self.p_aic.addItem(pg.InfiniteLine(pos=np.log10(1 + level), angle=0,
                                                pen=pg.mkPen("#999", style=style),
-                                               label=f"ΔAIC = {level}", labelOpts={"position": 0.9, "color": "#777"}))
+                                               label=f"ΔAIC = {level}", labelOpts={"position": where, "color": "#777"}))
         self.p_creep.clear()
         self.creep_legend.clear()
         for f in result.models:

@@ -324,7 +324,13 @@ class MainWindow(QMainWindow):
             msg = str(data)
             head = msg.split(":", 1)[0].strip()
             known = set(self.devices.devices) | {"flowmeter", "valve", "valve actuator", "pressure ADC", "streaming_adc"}
-            dev = head if head in known or (head and len(head) < 30 and " " not in head) else "device"
+            first = msg.split()[0].rstrip(":") if msg.split() else ""
+            if head in known or (head and len(head) < 30 and " " not in head):
+                dev = head
+            elif first in known:
+                dev = first
+            else:
+                dev = "device"
         self.devices.set_fault(dev, msg)
         self.show_message(f"Device fault — {msg}" if dev in msg else f"Device fault — {dev}: {msg}", "error")
 
