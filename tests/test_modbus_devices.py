@@ -217,7 +217,8 @@ def test_adc_buffer_configuration_and_validation(sim):
 
 def test_bench_config_sim_toml_matches_default_sim():
     bench = load_bench("sim")
-    assert set(bench.devices) == {"pressure_adc", "valve", "flowmeter"}
+    assert set(bench.devices) == {"streaming_adc", "pressure_adc", "valve", "flowmeter"}
+    assert bench.recorder["pressure_source"] == "streaming_adc"
     assert bench.simulate == "default"
     assert bench.devices["flowmeter"].settings["port"].startswith("socket://")
     assert isinstance(Bench.from_dict(bench.to_dict()), Bench)

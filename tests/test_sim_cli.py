@@ -35,6 +35,8 @@ def test_default_sim_serves_the_sim_bench_config():
                     assert drv.read_flow().value == pytest.approx(3.64e-3, rel=0.02)
                 elif name == "valve":
                     assert drv.read_state().name == "IDLE"
+                elif dev.kind == "streaming_adc":
+                    assert "SADC-4" in drv.identify()
                 else:
                     assert drv.read_pressure().ok
             finally:

@@ -282,7 +282,7 @@ class Recorder:
         self.sim = sim
         self._owns_sim = owns_sim
         self.clock = getattr(sim, "clock", None)
-        self.events: queue.Queue = queue.Queue(maxsize=20000)
+        self.events: queue.Queue = queue.Queue(maxsize=1000)  # bounded: memory stays flat without a consumer
         self.events_dropped = 0
         self._listeners: list[Callable[[RecorderEvent], None]] = []
         self.phase = "idle"
