@@ -37,12 +37,8 @@ def test_material_A_online_fit_names_S3(tmp_path):
     assert summary.status == "completed" and summary.exit_code == 0
     assert summary.lost_samples == 0 and summary.gaps == 0
     fit = summary.fit
-    # KNOWN ISSUE (reported): the simulator computes its transient on a 0.2 ms grid; the fitter's
-    # 1 kHz discretisation of the same model differs by a small systematic term that an extra
-    # Kelvin-Voigt element absorbs, so S4 sometimes beats S3 by AIC on simulated 1 kHz records
-    # (`velab fit` on the same file agrees: it is the data, not the online path).
-    assert summary.best_model in ("S3", "S4")
-    assert fit["S3"].delta_aic < 60 and fit["S2"].delta_aic > 100 and fit["S1"].delta_aic > 100
+    assert summary.best_model == "S3"
+    assert fit["S2"].delta_aic > 10 and fit["S1"].delta_aic > 10 and fit["S4"].delta_aic > 2
     assert abs(fit["S3"].wave_speed_m_s - A_TRUE) < 0.5
     # the run file: completed, the fit stored, the time axis from the device clock, trigger measured
     run = read_run(summary.path)

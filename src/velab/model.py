@@ -122,20 +122,30 @@ class ValveHeadModel:
     flow-increment spectrum and the band are reused, which is what makes
     calibration fast.
 
+    The trigger need not fall on a sample: the sigmoid is sampled at the grid's
+    own times, and the 0.41 % flow step it has at the trigger enters the spectrum
+    as a delta at its exact instant (a fractional delay, exp(-s tau0)). A short
+    lead-in of empty samples before the first one keeps the band-limited step's
+    pre-ringing inside the computation, so nothing of the step is lost.
+
     Parameters
     ----------
     rig : the rig (pipe, fluid, steady flow, manoeuvre).
     t_s : uniform time grid, seconds from the trigger (may start before 0).
     band_hz : highest frequency at which Z is evaluated; ``None`` evaluates every
         FFT bin (the full-band reference), ``"auto"`` uses
-        :func:`manoeuvre_band_hz`. Above the band only the trigger's 0.41 % step and
-        the sigmoid's slope kink have energy; leaving them out smooths the step
-        into a short causal ramp (a few mm of head at the wave fronts on the reference rig).
+        :func:`manoeuvre_band_hz`. Above the band only the trigger's step and the
+        sigmoid's slope kink have energy: a band-limited evaluation smooths the
+        step symmetrically (a few mm of head at the wave fronts on the reference rig).
     pad : zero-padding factor (>= 2, physics.md section 5).
     sigma_T : exponential-window damping sigma times the padded length; it damps
         what the FFT would wrap around by exp(-sigma_T).
-    flow : optional flow perturbation q(t) on the same grid (default: the rig's sigmoid).
+    flow : optional flow perturbation q(t) on the same grid (default: the rig's
+        sigmoid); its value at the first sample at or after the trigger is taken as
+        the step at the trigger.
     """
+
+    LEAD_SAMPLES = 64  # full band: the step's pre-ringing one lead-in away is < 0.2 % of it
 
     def __init__(self, rig: Rig, t_s, *, band_hz: float | str | None = "auto", pad: float = 2.0,
                  sigma_T: float = 8.0, flow=None):
@@ -144,44 +154,58 @@ class ValveHeadModel:
             raise ValueError("time grid must be a 1-D array of at least 2 samples")
         self.rig = rig
         self.t = t
-        self.dt = float(t[1] - t[0])
-        q = flow_perturbation(t, rig) if flow is None else np.asarray(flow, dtype=float)
-        self.first = int(np.searchsorted(t, -0.5 * self.dt))  # first sample at or after the trigger
-        q = q[self.first :]
-        n = q.size
+        self.dt = dt = float(t[1] - t[0])
+        self.first = int(np.searchsorted(t, -0.5 * dt))  # first sample at or after (about) the trigger
+        n = t.size - self.first
+        self.n = n
         if band_hz == "auto":
             band_hz = manoeuvre_band_hz(rig)
-        if band_hz is not None and q.size > 1 and q[0] != 0.0:
-            # A step at the trigger has a flat spectrum: truncated, it turns into a
-            # symmetric sinc that loses half the step to negative time. Replace it by
-            # a causal raised-cosine ramp short enough to stay within the band.
-            ramp_s = 2.5 / band_hz
-            tn = np.arange(n) * self.dt
-            ramp = np.where(tn < ramp_s, 0.5 - 0.5 * np.cos(np.pi * np.minimum(tn / ramp_s, 1.0)), 1.0)
-            q = q - q[0] * (1.0 - ramp)
-        self.n = n
-        self.n_fft = sfft.next_fast_len(int(np.ceil(max(pad, 2.0) * n)), real=True)
-        self.sigma = sigma_T / (self.n_fft * self.dt)
-        tn = np.arange(n) * self.dt
-        self.growth = np.exp(self.sigma * tn)  # undoes the window after the inverse FFT
-        dq = np.diff(q, prepend=0.0)
-        self.spec = sfft.rfft(dq / self.growth, self.n_fft)
-        omega = 2 * np.pi * sfft.rfftfreq(self.n_fft, self.dt)
+        lead = self.LEAD_SAMPLES if band_hz is None else max(self.LEAD_SAMPLES, int(np.ceil(4.0 / (band_hz * dt))))
+        self.lead = lead
+        # internal grid: `lead` empty samples, then the record from `first` on
+        t0 = (t[self.first] if n else 0.0) - lead * dt
+        t_int = t0 + np.arange(lead + n) * dt
+        if flow is None:
+            q = flow_perturbation(t_int, rig)
+            step = float(flow_perturbation(np.array([0.0]), rig)[0])
+        else:
+            q = np.concatenate([np.zeros(lead), np.asarray(flow, dtype=float)[self.first :]])
+            step = float(q[lead]) if n else 0.0
+        self.step_m3_s = step
+        smooth = q - step * (t_int >= -1e-12 * dt)  # continuous at the trigger
+        if flow is not None:
+            smooth[:lead] = 0.0
+        self.n_int = lead + n
+        self.n_fft = sfft.next_fast_len(int(np.ceil(max(pad, 2.0) * self.n_int)), real=True)
+        self.sigma = sigma_T / (self.n_fft * dt)
+        self.growth = np.exp(self.sigma * np.arange(self.n_int) * dt)  # undoes the window after the inverse FFT
+        omega = 2 * np.pi * sfft.rfftfreq(self.n_fft, dt)
+        s_all = self.sigma + 1j * omega
+        tau0 = -t0  # the trigger instant on the internal grid
+        self.spec = sfft.rfft(np.diff(smooth, prepend=0.0) / self.growth, self.n_fft) + step * np.exp(-s_all * tau0)
         n_bins = self.spec.size if band_hz is None else min(self.spec.size, int(np.searchsorted(omega, 2 * np.pi * band_hz)) + 1)
         self.band = Band(self.n_fft, n_bins, float(omega[n_bins - 1] / (2 * np.pi)))
-        self.s_band = self.sigma + 1j * omega[:n_bins]
+        self.s_band = s_all[:n_bins]
         self._spec_band = self.spec[:n_bins]
-        self._buf = np.zeros(self.spec.size, dtype=complex)
+
+    def to_time(self, impedance_spectra: np.ndarray) -> np.ndarray:
+        """Impedance on the band's bins (..., n_bins) -> head series (..., len(t)).
+
+        Multiplies by the flow-increment spectrum, inverse-transforms, undoes the
+        exponential window and sums the increments; zero before the trigger.
+        Leading axes are kept (the fitter passes Jacobian columns at once).
+        """
+        shape = impedance_spectra.shape[:-1]
+        buf = np.zeros(shape + (self.spec.size,), dtype=complex)
+        buf[..., : self.band.n_bins] = impedance_spectra * self._spec_band
+        dh = sfft.irfft(buf, self.n_fft, axis=-1)[..., : self.n_int] * self.growth
+        out = np.zeros(shape + (self.t.size,))
+        out[..., self.first :] = np.cumsum(dh, axis=-1)[..., self.lead :]
+        return out
 
     def head_params(self, a: float, J_rel, tau) -> np.ndarray:
         """Head perturbation h(t) for wave speed a and KV elements (J'_k = J_k a^2 rho alpha D/e, tau_k)."""
-        nb = self.band.n_bins
-        Z = _impedance_s(self.s_band, a, _phi_s(self.s_band, J_rel, tau), self.rig)
-        self._buf[:nb] = Z * self._spec_band
-        dh = sfft.irfft(self._buf, self.n_fft)[: self.n] * self.growth
-        out = np.zeros(self.t.size)
-        np.cumsum(dh, out=out[self.first :])
-        return out
+        return self.to_time(_impedance_s(self.s_band, a, _phi_s(self.s_band, J_rel, tau), self.rig))
 
     def head(self, material: Material) -> np.ndarray:
         """Head perturbation h(t) (m) at the valve for a pipe-wall material."""

@@ -38,15 +38,9 @@ class HeadEvaluator:
         vm = ValveHeadModel(rig, t_s, band_hz=band_hz)
         p = rig.pipe
         self.rig = rig
+        self.model = vm
         self.n_t = vm.t.size
-        self.first = vm.first
-        self.n = vm.n
-        self.n_fft = vm.n_fft
-        self.n_bins = vm.band.n_bins
-        self.n_spec = vm.spec.size
-        self.growth = vm.growth
         self.s = vm.s_band.copy()
-        self.spec = vm.spec[: self.n_bins].copy()
         self.gA = GRAVITY_M_S2 * p.area_m2
         self.W = self.s / self.gA + rig.linear_resistance  # s Li + R
         self.L = p.length_m
@@ -68,13 +62,7 @@ class HeadEvaluator:
 
     def _to_time(self, spectra: np.ndarray) -> np.ndarray:
         """Spectra of head increments (..., nb) -> head series (..., n_t)."""
-        shape = spectra.shape[:-1]
-        buf = np.zeros(shape + (self.n_spec,), dtype=complex)
-        buf[..., : self.n_bins] = spectra * self.spec
-        dh = sfft.irfft(buf, self.n_fft, axis=-1)[..., : self.n] * self.growth
-        out = np.zeros(shape + (self.n_t,))
-        np.cumsum(dh, axis=-1, out=out[..., self.first :])
-        return out
+        return self.model.to_time(spectra)
 
     def head(self, a: float, E, eta) -> np.ndarray:
         """h(t) for wave speed a (m/s) and KV elements E_k (Pa), eta_k (Pa s)."""
@@ -99,7 +87,7 @@ class HeadEvaluator:
         zc = mu / Y
         Z = -zc * th
         dZdY = zc / (2 * Y) * (th - g * (1.0 - th * th))
-        cols = np.empty((1 + 2 * m + 1, self.n_bins), dtype=complex)
+        cols = np.empty((1 + 2 * m + 1, self.s.size), dtype=complex)
         cols[0] = Z
         cols[1] = dZdY * (s * self.gA * (-2.0 / a**2))
         if m:
