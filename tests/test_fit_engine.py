@@ -152,3 +152,22 @@ def test_other_methods_reach_the_same_s1(rig, method):
     r = fit_sweep(t, h, rig, models="1", window_s=3.0, method=method)
     assert r.method == method
     assert r["S1"].F == pytest.approx(ref["S1"].F, rel=1e-4)
+
+
+def test_trigger_between_samples_still_names_the_truth():
+    """A recording's trigger falls between two samples. The truth (material A,
+    sampled 0.05 ms before the trigger, 4 mm noise) must still select S3: with the
+    step placed on the next sample, S4 used to win by a ΔAIC of hundreds."""
+    from velab.config import load_material, load_rig
+    from velab.fitting import fit_sweep
+    from velab.model import valve_head
+
+    rig, mat = load_rig("perugia"), load_material("A")
+    tf = np.arange(0, 11, 2e-5)
+    hf = valve_head(tf, rig, mat)
+    t = np.arange(-200, 10000) * 1e-3 - 0.05e-3
+    h = np.interp(t, tf, hf, left=0.0) + 0.004 * np.random.default_rng(7).standard_normal(t.size)
+    r = fit_sweep(t, h, rig, models=[3, 4], window_s=10)
+    assert r.best.name == "S3"
+    assert r["S4"].delta_aic > 2
+    assert abs(r["S3"].wave_speed_m_s - 353.73) < 0.5
