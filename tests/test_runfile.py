@@ -273,3 +273,42 @@ def test_synth_matches_the_independent_moc_solver(synth_run):
     assert err < 1e-3 * rig.joukowsky_head_m(mat.wave_speed_m_s)
     # and the first surge is the viscoelastic (lower than Joukowsky) peak
     assert 16.5 < r.head_perturbation().max() < rig.joukowsky_head_m()
+
+
+KILLED = textwrap.dedent(
+    """
+    import os, signal, sys
+    from velab.runfile import RunWriter, read_run
+    r = read_run(sys.argv[1])
+    w = RunWriter(sys.argv[2], r.rig, sample_rate_hz=r.sample_rate_hz, title="killed mid-run")
+    w.append(r.time_s, head=r.head_m)
+    w.flush()
+    os.kill(os.getpid(), signal.SIGKILL)
+    """
+)
+
+
+def test_killed_run_is_fitted_and_recovered_into_a_closed_copy(synth_run, tmp_path, capsys):
+    killed = tmp_path / "killed.h5"
+    proc = subprocess.run([sys.executable, "-c", KILLED, str(synth_run), str(killed)], timeout=60)
+    assert proc.returncode == -signal.SIGKILL
+    before = killed.read_bytes()
+    # fitting what is there works; saving into the flagged file is refused with a clear note
+    assert main(["fit", str(killed), "--models", "0-1", "--window", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "best model" in out and "not saved:" in out and "velab recover" in out
+    assert killed.read_bytes() == before
+    # velab recover: a closed copy that takes the fit; the original is untouched
+    assert main(["recover", str(killed)]) == 0
+    copy = tmp_path / "killed.recovered.h5"
+    assert killed.read_bytes() == before
+    assert main(["fit", str(copy), "--models", "0-1", "--window", "2"]) == 0
+    assert "saved as /entry/fits/" in capsys.readouterr().out
+    r, src = read_run(copy), read_run(synth_run)
+    assert r.incomplete and "recovered copy of killed.h5" in r.status_reason
+    np.testing.assert_array_equal(r.head_m, src.head_m)
+    assert r.fit_names
+    assert main(["info", str(copy)]) == 0
+    assert "INCOMPLETE" in capsys.readouterr().out
+    assert main(["recover", str(killed)]) == 2  # never overwrites
+    assert "already exists" in capsys.readouterr().err

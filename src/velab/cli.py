@@ -20,6 +20,7 @@ COMMAND_MODULES = (
     "velab.commands.synth",
     "velab.commands.import_csv",
     "velab.commands.info",
+    "velab.commands.recover",
     "velab.fitting.cli",
     "velab.simulators.cli",
     "velab.recorder_cli",

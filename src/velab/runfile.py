@@ -63,6 +63,10 @@ def now_iso() -> str:
 # ----------------------------------------------------------------------------- reading
 
 
+class RunStillOpen(DataError):
+    """The file is held open by a SWMR writer, or its writer died without closing it."""
+
+
 @dataclass
 class Run:
     """A run read back from its file (all arrays in memory)."""
@@ -197,6 +201,11 @@ def open_run_file(path: str | os.PathLike, mode: str = "r") -> Iterator[h5py.Fil
             fh = h5py.File(path, mode)
     except OSError as exc:
         msg = str(exc).split("\n")[0]
+        if "already open for write" in msg:
+            raise RunStillOpen(
+                f"{path}: the run is still open for writing (being recorded, or its recorder was killed); "
+                f"it can be read but not changed: `velab recover {path}` writes a closed copy"
+            ) from None
         raise DataError(f"{path}: cannot be opened as HDF5, truncated or corrupt ({msg})") from None
     try:
         if _str(fh.attrs.get("file_format", "")) != FILE_FORMAT or "entry" not in fh:
@@ -287,6 +296,41 @@ def fits_group(path: str | os.PathLike) -> Iterator[h5py.Group]:
             g = e.create_group("fits")
             g.attrs["NX_class"] = "NXcollection"
         yield e["fits"]
+
+
+def recover_run(src: str | os.PathLike, dst: str | os.PathLike | None = None) -> Path:
+    """Copy a run whose writer never closed it into a new, closed file.
+
+    The original is only read. HDF5 keeps a file that a killed SWMR writer held
+    open flagged as "open for write" (``h5clear -s`` resets that flag in place);
+    the copy is an ordinary closed file with every flushed sample, so fits can be
+    saved into it. Its status stays ``recording`` (the run is still incomplete)
+    with a reason saying where it came from.
+    """
+    src = Path(src)
+    dst = Path(dst) if dst is not None else src.with_name(f"{src.stem}.recovered{src.suffix}")
+    if dst.exists():
+        raise DataError(f"{dst}: already exists; a run file is never overwritten")
+    run = read_run(src)  # validates the source and gives the common sample count
+    n = run.n_samples
+    tmp = dst.with_name(f".{dst.name}.part")
+    tmp.unlink(missing_ok=True)
+    try:
+        with open_run_file(src) as fin, h5py.File(tmp, "w-", libver="latest") as fout:
+            for k, v in fin.attrs.items():
+                fout.attrs[k] = v
+            fin.copy(fin["entry"], fout, "entry")
+            data = fout["entry/data"]
+            for name, ds in data.items():  # one sample count for every fast channel
+                if isinstance(ds, h5py.Dataset) and ds.maxshape == (None,) and ds.shape[0] > n:
+                    ds.resize((n,))
+            if not _read_scalar_str(fout["entry"], "status_reason"):
+                _set_str(fout["entry"], "status_reason", f"recovered copy of {src.name} (its recorder never closed it)", REASON_LEN)
+        os.replace(tmp, dst)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return dst
 
 
 # ----------------------------------------------------------------------------- writing

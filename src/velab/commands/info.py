@@ -30,6 +30,8 @@ def describe(r: Run) -> str:
     status = r.status
     if r.incomplete:
         status = "INCOMPLETE (the recording never closed the file: crash or kill; data up to the last flush)"
+        if r.status_reason:
+            status += f"; {r.status_reason}"
     elif r.status_reason:
         status = f"{r.status} ({r.status_reason})"
     lines.append(f"  title        {r.title}")

@@ -68,7 +68,7 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
     """Fit one run file; returns (SweepResult, fit group name or None). Raises VelabError."""
     from velab.fitting.store import save_fit
     from velab.fitting.sweep import fit_sweep
-    from velab.runfile import read_run
+    from velab.runfile import RunStillOpen, read_run
 
     run = read_run(path)
     t, h = run.fit_window(opts["window_s"])
@@ -80,6 +80,9 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
     if opts["save"]:
         try:
             name = save_fit(path, result, opts["name"])
+        except RunStillOpen as exc:
+            # an incomplete run can be fitted (that is the point) but not written to
+            result.notes.append(f"not saved: {exc}")
         except OSError as exc:
             raise DataError(f"{path}: cannot write the fit into the run: {exc}") from None
     if opts["plot"]:
