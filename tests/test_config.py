@@ -128,3 +128,13 @@ def test_cli_config_error_is_one_line(tmp_path, capsys):
     assert rc != 0
     assert err.count("\n") == 1 and "length_m" in err and "Traceback" not in err
     assert not (tmp_path / "x.h5").exists()
+
+
+@pytest.mark.parametrize("argv", [["synth", "--rate", "abc", "-o", "x.h5"], ["nosuchcommand"], ["fit"],
+                                  ["record", "--simulate", "--duration", "-3"], ["import", "x.csv"]])
+def test_bad_arguments_one_line(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2
+    assert err.count("\n") == 1 and err.startswith("velab") and "--help" in err
