@@ -5,8 +5,11 @@
     fm.read_all()         # flow, totalizer1, totalizer2 in one block read + alarms
 
 Quality: NaN -> NAN; any alarm bit -> FAULT; outside the profile's [min, max] ->
-OVER/UNDER_RANGE; a value that has not changed for ``stale_after_s`` -> STALE
-(the meter refreshes at 2 Hz with noise, so a frozen value means a stuck sensor).
+OVER/UNDER_RANGE; a non-zero value that has not changed for ``stale_after_s`` -> STALE
+(the meter refreshes at 2 Hz with noise, so a frozen value means a stuck sensor). Zero
+flow is the exception: with the valve closed (or below the meter's low-flow cut-off,
+``[timing] low_flow_cutoff_m3_s``, default 0) the meter shows a constant 0, which is a
+reading, not a stuck sensor.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ class Flowmeter(ModbusDevice):
         timing = self.profile.section("timing", {})
         self.update_period_s = float(timing.get("update_period_s", 0.5))
         self.stale_after_s = float(timing.get("stale_after_s", 2.0))
+        self.low_flow_cutoff_m3_s = float(timing.get("low_flow_cutoff_m3_s", 0.0))
         self._last_value: float | None = None
         self._last_change: float | None = None
 
@@ -39,6 +43,11 @@ class Flowmeter(ModbusDevice):
         if alarms:
             return replace(r, quality=Quality.FAULT)
         if r.quality is Quality.OK:
+            if abs(r.value) <= self.low_flow_cutoff_m3_s:
+                # no flow: a constant 0 is expected (closed valve, low-flow cut-off), never "stale";
+                # the stuck-sensor clock restarts when the flow comes back
+                self._last_value, self._last_change = r.value, r.timestamp_s
+                return r
             if self._last_value is None or r.value != self._last_value:
                 self._last_value, self._last_change = r.value, r.timestamp_s
             elif r.timestamp_s - self._last_change > self.stale_after_s:

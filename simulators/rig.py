@@ -23,7 +23,6 @@ servers run in their own threads.
 
 from __future__ import annotations
 
-import enum
 import math
 import threading
 from dataclasses import dataclass, field
@@ -31,19 +30,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from velab.config import GRAVITY_M_S2, Manoeuvre, Material, Rig
+# the actuator's state codes are the register contract: one definition, the driver's
+from velab.drivers.valve import ValveState  # noqa: F401 - re-exported for the simulators and tests
 from velab.model import ValveHeadModel
 
 N_ANALOG = 4  # ch0 pressure, ch1 valve position, ch2-3 spare
-
-
-class ValveState(enum.IntEnum):
-    IDLE = 0
-    ARMED = 1
-    RUNNING = 2
-    DONE = 3
-    HOLDING = 4
-    ABORTED = 5
-    FAULT = 6
 
 
 # fault bits of the actuator (shared with the actuator simulator and driver profile)

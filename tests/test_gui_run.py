@@ -109,3 +109,46 @@ def test_device_fault_is_a_message(qtbot, win):
     win.controller.recorder.sim.faults["flowmeter"].silent = False
     win.controller.abort("test over")
     qtbot.waitUntil(lambda: win.controller.phase == "aborted", timeout=30000)
+
+
+def test_second_run_on_the_same_connection(qtbot, win):
+    """Arm after a completed run re-arms the same Recorder (the valve is reopened first); Reset valve is
+    offered while the valve is closed; the trigger marker moves to the measured instant during the run;
+    a device fault arrives as structured data."""
+    from PySide6.QtCore import Qt
+
+    rp = win.run_panel
+    rp.fit_check.setChecked(False)
+    marks = []
+    win.controller.trigger_time.connect(lambda t, measured: marks.append((t, measured, win.last_summary is None)))
+    assert not rp.reset_valve_button.isEnabled()
+
+    def one_run():
+        qtbot.mouseClick(rp.arm_button, Qt.LeftButton)
+        qtbot.waitUntil(lambda: win.controller.phase == "pretrigger", timeout=60000)
+        qtbot.waitUntil(lambda: win.live.samples_received > 600, timeout=30000)  # the 0.5 s baseline is in
+        qtbot.mouseClick(rp.trigger_button, Qt.LeftButton)
+        qtbot.waitUntil(lambda: win.last_summary is not None, timeout=90000)
+        return win.last_summary
+
+    first = one_run()
+    rec = win.controller.recorder
+    assert first.status == "completed"
+    # the measured trigger reached the plot while the run was still going on
+    measured = [m for m in marks if m[1]]
+    assert measured and measured[0][2] and measured[0][0] == first.trigger_time_s
+    assert win.live.trigger_time_s == first.trigger_time_s
+    qtbot.waitUntil(lambda: rp.reset_valve_button.isEnabled(), timeout=10000)  # the valve is closed
+    assert win.reset_valve_action.isEnabled()
+    # Arm right away: same recorder, valve reopened, second run
+    second = one_run()
+    assert win.controller.recorder is rec and second.status == "completed" and second.path != first.path
+    assert rec.sim.rig.trigger_count == 2
+    assert any("reopening it before arming" in t for t in win.log.texts())
+    # the button on its own: reopens the valve and is then disabled
+    qtbot.waitUntil(lambda: rp.reset_valve_button.isEnabled(), timeout=10000)
+    qtbot.mouseClick(rp.reset_valve_button, Qt.LeftButton)
+    qtbot.waitUntil(lambda: any(t.startswith("Valve reopened") for t in win.log.texts()), timeout=30000)
+    qtbot.waitUntil(lambda: not rp.reset_valve_button.isEnabled(), timeout=10000)
+    assert rec.sim.rig.state().name == "IDLE"
+    assert not win.log.texts("error")

@@ -178,6 +178,28 @@ def test_flow_nan_out_of_range_alarm_and_stuck(sim):
         fm.close()
 
 
+def test_flowmeter_constant_zero_flow_is_not_stale(sim):
+    """A closed valve gives a constant 0 (the meter's low-flow cut-off): a reading, not a stuck sensor.
+    A value frozen away from zero is still flagged, and the check restarts when the flow comes back."""
+    fm = connect(sim, "flowmeter", "tcp")
+    try:
+        fm.stale_after_s = 0.05
+        sim.rig.faults.flow_value = 0.0
+        assert fm.read_flow().value == 0.0
+        sim.clock.advance(3.0)
+        time.sleep(0.1)
+        r = fm.read_flow()
+        assert r.value == 0.0 and r.quality is Quality.OK
+        sim.rig.faults.flow_value = 0.004  # flow back, then frozen there
+        assert fm.read_flow().quality is Quality.OK
+        sim.clock.advance(3.0)
+        time.sleep(0.1)
+        assert fm.read_flow().quality is Quality.STALE
+    finally:
+        sim.rig.faults.flow_value = None
+        fm.close()
+
+
 def test_adc_out_of_range_open_loop_and_adc_failure(sim):
     adc = connect(sim, "pressure_adc")
     try:

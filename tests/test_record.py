@@ -9,13 +9,14 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 
-from velab.errors import SafetyError
+from velab.errors import SafetyError, VelabError
 from velab.recorder import Recorder, RecordSettings, RunRefused
 from velab.runfile import read_run
 
@@ -134,3 +135,58 @@ def test_cli_refusal_exit_code_and_one_line_error(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "velab.cli", "record", "--simulate", "--duration", "3",
                           "--window", "20", "--out-dir", str(tmp_path)], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
+
+
+def _trigger_when_baseline_is_in(rec, timeout=30.0):
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            rec.trigger().result(timeout=30)
+            break
+        except VelabError as exc:  # "baseline not complete": retry (bounded)
+            if "baseline" not in str(exc) or time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
+    return rec.wait(60)
+
+
+def test_second_run_on_the_same_connection_after_reset_valve(tmp_path):
+    """A finished recorder re-arms on the same connection once the valve is reset (reopened);
+    the measured trigger instant is published as soon as it is known."""
+    s = RecordSettings(duration_s=3.0, pretrigger_s=0.5, fit=False, out_dir=tmp_path)
+    with Recorder.simulated(s, clock="fast") as rec:
+        events = []
+        rec.add_listener(events.append)
+        first = rec.run()
+        assert first.status == "completed"
+        devices = dict(rec.devices)
+        valve = [e.data for e in events if e.kind == "valve"]
+        assert valve[-1]["open"] is False and rec.valve_open is False  # closed by the manoeuvre
+        # the measured trigger came as its own event, before the end, and is the run's trigger time
+        kinds = [e.kind for e in events]
+        measured = [i for i, e in enumerate(events) if e.kind == "trigger" and e.data["measured"]]
+        assert len(measured) == 1 and measured[0] < kinds.index("done")
+        assert events[measured[0]].data["trigger_time_s"] == first.trigger_time_s
+        assert [e.data["measured"] for e in events if e.kind == "trigger"] == [False, True]
+        # arming with the valve closed is refused (nothing moves), and says what to do
+        with pytest.raises(RunRefused, match="valve not open"):
+            rec.arm().result(timeout=60)
+        assert rec.sim.rig.trigger_count == 1
+        st = rec.reset_valve().result(timeout=60)
+        assert st.state.name == "IDLE" and st.position.value >= 99.0 and rec.valve_open is True
+        assert rec.sim.rig.state().name == "IDLE"
+        # new settings go with the arm command; same driver objects (the same connection)
+        path = rec.arm(settings=s.with_changes(duration_s=2.0, run_number=2)).result(timeout=60)
+        assert rec.devices == devices and rec.settings.duration_s == 2.0
+        second = _trigger_when_baseline_is_in(rec)
+        assert second.status == "completed" and second.path == path != first.path
+        assert rec.sim.rig.trigger_count == 2
+        # a reset is refused while a run records
+        rec.reset_valve().result(timeout=60)
+        rec.arm().result(timeout=60)
+        with pytest.raises(VelabError, match="cannot reset the valve"):
+            rec.reset_valve().result(timeout=30)
+        rec.abort("test over").result(timeout=30)
+        rec.wait(60)
+    run = read_run(second.path)
+    assert run.status == "completed" and run.duration_after_trigger_s > 1.9

@@ -6,6 +6,7 @@ over real sockets); in-process tests inject faults into the running SimulatedBen
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -17,7 +18,7 @@ import h5py
 import numpy as np
 import pytest
 
-from velab.recorder import Recorder, RecordSettings
+from velab.recorder import Recorder, RecordSettings, RunRefused
 from velab.runfile import read_run
 
 
@@ -97,14 +98,21 @@ def _record(tmp_path, before=None, during=None, **kw):
 
 def test_flowmeter_timeout_does_not_stop_the_pressure_recording(tmp_path):
     fired = []
+    faults = []
 
     def during(sim, ev):
         if ev.kind == "phase" and ev.data["phase"] == "transient" and not fired:
             fired.append(1)
             sim.faults["flowmeter"].set(silent=True)
+        if ev.kind == "fault":
+            faults.append(ev.data)
 
     summary = _record(tmp_path, during=during)
     assert summary.status == "completed" and summary.lost_samples == 0
+    # structured fault data, and a readable line for the CLI
+    f = faults[0]
+    assert f["device"] == "flowmeter" and f["role"] == "flowmeter" and f["kind"] == "no_response"
+    assert "no reply" in f["message"] and str(f) == f"flowmeter: {f['message']}"
     run = read_run(summary.path)
     assert run.status == "completed" and "flowmeter" in run.status_reason
     assert run.duration_after_trigger_s > 5.9
@@ -133,3 +141,89 @@ def test_valve_fault_during_the_manoeuvre_aborts(tmp_path):
     assert summary.status == "aborted" and summary.exit_code == 4
     assert "FAULT" in summary.reason
     assert read_run(summary.path).status == "aborted"
+
+
+def test_zero_flow_after_the_closure_is_not_a_fault(tmp_path):
+    """After a normal closure the flow reads a constant 0: expected, not a stuck flowmeter."""
+    s = RecordSettings(duration_s=10.0, pretrigger_s=0.5, fit=False, out_dir=tmp_path)
+    with Recorder.simulated(s, clock="fast") as rec:
+        rec.connect().result(timeout=60)
+        rec.devices["flowmeter"].stale_after_s = 0.05  # host seconds: far shorter than the zero-flow stretch
+        events = []
+        rec.add_listener(events.append)
+        summary = rec.run()
+    assert summary.status == "completed"
+    assert [str(e.data) for e in events if e.kind == "fault"] == []
+    run = read_run(summary.path)
+    assert "flowmeter" not in run.status_reason
+    with h5py.File(summary.path, "r") as fh:
+        flow = fh["entry/instrument/flow/value"][()]
+    assert flow[0] > 3e-3 and np.count_nonzero(flow == 0.0) >= 3  # polled at zero flow several times
+
+
+def test_stuck_flowmeter_is_refused_by_the_readiness_check(tmp_path):
+    """A flowmeter frozen at a plausible steady flow is caught before anything moves."""
+    s = RecordSettings(duration_s=3.0, fit=False, out_dir=tmp_path)
+    with Recorder.simulated(s, clock="fast") as rec:
+        rec.sim.rig.faults.flow_stuck_at = rec.sim.clock.now()
+        with pytest.raises(RunRefused, match="frozen"):
+            rec.run()
+        assert rec.sim.rig.trigger_count == 0 and rec.sim.rig.state().name == "IDLE"
+    assert list(tmp_path.glob("*.h5")) == []
+
+
+_DISK_FULL_CHILD = """
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)   # writes past the limit fail with EFBIG
+limit = int(sys.argv[1])
+resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+from velab.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def _toml(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    return repr(v) if isinstance(v, (int, float)) else json.dumps(str(v))
+
+
+def test_disk_full_mid_run_stops_cleanly_and_keeps_the_samples(tmp_path):
+    """The run file may not grow beyond a real limit (RLIMIT_FSIZE in the recording process): the
+    recorder stops before a write fails, the actuator is put in its safe state (the armed manoeuvre
+    cancelled), the file is closed with every sample a reader saw and status failed, exit code 5."""
+    from velab.simulators.bench import SimulatedBench
+
+    out = tmp_path / "runs"
+    out.mkdir()
+    with SimulatedBench.from_config("default", ephemeral=True) as sim:  # real time, real sockets
+        bench = sim.bench().to_dict()
+        lines = ['name = "disk full"', "[recorder]", 'pressure_source = "streaming_adc"', 'valve = "valve"',
+                 'flowmeter = "flowmeter"']
+        for name, table in bench["devices"].items():
+            lines.append(f"[devices.{name}]")
+            lines += [f"{k} = {_toml(v)}" for k, v in table.items()]
+        cfg = tmp_path / "bench.toml"
+        cfg.write_text("\n".join(lines) + "\n")
+        limit = 8 << 20  # about 5.4 MB are kept free to close the file: some 2.5 MB of samples fit
+        p = subprocess.Popen(
+            [sys.executable, "-c", _DISK_FULL_CHILD, str(limit), "record", "--config", str(cfg), "--out-dir", str(out),
+             "--rate", "10000", "--pretrigger", "30", "--duration", "2", "--no-fit"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            path, seen = _samples_in(out, need=5000)
+            stdout, stderr = p.communicate(timeout=60)
+        finally:
+            if p.poll() is None:
+                p.kill()
+        valve_state, triggers = sim.rig.state().name, sim.rig.trigger_count
+    assert p.returncode == 5, stderr
+    assert "Traceback" not in stderr and "Traceback" not in stdout
+    assert "status: failed (storage failure: disk full" in stdout
+    assert valve_state == "ABORTED" and triggers == 0  # the armed manoeuvre was cancelled, nothing moved
+    assert path.stat().st_size <= limit
+    run = read_run(path)  # opens as an ordinary, closed file
+    assert not run.incomplete and run.status == "failed" and "disk full" in run.status_reason
+    assert run.n_samples >= seen
+    assert np.array_equal(run.channels["sample_index"], np.arange(run.n_samples))
+    assert np.allclose(np.diff(run.time_s), 1e-4)

@@ -146,9 +146,39 @@ class DeviceStatus:
 
 @dataclass(frozen=True)
 class RecorderEvent:
-    kind: str  # "phase", "samples", "device", "fit", "message", "fault", "done"
+    kind: str  # "phase", "samples", "device", "valve", "trigger", "fit", "message", "fault", "done"
     time_s: float  # host time (time.time())
     data: Any
+
+
+FAULT_KINDS = ("no_response", "quality", "actuator_fault", "samples_lost", "storage", "error")
+
+
+class Fault(dict):
+    """The data of a ``fault`` event: ``{"device", "role", "message", "kind", ...}``; ``str()`` is one readable line.
+
+    ``device`` is the bench device name (or "storage" / "recorder"), ``role`` its recorder role
+    ("pressure", "valve", "flowmeter") or "", ``kind`` one of FAULT_KINDS, ``message`` the text
+    without the device name; extra keys (e.g. ``quality``) depend on the kind.
+    """
+
+    def __init__(self, device: str, message: str, kind: str = "error", role: str = "", **extra):
+        super().__init__(device=device, role=role, message=message, kind=kind, **extra)
+
+    @property
+    def device(self) -> str:
+        return self["device"]
+
+    @property
+    def message(self) -> str:
+        return self["message"]
+
+    @property
+    def kind(self) -> str:
+        return self["kind"]
+
+    def __str__(self) -> str:
+        return f"{self['device']}: {self['message']}"
 
 
 @dataclass
@@ -269,6 +299,46 @@ class _Stop(Exception):
     pass
 
 
+_h5py_hooks_installed = False
+
+
+def _quiet_h5py_dealloc_errors() -> None:
+    """After a storage failure h5py reports every handle of the unwritable file it cannot release
+    (a traceback on stderr per object, from its destructors): the failure is reported once, as the run's
+    status; these are dropped. Only exceptions raised inside h5py's own code are filtered."""
+    import sys
+
+    global _h5py_hooks_installed
+    if _h5py_hooks_installed:
+        return
+    _h5py_hooks_installed = True
+    prev_unraisable, prev_except = sys.unraisablehook, sys.excepthook
+
+    def from_h5py(exc, tb, where="") -> bool:
+        if "h5py" in where:
+            return True
+        while tb is not None:
+            if "h5py" in tb.tb_frame.f_code.co_filename and tb.tb_next is None:
+                return True
+            tb = tb.tb_next
+        return False
+
+    def unraisable(u):
+        if isinstance(u.exc_value, (RuntimeError, OSError)) and from_h5py(u.exc_value, u.exc_traceback,
+                                                                        str(u.object or "") + str(u.err_msg or "")):
+            return
+        prev_unraisable(u)
+
+    def excepthook(tp, value, tb):
+        if isinstance(value, (RuntimeError, OSError)) and from_h5py(value, tb) and (
+                "write failed" in str(value) or "ref count" in str(value) or "Unable to close" in str(value)):
+            return
+        prev_except(tp, value, tb)
+
+    sys.unraisablehook = unraisable
+    sys.excepthook = excepthook
+
+
 # ============================================================================ the engine
 
 
@@ -289,6 +359,8 @@ class Recorder:
         self.devices: dict[str, Any] = {}
         self.roles: dict[str, str] = {}
         self._cmds: queue.Queue = queue.Queue()
+        self._valve_state = None
+        self._valve_position: float | None = None
         self._closing = threading.Event()
         self._lock = threading.RLock()
         self._done = threading.Event()
@@ -369,10 +441,11 @@ class Recorder:
         self._polling = False
         self._last_poll = 0.0
         self._flow_faults = 0
-        self._valve_state = None
+        self._storage_checked = 0.0
         self._done.clear()
         self._summary = None
         self._fit_latency = None
+        self._storage_error = ""
 
     # ------------------------------------------------------------------ events
     def add_listener(self, fn: Callable[[RecorderEvent], None]) -> None:
@@ -410,9 +483,35 @@ class Recorder:
         self._emit("message", text)
         self._log("message", text)
 
-    def _fault(self, text: str) -> None:
-        self._emit("fault", text)
-        self._log("fault", text)
+    def _fault(self, role_or_device: str, message: str, kind: str = "error", **extra) -> None:
+        """A ``fault`` event with structured data (Fault) and a line in the run file's event log."""
+        role = role_or_device if role_or_device in self.roles else ""
+        device = self.roles.get(role_or_device, role_or_device)
+        if message.startswith(f"{device}: "):  # driver errors name their device: once is enough
+            message = message[len(device) + 2:]
+        f = Fault(device, message, kind, role, **extra)
+        self._emit("fault", f)
+        self._log("fault", str(f))
+
+    def _emit_valve(self, st) -> None:
+        """A ``valve`` event from a ValveStatus: state, position, open (>= 99 % and IDLE/ARMED), faults."""
+        from velab.drivers.valve import ValveState
+
+        pos = float(st.position.value)
+        self._valve_state = st.state
+        self._valve_position = pos
+        self._emit("valve", {"device": self.roles.get("valve", "valve"), "state": st.state.name,
+                             "position_pct": pos, "faults": list(st.faults),
+                             "open": st.state in (ValveState.IDLE, ValveState.ARMED) and pos >= 99.0})
+
+    @property
+    def valve_open(self) -> bool | None:
+        """From the last actuator status the engine read: open and idle/armed (None: not read yet)."""
+        from velab.drivers.valve import ValveState
+
+        if self._valve_state is None:
+            return None
+        return self._valve_state in (ValveState.IDLE, ValveState.ARMED) and (self._valve_position or 0.0) >= 99.0
 
     def _log(self, kind: str, text: str) -> None:
         """Event into the run file (event log), if one is open."""
@@ -449,7 +548,7 @@ class Recorder:
                 try:
                     self._poll_slow()
                 except Exception as exc:  # noqa: BLE001
-                    self._fault(f"slow-device poll failed: {type(exc).__name__}: {exc}")
+                    self._fault("recorder", f"slow-device poll failed: {type(exc).__name__}: {exc}")
 
     def _sleep(self, dt: float) -> None:
         """Wait dt seconds of device time (the simulation clock if there is one)."""
@@ -470,8 +569,36 @@ class Recorder:
                         gamma=gamma if gamma is not None else s.gamma)
         return predict_surge(self.rig, s, self._steady)
 
-    def arm(self) -> cf.Future:
-        return self._submit(self._do_arm)
+    def arm(self, settings: "RecordSettings | dict | None" = None) -> cf.Future:
+        """Arm a run (connects first if needed). ``settings`` (RecordSettings or its keyword arguments)
+        replace the current ones for this and the next runs, on the control thread; refused while a run is
+        active. The valve must be open and idle: after a run, ``reset_valve()`` first."""
+        if settings is None:
+            return self._submit(self._do_arm)
+
+        def arm_with():
+            self._set_settings(settings)
+            return self._do_arm()
+        return self._submit(arm_with)
+
+    def reset_valve(self) -> cf.Future:
+        """Reset the actuator (reopens the valve; clears a FAULT) and give the flow 1 s to settle.
+
+        On the control thread like arm/trigger; the Future's result is the valve's ValveStatus.
+        Refused (VelabError) while a run is recording. Connects first if needed. After a run on
+        the same connection this is what makes the next ``arm()`` possible.
+        """
+        return self._submit(self._do_reset_valve)
+
+    def _run_active(self) -> bool:
+        return self._writer is not None and not self._finished.is_set()
+
+    def _set_settings(self, settings) -> None:
+        if self._run_active():
+            raise VelabError(f"cannot change the settings while {self.phase}")
+        if isinstance(settings, dict):
+            settings = RecordSettings(**settings)
+        self.settings = settings
 
     def trigger(self) -> cf.Future:
         return self._submit(self._do_trigger)
@@ -539,6 +666,7 @@ class Recorder:
                     elif role == "valve":
                         st = drv.read_status()
                         msg = f"{st.state.name}, {st.position.value:.1f} % open"
+                        self._emit_valve(st)
                     elif role == "flowmeter":
                         r = drv.read_flow()
                         msg = f"{r.value * 1e3:.3f} l/s ({r.quality.value})"
@@ -631,6 +759,17 @@ class Recorder:
 
         s = self.settings
         q0 = self.rig.steady_flow_m3_s
+        # the valve first: closed (after a run) explains a zero flow, and the remedy is a reset
+        try:
+            st = self._valve.read_status()
+        except DeviceError as exc:
+            raise DeviceFailure(f"{self.roles['valve']}: actuator does not answer: {exc}") from None
+        self._emit_valve(st)
+        if st.state is ValveState.FAULT or st.faults:
+            raise RunRefused(f"valve actuator in FAULT ({', '.join(st.faults) or 'no bits'}): reset it first (reset_valve())")
+        if st.state not in (ValveState.IDLE, ValveState.ARMED) or st.position.value < 99.0:
+            raise RunRefused(f"valve not open and idle (state {st.state.name}, {st.position.value:.1f} % open): "
+                             "reopen it first (Recorder.reset_valve(), the GUI's Reset valve)")
         flows = []
         for i in range(3):
             try:
@@ -643,6 +782,10 @@ class Recorder:
             if i < 2:
                 self._sleep(0.5)
         q = float(np.mean(flows))
+        if len(set(flows)) == 1 and flows[0] != 0.0:
+            # the meter refreshes at 2 Hz with noise: three readings 0.5 s apart never repeat exactly
+            raise RunRefused(f"steady flow not ready: the flowmeter reading is frozen at {flows[0] * 1e3:.4f} l/s "
+                             "(stuck sensor or no refresh; check the meter)")
         if abs(q - q0) > s.flow_tolerance * q0:
             raise RunRefused(f"steady flow {q * 1e3:.3f} l/s is not within {s.flow_tolerance:.0%} of the rig's "
                              f"Q0 = {q0 * 1e3:.3f} l/s (set the downstream valve)")
@@ -655,15 +798,6 @@ class Recorder:
             raise RunRefused(f"pressure not ready: transducer reading is {quality}")
         if not lo <= head <= hi or head >= ceiling:
             raise RunRefused(f"steady head {head:.2f} m is out of range ({lo:.1f}..{min(hi, ceiling):.1f} m)")
-        try:
-            st = self._valve.read_status()
-        except DeviceError as exc:
-            raise DeviceFailure(f"{self.roles['valve']}: actuator does not answer: {exc}") from None
-        if st.state is ValveState.FAULT or st.faults:
-            raise RunRefused(f"valve actuator in FAULT ({', '.join(st.faults) or 'no bits'}): reset it first")
-        if st.state not in (ValveState.IDLE, ValveState.ARMED) or st.position.value < 99.0:
-            raise RunRefused(f"valve not open and idle (state {st.state.name}, {st.position.value:.1f} % open): "
-                             "reopen the valve and reset the actuator")
         return q, head
 
     def _do_arm(self) -> Path:
@@ -671,11 +805,13 @@ class Recorder:
         from velab.drivers.valve import ValveState
         from velab.runfile import HEAD, Channel, RunWriter
 
-        if self.phase not in ("connected", "done", "stopped", "aborted", "failed"):
+        if self.phase not in ("connected", "done", "stopped", "aborted", "failed") or self._run_active():
             if self.phase == "idle":
                 self._do_connect()
             else:
                 raise VelabError(f"cannot arm while {self.phase}")
+        elif not self._devices_ready():
+            self._do_connect()
         self._reset_run_state()
         s = self.settings
         beta, gamma, end = self._manoeuvre()
@@ -825,7 +961,7 @@ class Recorder:
             if b.restarted:
                 note = "pressure ADC reconnected; " + note
             self._marks.append(note)
-            self._fault(note)
+            self._fault("pressure", note, "samples_lost", lost=lost, restarted=bool(b.restarted))
             if self._trig_cmd_idx is not None and not self._window_closed and self._fit_gap_at is None:
                 self._fit_gap_at = (self._gidx - lost - self._n_pre) / fs
         n = b.n
@@ -914,9 +1050,11 @@ class Recorder:
         if t0 is None:
             self._message("trigger instant: too few valve-position samples, keeping the command's estimate")
             return
+        estimate = self._trigger_time
         self._trigger_time = t0
         self._wq.put(("trigger", t0))
         self._log("trigger", f"trigger instant measured from the valve position: t = {t0:.5f} s")
+        self._emit("trigger", {"trigger_time_s": t0, "measured": True, "estimate_s": estimate})
 
     def _maybe_finish_duration(self) -> None:
         if self._trigger_time is None or self._end_status is not None:
@@ -958,15 +1096,80 @@ class Recorder:
                         w.append_slow(op[1], op[2], op[3])
                 now = time.monotonic()
                 if now - last >= interval or pending >= 0.5 * self._fs:
+                    room = self._storage_room()
+                    if room is not None and room < self._storage_reserve():
+                        # about to run out: end the run while the file can still be closed properly
+                        self._storage_low(room)
+                        return
                     w.flush()
                     last, pending = now, 0
-            except OSError as exc:  # disk full, I/O error: stop cleanly, keep what was written
+            except Exception as exc:  # noqa: BLE001 - disk full, I/O error (h5py: OSError or RuntimeError)
                 self._storage_failed(exc, op)
                 return
 
-    def _storage_failed(self, exc: OSError, op) -> None:
-        reason = f"storage failure (disk full?): {str(exc).splitlines()[0][:160]}"
+    def _storage_reserve(self) -> int:
+        """Room kept free for the rest of a flush interval and closing the file (HDF5 allocates in chunks)."""
+        return (4 << 20) + 4 * int(0.5 * self._fs * BYTES_PER_SAMPLE)
+
+    def _storage_room(self) -> int | None:
+        """Bytes the run file can still grow by: free disk space, and the process's file-size limit."""
+        try:
+            room = shutil.disk_usage(self.path.parent).free
+            try:
+                import resource
+
+                soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+                if soft != resource.RLIM_INFINITY:
+                    room = min(room, soft - os.path.getsize(self.path))
+            except (ImportError, OSError, ValueError):
+                pass
+            return int(room)
+        except OSError:
+            return None
+
+    def _storage_low(self, room: int) -> None:
+        """Stop before the disk is full: close the file cleanly (status failed) with every sample so far."""
+        what = (f"disk full ({max(room, 0) / 1e6:.1f} MB left for the run file, "
+                f"{self._storage_reserve() / 1e6:.1f} MB kept to close it): recording stopped")
+        reason = f"storage failure: {what}"
+        self._fault("storage", what, "storage", path=str(self.path), room_bytes=int(room))
         self._submit(lambda: self._do_end("failed", reason))
+        while True:  # samples that arrive until the end request is handled are still written (room is kept)
+            op = self._wq.get()
+            try:
+                if op[0] == "close":
+                    self._writer.flush()
+                    self._writer.close(op[1], op[2] if op[2] else reason)
+                    return
+                if op[0] == "append":
+                    self._writer.append(op[1], **op[2])
+                elif op[0] == "event":
+                    self._writer.event(op[1], op[2], op[3])
+                elif op[0] == "trigger":
+                    self._writer.set_trigger_time(op[1])
+                elif op[0] == "value":
+                    self._writer.set_value(op[1], op[2])
+                elif op[0] == "gap":
+                    self._writer.gap(op[1], op[2])
+                elif op[0] == "slow":
+                    self._writer.append_slow(op[1], op[2], op[3])
+            except Exception as exc:  # noqa: BLE001 - it filled up anyway
+                self._storage_failed(exc, op, drained=op[0] == "close")
+                return
+
+    def _storage_failed(self, exc: BaseException, op, drained: bool = False) -> None:
+        what = f"write failed (disk full?): {str(exc).splitlines()[0][:160]}"
+        reason = f"storage failure: {what}"
+        self._storage_error = reason
+        _quiet_h5py_dealloc_errors()
+        self._fault("storage", what, "storage", path=str(self.path))
+        self._submit(lambda: self._do_end("failed", reason))
+        if drained:
+            try:
+                self._writer._fh.close()
+            except Exception:  # noqa: BLE001
+                pass
+            return
         # drain the queue until the close request, then close as well as possible
         while True:
             op = self._wq.get()
@@ -990,19 +1193,19 @@ class Recorder:
         try:
             st = self._valve.read_status()
             readings["valve_position"] = st.position
-            self._valve_state = st.state
+            self._emit_valve(st)
             if self._wq is not None:
                 self._wq.put(("slow", "valve_state", t, int(st.state)))
                 self._wq.put(("slow", "valve_opening", t, st.position.value))
             if st.state is ValveState.FAULT and self._end_status is None:
                 self._end_status = "aborting"
                 msg = f"valve actuator FAULT ({', '.join(st.faults) or 'no bits'}) at {st.position.value:.1f} % open"
-                self._fault(msg)
+                self._fault("valve", msg, "actuator_fault", faults=list(st.faults))
                 self._submit(lambda: self._do_end("aborted", msg))
         except DeviceFault as exc:
-            self._fault(str(exc))
+            self._fault("valve", str(exc), "actuator_fault")
         except DeviceError as exc:
-            self._fault(f"valve actuator: {exc}")
+            self._fault("valve", f"valve actuator: {exc}", "no_response")
         try:
             r = self._flowmeter.read_flow()
             readings["flow"] = r
@@ -1011,11 +1214,12 @@ class Recorder:
             if r.quality.value != "ok":
                 self._flow_faults += 1
                 if self._flow_faults in (1, 10, 100):
-                    self._fault(f"flowmeter reading {r.quality.value}")
+                    self._fault("flowmeter", f"flowmeter reading {r.quality.value}", "quality",
+                                quality=r.quality.value)
         except DeviceError as exc:  # the pressure recording goes on
             self._flow_faults += 1
             if self._flow_faults in (1, 10, 100):
-                self._fault(f"flowmeter: {exc} (pressure recording continues)")
+                self._fault("flowmeter", f"{exc} (pressure recording continues)", "no_response")
                 if self._flow_faults == 1:
                     self._marks.append("flowmeter timeout during the run")
         if readings:
@@ -1050,6 +1254,7 @@ class Recorder:
         self._wq.put(("value", "manoeuvre/trigger_host_time", time.time()))
         self._log("operator", f"trigger commanded at about t = {t_est:.3f} s")
         self._set_phase("transient", trigger_time_s=t_est)
+        self._emit("trigger", {"trigger_time_s": t_est, "measured": False})
         return t_est
 
     # ------------------------------------------------------------------ fits
@@ -1151,15 +1356,21 @@ class Recorder:
                 self._valve.abort()
                 self._log("operator", "actuator: manoeuvre stopped where it is (abort)")
         except DeviceError as exc:
-            self._fault(f"actuator safe state: {exc}")
+            self._fault("valve", f"actuator safe state: {exc}", "no_response")
 
     def _do_end(self, status: str, reason: str) -> RunSummary | None:
         """On the control thread: end the run with ``status`` (idempotent)."""
+        from velab.drivers.base import DeviceError
+
         if self._finished.is_set() or self._writer is None:
             return self._summary
         if status != "completed":
             self._safe_valve()
         self._finish(status, reason)
+        try:  # where the valve ended up (the GUI offers Reset valve when it is closed)
+            self._emit_valve(self._valve.read_status())
+        except (DeviceError, KeyError):
+            pass
         return self._summary
 
     def _finish(self, status: str, reason: str) -> None:
@@ -1175,7 +1386,7 @@ class Recorder:
                 else:
                     adc.stop_buffer()
             except Exception as exc:  # noqa: BLE001
-                self._emit("fault", f"pressure ADC stop: {exc}")
+                self._fault("pressure", f"pressure ADC stop: {exc}", "no_response")
         if self._acq_thread is not None and self._acq_thread is not threading.current_thread():
             self._acq_thread.join(5.0)
         if self._trigger_time is not None and not self._trigger_measured and self._pos_t:
@@ -1187,6 +1398,10 @@ class Recorder:
             self._wq.put(("close", status, full_reason[:255]))
             if self._writer_thread is not None:
                 self._writer_thread.join(30.0)
+        if self._storage_error and status != "failed":  # the file could not be written to the end
+            status = "failed"
+            full_reason = "; ".join(x for x in (self._storage_error, full_reason) if x)
+            self._end_status = status
         fit_wanted = (self.settings.fit and status in ("completed", "stopped") and self._window_closed)
         if fit_wanted and not self._final_fit_started:
             self._start_fit(final=True)
@@ -1247,7 +1462,7 @@ class Recorder:
         if self.phase in ("idle", "failed") and not self.devices:
             self.connect().result(timeout=60)
         if reset_valve:
-            self._submit(self._reset_valve).result(timeout=30)
+            self.reset_valve().result(timeout=30)
         self.arm().result(timeout=60)
         deadline = time.monotonic() + self._deadline(s.pretrigger_s)
         while self._gidx < self._n_pre and not self._finished.is_set():
@@ -1263,15 +1478,36 @@ class Recorder:
                     raise
         return self.wait(self._deadline(s.duration_s + s.pretrigger_s) + 120.0)
 
-    def _reset_valve(self) -> None:
+    def _reset_valve(self):
         from velab.drivers.valve import ValveState
 
-        st = self._valve.read_status().state
-        if st is not ValveState.IDLE:
+        st = self._valve.read_status()
+        if st.state is not ValveState.IDLE or st.position.value < 99.0:
             self._valve.reset()
-            self._valve.wait_for({ValveState.IDLE}, timeout_s=5.0)
-        self._log("operator", "actuator reset (valve reopened)")
-        self._sleep(1.0)  # let the flow settle
+            st = self._valve.wait_for({ValveState.IDLE}, timeout_s=5.0)
+            self._log("operator", "actuator reset (valve reopened)")
+            self._emit_valve(st)
+            self._sleep(1.0)  # let the flow settle
+        else:
+            self._emit_valve(st)
+        return st
+
+    def _do_reset_valve(self):
+        from velab.drivers.base import DeviceError
+
+        if self._run_active() or self.phase in ("armed", "pretrigger", "transient"):
+            raise VelabError(f"cannot reset the valve while {self.phase}: stop or abort the run first")
+        if not self._devices_ready():
+            self._do_connect()
+        try:
+            st = self._reset_valve()
+        except DeviceError as exc:
+            raise DeviceFailure(f"{self.roles.get('valve', 'valve')}: reset failed: {exc}") from None
+        self._message(f"valve reopened: actuator {st.state.name}, {st.position.value:.1f} % open")
+        return st
+
+    def _devices_ready(self) -> bool:
+        return bool(self.roles) and all(n in self.devices for n in self.roles.values())
 
     def close(self) -> None:
         """Stop anything running (status "stopped"), disconnect, stop an owned simulator."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import signal
 import sys
 import threading
@@ -73,78 +74,136 @@ class _Terminate(BaseException):
     pass
 
 
-def _progress(rec, out, json_mode: bool, quiet: bool):
-    """A thread printing the recorder's events: rich live status on a TTY, plain lines otherwise."""
-    stream = sys.stderr if json_mode else sys.stdout
-    tty = stream.isatty() and not quiet
-    stop = threading.Event()
-    state = {"phase": "idle", "samples": 0, "lost": 0, "peak": float("-inf"), "t0": time.monotonic(), "t": 0.0}
+class _Progress:
+    """Prints the recorder's events from its own thread.
 
-    def line(text: str) -> None:
-        if not quiet:
-            print(text, file=stream, flush=True)
+    Phases, messages, faults and fits are plain lines (stdout, or stderr with --json). On a
+    terminal a one-line live status (phase, elapsed, t, samples, lost, peak head) is kept under
+    them, cut to the terminal's width and erased before anything else is printed; ``pause()``
+    drains the pending events and erases it so the run summary is printed cleanly.
+    """
 
-    def handle(ev) -> None:
+    def __init__(self, rec, json_mode: bool, quiet: bool):
+        self.rec = rec
+        self.stream = sys.stderr if json_mode else sys.stdout
+        self.quiet = quiet
+        self.tty = (not quiet) and self.stream.isatty()
+        self.lock = threading.Lock()
+        self.stop_ev = threading.Event()
+        self.paused = False
+        self.status_shown = False
+        self.state = {"phase": "idle", "samples": 0, "lost": 0, "peak": float("-inf"),
+                      "t0": time.monotonic(), "t": 0.0}
+        self.thread = threading.Thread(target=self._loop, daemon=True, name="velab-record-progress")
+        self.thread.start()
+
+    # -- output (under self.lock)
+    def _erase(self) -> None:
+        if self.status_shown:
+            self.stream.write("\r\x1b[2K")
+            self.status_shown = False
+
+    def line(self, text: str) -> None:
+        if self.quiet:
+            return
+        with self.lock:
+            self._erase()
+            print(text, file=self.stream, flush=True)
+
+    def _status(self) -> None:
+        st = self.state
+        phase = st["phase"]
+        if phase in ("connected", "connecting") and st["samples"]:
+            phase = "arming"
+        peak = f"{st['peak']:.2f} m" if st["peak"] > -1e300 else "-"
+        text = (f"{phase:<10} {time.monotonic() - st['t0']:6.1f} s | t {st['t']:8.3f} s | "
+                f"{st['samples']} samples, {st['lost']} lost | peak head {peak}")
+        width = shutil.get_terminal_size((80, 24)).columns - 1
+        with self.lock:
+            self.stream.write("\r\x1b[2K" + text[:max(10, width)])
+            self.stream.flush()
+            self.status_shown = True
+
+    # -- events
+    def handle(self, ev) -> None:
         k = ev.kind
+        st = self.state
         if k == "samples":
             d = ev.data
-            state["samples"] += d["time_s"].size
-            state["lost"] += d["lost"]
-            state["t"] = float(d["time_s"][-1])
+            st["samples"] += d["time_s"].size
+            st["lost"] += d["lost"]
+            if d["time_s"].size:
+                st["t"] = float(d["time_s"][-1])
             if d["head_m"].size:
                 import numpy as np
 
                 with np.errstate(invalid="ignore"):
-                    m = np.nanmax(d["head_m"])
+                    m = np.nanmax(d["head_m"]) if np.isfinite(d["head_m"]).any() else float("nan")
                 if m == m:
-                    state["peak"] = max(state["peak"], float(m))
+                    st["peak"] = max(st["peak"], float(m))
         elif k == "phase":
-            state["phase"] = ev.data["phase"]
-            if not tty:
-                extra = ev.data.get("path") or ev.data.get("reason") or ""
-                line(f"[{time.monotonic() - state['t0']:7.2f} s] phase {ev.data['phase']}" + (f": {extra}" if extra else ""))
-        elif k in ("message", "fault"):
-            line(("warning: " if k == "fault" else "") + str(ev.data))
-        elif k == "fit" and not tty:
+            st["phase"] = ev.data["phase"]
+            if ev.data["phase"] == "connecting":
+                st.update(samples=0, lost=0, peak=float("-inf"), t=0.0, t0=time.monotonic())
+            phase = ev.data["phase"]
+            extra = ev.data.get("reason") or ""
+            if phase in ("armed", "done") and ev.data.get("path"):
+                extra = ev.data["path"]
+            elif phase == "transient" and ev.data.get("trigger_time_s") is not None:
+                extra = f"trigger commanded at t = {ev.data['trigger_time_s']:.3f} s"
+            elif phase == "fitting":
+                extra = "final fit" + (f" ({extra})" if extra else "")
+            if phase == "pretrigger":
+                extra = f"recording the {self.rec.settings.pretrigger_s:g} s baseline"
+            self.line(f"[{time.monotonic() - st['t0']:7.2f} s] {ev.data['phase']}" + (f": {extra}" if extra else ""))
+        elif k == "trigger" and ev.data.get("measured"):
+            self.line(f"trigger measured from the valve position: t = {ev.data['trigger_time_s']:.4f} s")
+        elif k == "message":
+            self.line(str(ev.data))
+        elif k == "fault":
+            self.line(f"warning: {ev.data}")
+        elif k == "fit":
             r = ev.data["result"]
             tag = "final" if ev.data["final"] else "intermediate"
-            line(f"fit ({tag}, {ev.data['window_s']:g} s window): best {r.best.name}, a = {r.best.wave_speed_m_s:.2f} m/s")
+            self.line(f"fit ({tag}, {ev.data['window_s']:g} s window): best {r.best.name}, "
+                      f"a = {r.best.wave_speed_m_s:.2f} m/s")
 
-    def loop() -> None:
+    def _loop(self) -> None:
         import queue as _q
 
-        live = None
-        if tty:
+        last = 0.0
+        while not self.stop_ev.is_set():
             try:
-                from rich.live import Live
-                from rich.text import Text
+                ev = self.rec.events.get(timeout=0.1)
+            except _q.Empty:
+                ev = None
+            if ev is not None:
+                self.handle(ev)
+                if ev.kind == "done":
+                    self.paused = True
+            if self.tty and not self.paused and time.monotonic() - last > 0.125:
+                last = time.monotonic()
+                self._status()
 
-                live = Live(Text(""), refresh_per_second=8, console=None, transient=True)
-                live.start()
-            except Exception:  # noqa: BLE001
-                live = None
-        try:
-            while not stop.is_set() or not rec.events.empty():
-                try:
-                    ev = rec.events.get(timeout=0.1)
-                except _q.Empty:
-                    ev = None
-                if ev is not None:
-                    handle(ev)
-                if live is not None:
-                    from rich.text import Text
+    def pause(self, timeout: float = 2.0) -> None:
+        """Before printing a summary: handle the events already queued, erase the status line."""
+        deadline = time.monotonic() + timeout
+        while not self.rec.events.empty() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        self.paused = True
+        with self.lock:
+            self._erase()
+            self.stream.flush()
 
-                    live.update(Text(
-                        f"{state['phase']:<10} elapsed {time.monotonic() - state['t0']:6.1f} s  t = {state['t']:7.3f} s  "
-                        f"samples {state['samples']:>9}  lost {state['lost']:>5}  peak head "
-                        + (f"{state['peak']:.2f} m" if state["peak"] > -1e300 else "-")))
-        finally:
-            if live is not None:
-                live.stop()
+    def resume(self) -> None:
+        self.paused = False
 
-    th = threading.Thread(target=loop, daemon=True, name="velab-record-progress")
-    th.start()
-    return stop, th
+    def close(self) -> None:
+        self.pause()
+        self.stop_ev.set()
+        self.thread.join(2.0)
+        with self.lock:
+            self._erase()
 
 
 def _settings_from_args(args, run_number: int):
@@ -188,12 +247,17 @@ def _make_recorder(args, settings):
 
 
 def _print_summary(summary, out) -> None:
+    import math
+
+    print("", file=out)
     print(f"run: {summary.path}", file=out)
     print(f"status: {summary.status}" + (f" ({summary.reason})" if summary.reason else ""), file=out)
+    peak = f"{summary.peak_head_m:.2f} m" if math.isfinite(summary.peak_head_m) else "-"
+    trig = f", trigger at t = {summary.trigger_time_s:.4f} s" if summary.trigger_time_s is not None else ""
     print(f"samples: {summary.n_samples}, lost {summary.lost_samples} in {summary.gaps} gaps, "
-          f"peak head {summary.peak_head_m:.2f} m", file=out)
+          f"peak head {peak}{trig}", file=out)
     if summary.fit is not None:
-        print(summary.fit.report(elements=False), file=out)
+        print(summary.fit.report(elements=False).rstrip(), file=out)
         print(f"best model: {summary.best_model}, a = {summary.wave_speed_m_s:.2f} m/s"
               + (f" (final fit {summary.fit_latency_s:.2f} s after the window closed)" if summary.fit_latency_s else ""),
               file=out)
@@ -202,7 +266,7 @@ def _print_summary(summary, out) -> None:
 
 
 def run_command(args) -> int:
-    from velab.recorder import DeviceFailure, RunSummary
+    from velab.recorder import RunSummary
 
     if args.repeat < 1:
         raise VelabError("--repeat must be at least 1")
@@ -218,11 +282,12 @@ def run_command(args) -> int:
     summaries: list[RunSummary] = []
     codes: list[int] = []
     rec = None
-    stopper = None
+    progress = None
     try:
         rec = _make_recorder(args, settings)
-        stopper = _progress(rec, out, args.json, args.quiet)
+        progress = _Progress(rec, args.json, args.quiet)
         for i in range(args.repeat):
+            progress.resume()
             if i:
                 rec.settings = settings.with_changes(run_number=i + 1)
                 if args.interval:
@@ -232,17 +297,14 @@ def run_command(args) -> int:
                     s = rec.run(reset_valve=i > 0)
                 except (KeyboardInterrupt, _Terminate):
                     s = _interrupt(rec)
-            except DeviceFailure as exc:
-                print(f"velab: {exc}", file=sys.stderr)
-                codes.append(exc.exit_code)
-                break
-            except VelabError as exc:
+            except VelabError as exc:  # RunRefused (3), DeviceFailure (5), bad settings (2)
+                progress.pause()
                 print(f"velab: {exc}", file=sys.stderr)
                 codes.append(exc.exit_code)
                 break
             summaries.append(s)
             codes.append(s.exit_code)
-            time.sleep(0.05)
+            progress.pause()
             if not args.quiet:
                 _print_summary(s, out)
             if s.exit_code == 130:
@@ -250,9 +312,8 @@ def run_command(args) -> int:
     except (KeyboardInterrupt, _Terminate):
         codes.append(130)
     finally:
-        if stopper is not None:
-            stopper[0].set()
-            stopper[1].join(2.0)
+        if progress is not None:
+            progress.close()
         if rec is not None:
             try:
                 rec.close()

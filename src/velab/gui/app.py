@@ -25,7 +25,8 @@ def ensure_app():
 
 def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "default", material=None, rig=None,
                      clock: str = "realtime"):
-    """``(factory, rig)``: ``factory(**record_settings) -> velab.recorder.Recorder`` and the rig it records.
+    """``(factory, rig)``: ``factory(**record_settings) -> velab.recorder.Recorder`` and the rig it records;
+    ``factory.make_settings(**record_settings) -> RecordSettings`` for the next arm on the same Recorder.
 
     The factory runs on the controller's worker thread (it starts the simulated rig or
     loads the bench); it creates the run folder if needed. Raises VelabError for a bad
@@ -49,6 +50,7 @@ def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "
             s = rec.RecordSettings(**_coerce(settings))
             return rec.Recorder.simulated(s, sim_config=sim_config, material=material, clock=clock,
                                           rig=the_rig if rig else None)
+        make.make_settings = _record_settings
         return make, the_rig
     if config is None:
         raise VelabError("give --config BENCH.toml or --simulate")
@@ -63,7 +65,15 @@ def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "
 
     def make(**settings):
         return rec.Recorder(bench, the_rig, rec.RecordSettings(**_coerce(settings)))
+    make.make_settings = _record_settings
     return make, the_rig
+
+
+def _record_settings(**settings):
+    """The form's values as RecordSettings for a connected Recorder's next arm (creates the run folder)."""
+    from velab.recorder import RecordSettings
+
+    return RecordSettings(**_coerce(settings))
 
 
 def _coerce(settings: dict) -> dict:

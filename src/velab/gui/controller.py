@@ -6,9 +6,13 @@ on a QTimer (every ``tick_ms``, with a bounded amount of work per tick), re-emit
 the events as Qt signals, posts commands (which return ``concurrent.futures.Future``)
 and polls their completion on the same timer. Nothing here blocks on a device.
 
-One Recorder records one run, so the controller makes a new one (through
-``factory(**settings)``) for each run; it keeps the previous one until the next
-connect so that its devices can be shown.
+The controller makes a Recorder (through ``factory(**settings)``) on the first
+Connect or Arm and keeps it: further runs are armed on the same connection (the new
+settings go with the arm command; ``factory.make_settings(**settings)``, if the factory
+has it, turns the form's values into RecordSettings on the worker thread). After a run
+the valve is closed: ``reset_valve()`` reopens it, and Arm after a run does that first
+(not from an actuator FAULT: that needs the operator's Reset valve). *Reconnect* makes a
+new Recorder (a new connection).
 """
 
 from __future__ import annotations
@@ -39,6 +43,9 @@ class RecorderController(QObject):
     done = Signal(object)  # RunSummary
     armed = Signal(object)  # the run file path
     triggered = Signal(float)
+    trigger_time = Signal(float, bool)  # the trigger instant on the run's axis; measured (True) or estimated
+    valve = Signal(object)  # dict: device, state, position_pct, open, faults
+    valve_reset = Signal(object)  # the actuator's status after reset_valve
     command_failed = Signal(str, object)  # command name, exception
 
     def __init__(self, factory: Callable, parent=None, *, tick_ms: int = 50, budget_s: float = 0.012):
@@ -49,6 +56,8 @@ class RecorderController(QObject):
         self.budget_s = budget_s
         self._pending: list[tuple[str, object, Callable | None]] = []
         self._settings: dict | None = None
+        self._connected = False  # the current recorder's devices answered (connect succeeded)
+        self.valve_info: dict | None = None  # the last "valve" event
         self.events_seen = 0
         # making and closing a Recorder starts/stops devices (or the simulator): never on the GUI thread
         self._exec = ThreadPoolExecutor(max_workers=1, thread_name_prefix="velab-gui-recorder")
@@ -61,7 +70,11 @@ class RecorderController(QObject):
     # ------------------------------------------------------------------ commands
     def busy(self) -> bool:
         return (self._making or self.phase in ACTIVE_PHASES
-                or any(name in ("connect", "arm") for name, _, _ in self._pending))
+                or any(name in ("connect", "arm", "reset", "settings") for name, _, _ in self._pending))
+
+    def valve_closed(self) -> bool:
+        """The last actuator status the engine published says the valve is not open (and idle)."""
+        return self.valve_info is not None and not self.valve_info.get("open", True)
 
     def connect_devices(self, settings: dict) -> None:
         """Make a fresh Recorder for ``settings`` (a new connection) and connect its devices."""
@@ -69,22 +82,62 @@ class RecorderController(QObject):
             self.message.emit(f"Cannot reconnect while the recorder is {self.phase}.", "warning")
             return
         self._replace(settings, then=lambda: self._post("connect", lambda: self.recorder.connect(),
-                                                        self.device_status.emit))
+                                                        self._connected_ok))
+
+    def _connected_ok(self, statuses) -> None:
+        self._connected = True
+        self.device_status.emit(statuses)
 
     def arm(self, settings: dict) -> None:
-        """Arm a run with ``settings``: a fresh Recorder (connect, then arm) unless the connected one has them."""
+        """Arm a run with ``settings`` on the connected Recorder (made and connected first if there is none).
+
+        After a run the valve is reopened first (``reset_valve``) unless the actuator is in FAULT.
+        """
         if self.busy():
             self.message.emit(f"Cannot arm: the recorder is {self.phase}.", "warning")
             return
-        if self.recorder is not None and settings == self._settings and self.phase == "connected":
-            self._post("arm", lambda: self.recorder.arm(), self.armed.emit)
+        rec = self.recorder
+        if rec is None or not self._connected:
+            def then():
+                self._post("connect", lambda: self.recorder.connect(),
+                           lambda st: (self._connected_ok(st),
+                                       self._post("arm", lambda: self.recorder.arm(), self.armed.emit)))
+            self._replace(settings, then=then)
             return
+        reset_first = self.valve_closed() and (self.valve_info or {}).get("state") != "FAULT"
 
-        def then():
-            self._post("connect", lambda: self.recorder.connect(),
-                       lambda st: (self.device_status.emit(st),
-                                   self._post("arm", lambda: self.recorder.arm(), self.armed.emit)))
-        self._replace(settings, then=then)
+        def arm_with(rs):
+            if reset_first:
+                self.message.emit("The valve is closed after the last run: reopening it before arming…", "info")
+                self._post("reset", lambda: rec.reset_valve(),
+                           lambda st: (self.valve_reset.emit(st), self._post("arm", lambda: arm_call(rs), self.armed.emit)))
+            else:
+                self._post("arm", lambda: arm_call(rs), self.armed.emit)
+
+        def arm_call(rs):
+            return rec.arm() if rs is None else rec.arm(settings=rs)
+
+        if settings == self._settings:
+            arm_with(None)
+            return
+        self._settings = dict(settings)
+        make = getattr(self.factory, "make_settings", None)
+        if make is None:
+            arm_with(dict(settings))
+        else:  # RecordSettings (and the run folder) on the worker thread
+            self._pending.append(("settings", self._exec.submit(lambda: make(**settings)), arm_with))
+
+    def reset_valve(self) -> None:
+        """Reopen the valve (actuator reset; the flow gets 1 s to settle) on the current connection."""
+        if self.recorder is None:
+            self.message.emit("Connect the bench first.", "warning")
+            return
+        if self.busy():
+            self.message.emit(f"Cannot reset the valve: the recorder is {self.phase}.", "warning")
+            return
+        rec = self.recorder
+        self.message.emit("Resetting the valve actuator (reopening the valve)…", "info")
+        self._post("reset", lambda: rec.reset_valve(), self.valve_reset.emit)
 
     def trigger(self) -> None:
         if self.recorder is None:
@@ -136,6 +189,8 @@ class RecorderController(QObject):
         """Close the current Recorder and make a new one, on the worker thread; then ``then()``."""
         old, self.recorder = self.recorder, None
         self._settings = dict(settings)
+        self._connected = False
+        self.valve_info = None
         self._making = True
         self._set_phase("connecting")
 
@@ -162,6 +217,8 @@ class RecorderController(QObject):
         self._pending.append((name, fut, on_ok))
 
     def _failed(self, name: str, exc: BaseException) -> None:
+        if name == "settings":
+            self._settings = None  # not applied: the next Arm converts the form again
         if name == "setup":
             self._making = False
             self._set_phase("idle" if self.recorder is None else getattr(self.recorder, "phase", "idle"))
@@ -233,6 +290,12 @@ class RecorderController(QObject):
             self.phase_info.emit(phase, data if isinstance(data, dict) else {})
         elif kind == "device":
             self.devices.emit(data)
+        elif kind == "valve":
+            self.valve_info = dict(data) if isinstance(data, dict) else None
+            self.valve.emit(data)
+        elif kind == "trigger":
+            if isinstance(data, dict) and isinstance(data.get("trigger_time_s"), (int, float)):
+                self.trigger_time.emit(float(data["trigger_time_s"]), bool(data.get("measured", False)))
         elif kind == "fit":
             self.fit.emit(data)
         elif kind == "message":

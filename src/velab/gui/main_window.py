@@ -125,11 +125,15 @@ class MainWindow(QMainWindow):
             c.done.connect(self._done)
             c.armed.connect(self._armed)
             c.triggered.connect(self._triggered)
+            c.trigger_time.connect(self._trigger_time)
+            c.valve.connect(self._valve)
+            c.valve_reset.connect(self._valve_reset)
             self.devices.reconnect_requested.connect(self.connect_devices)
             self.run_panel.arm_clicked.connect(self.arm)
             self.run_panel.trigger_clicked.connect(c.trigger)
             self.run_panel.stop_clicked.connect(c.stop)
             self.run_panel.abort_clicked.connect(lambda: c.abort("operator abort"))
+            self.run_panel.reset_valve_clicked.connect(self.reset_valve)
             self.run_panel.changed.connect(self.update_prediction)
         else:
             self.run_panel.setEnabled(False)
@@ -152,6 +156,12 @@ class MainWindow(QMainWindow):
         a = QAction("Runs &folder…", self)
         a.triggered.connect(lambda: (self.tabs.setCurrentWidget(self.archive), self.archive.choose_folder()))
         m.addAction(a)
+        m.addSeparator()
+        self.reset_valve_action = QAction("&Reset valve", self)
+        self.reset_valve_action.setToolTip("reopen the valve (actuator reset) on the current connection")
+        self.reset_valve_action.setEnabled(False)
+        self.reset_valve_action.triggered.connect(lambda: self.reset_valve())
+        m.addAction(self.reset_valve_action)
         m.addSeparator()
         a = QAction("&Quit", self)
         a.setShortcut(QKeySequence.Quit)
@@ -283,6 +293,27 @@ class MainWindow(QMainWindow):
         self.last_run_path = Path(path) if path else None
         self.show_message(f"Armed: recording to {path}. Press Trigger to close the valve.")
 
+    def reset_valve(self) -> None:
+        if self.controller is None:
+            return
+        self.controller.reset_valve()
+
+    def _valve(self, info) -> None:
+        closed = isinstance(info, dict) and not info.get("open", True)
+        self.run_panel.set_valve_closed(closed)
+        self.reset_valve_action.setEnabled(self.run_panel.reset_valve_button.isEnabled())
+
+    def _valve_reset(self, st) -> None:
+        state = getattr(getattr(st, "state", None), "name", "")
+        pos = getattr(getattr(st, "position", None), "value", None)
+        self.show_message("Valve reopened" + (f": actuator {state}" if state else "")
+                          + (f", {pos:.1f} % open" if isinstance(pos, (int, float)) else "") + ". Ready to arm.")
+
+    def _trigger_time(self, t: float, measured: bool) -> None:
+        self.live.set_trigger(float(t))  # the estimate at the command, then the instant measured from the valve
+        if measured:
+            self.show_message(f"Trigger measured from the valve position: t = {t:.4f} s")
+
     def _triggered(self, t) -> None:
         self.show_message(f"Triggered at t = {t:.3f} s" if isinstance(t, (int, float)) else "Triggered")
 
@@ -292,6 +323,7 @@ class MainWindow(QMainWindow):
                   "done": "#d8f0d2", "aborted": "#f9d0cd", "failed": "#f9d0cd", "stopped": "#eeeeee"}
         self.phase_label.setStyleSheet(f"background:{colors.get(phase, 'transparent')}; padding:2px;")
         self.run_panel.set_phase(phase)
+        self.reset_valve_action.setEnabled(self.run_panel.reset_valve_button.isEnabled())
         if phase == "transient" and self.live.trigger_time_s is None:
             self.live.set_trigger(0.0)
 
@@ -317,22 +349,15 @@ class MainWindow(QMainWindow):
                     f"head {head[-1]:.2f} m (max {np.nanmax(head):.2f} m), lost {self.live.lost_samples}")
 
     def _fault(self, data) -> None:
+        """A ``fault`` event: {"device", "message", "kind", "role"...} (velab.recorder.Fault)."""
         if isinstance(data, dict):
-            dev = str(data.get("device", data.get("name", "device")))
-            msg = str(data.get("message", data.get("text", data)))
-        else:
-            msg = str(data)
-            head = msg.split(":", 1)[0].strip()
-            known = set(self.devices.devices) | {"flowmeter", "valve", "valve actuator", "pressure ADC", "streaming_adc"}
-            first = msg.split()[0].rstrip(":") if msg.split() else ""
-            if head in known or (head and len(head) < 30 and " " not in head):
-                dev = head
-            elif first in known:
-                dev = first
-            else:
-                dev = "device"
+            dev = str(data.get("device") or "device")
+            msg = str(data.get("message", ""))
+        else:  # an engine without structured faults: the text only
+            dev, msg = "device", str(data)
         self.devices.set_fault(dev, msg)
-        self.show_message(f"Device fault — {msg}" if dev in msg else f"Device fault — {dev}: {msg}", "error")
+        what = "Storage failure" if isinstance(data, dict) and data.get("kind") == "storage" else "Device fault"
+        self.show_message(f"{what} — {dev}: {msg}", "error")
 
     def _fit_event(self, data) -> None:
         result = data.get("result") if isinstance(data, dict) else data

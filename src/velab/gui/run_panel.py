@@ -1,5 +1,5 @@
 """Run controls: run metadata, manoeuvre and recording parameters, the predicted surge, and
-Arm / Trigger / Stop / Abort."""
+Arm / Trigger / Stop / Abort / Reset valve."""
 
 from __future__ import annotations
 
@@ -32,6 +32,7 @@ class RunPanel(QWidget):
     trigger_clicked = Signal()
     stop_clicked = Signal()
     abort_clicked = Signal()
+    reset_valve_clicked = Signal()
     changed = Signal()
 
     def __init__(self, qsettings: QSettings, rig=None, parent=None):
@@ -115,12 +116,19 @@ class RunPanel(QWidget):
         buttons.addWidget(self.trigger_button, 0, 1)
         buttons.addWidget(self.stop_button, 1, 0)
         buttons.addWidget(self.abort_button, 1, 1)
+        self.reset_valve_button = QPushButton("Reset valve")
+        self.reset_valve_button.setToolTip("reset the actuator: reopens the closed valve (clears an actuator FAULT) "
+                                           "and lets the flow settle, on the same connection, before the next Arm")
+        buttons.addWidget(self.reset_valve_button, 2, 0, 1, 2)
         lay.addLayout(buttons)
         lay.addStretch(1)
         self.arm_button.clicked.connect(self.arm_clicked)
         self.trigger_button.clicked.connect(self.trigger_clicked)
         self.stop_button.clicked.connect(self.stop_clicked)
         self.abort_button.clicked.connect(self.abort_clicked)
+        self.reset_valve_button.clicked.connect(self.reset_valve_clicked)
+        self._valve_closed = False
+        self._phase = "idle"
         for w in (self.beta_spin, self.gamma_spin, self.end_spin, self.margin_spin, self.duration_spin,
                   self.pre_spin, self.fit_window_spin):
             w.valueChanged.connect(self.changed)
@@ -184,7 +192,18 @@ class RunPanel(QWidget):
         self.prediction.setText(f"<b>Settings:</b> {text}")
         self.prediction.setStyleSheet("background:#fde2e1; color:#6b0d0a;")
 
+    def set_valve_closed(self, closed: bool) -> None:
+        """From the engine's valve status: Reset valve is offered when the valve is closed and no run is active."""
+        self._valve_closed = bool(closed)
+        self._update_reset()
+
+    def _update_reset(self) -> None:
+        active = self._phase in ("connecting", "armed", "pretrigger", "transient")
+        self.reset_valve_button.setEnabled(self._valve_closed and not active)
+
     def set_phase(self, phase: str) -> None:
+        self._phase = phase
+        self._update_reset()
         active = phase in ("connecting", "armed", "pretrigger", "transient", "fitting")
         self.arm_button.setEnabled(not active)
         self.trigger_button.setEnabled(phase in ("armed", "pretrigger"))
