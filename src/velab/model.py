@@ -187,6 +187,11 @@ class ValveHeadModel:
         self.band = Band(self.n_fft, n_bins, float(omega[n_bins - 1] / (2 * np.pi)))
         self.s_band = s_all[:n_bins]
         self._spec_band = self.spec[:n_bins]
+        # cumulative sum in the frequency domain (see sums_to_time): the windowed increments'
+        # partial sums sum_(j<=J) growth_j y_j equal growth_(J+1) w_(J+1) - w_0 with
+        # w = irfft(X / (exp(s dt) - 1)), so the fitter's batched columns need no cumsum
+        self.spec_sum = self._spec_band / np.expm1(self.s_band * dt)
+        self._growth_sum = np.exp(self.sigma * np.arange(lead + 1, lead + 1 + n) * dt)
 
     def to_time(self, impedance_spectra: np.ndarray) -> np.ndarray:
         """Impedance on the band's bins (..., n_bins) -> head series (..., len(t)).
@@ -195,12 +200,31 @@ class ValveHeadModel:
         exponential window and sums the increments; zero before the trigger.
         Leading axes are kept (the fitter passes Jacobian columns at once).
         """
-        shape = impedance_spectra.shape[:-1]
-        buf = np.zeros(shape + (self.spec.size,), dtype=complex)
-        buf[..., : self.band.n_bins] = impedance_spectra * self._spec_band
-        dh = sfft.irfft(buf, self.n_fft, axis=-1)[..., : self.n_int] * self.growth
-        out = np.zeros(shape + (self.t.size,))
-        out[..., self.first :] = np.cumsum(dh, axis=-1)[..., self.lead :]
+        z = np.asarray(impedance_spectra)
+        buf = np.zeros(z.shape[:-1] + (self.spec.size,), dtype=complex)
+        np.multiply(z, self.spec_sum, out=buf[..., : self.band.n_bins])
+        return self.sums_to_time(buf)
+
+    def sums_to_time(self, spectrum: np.ndarray, out: np.ndarray | None = None,
+                     work: np.ndarray | None = None) -> np.ndarray:
+        """Half spectrum (..., n_fft//2 + 1) of Z times :attr:`spec_sum` -> head series (..., len(t)).
+
+        The summation of the increments is done in the frequency domain: with
+        s_k = sigma + i omega_k, sum_(j=0..J) exp(s_k j dt) = (exp(s_k (J+1) dt) - 1) / (exp(s_k dt) - 1),
+        so the head after J+1 increments is growth_(J+1) w_(J+1) - w_0, w = irfft(spectrum).
+        Same result as a cumulative sum of the inverse-transformed increments (to rounding),
+        one pass over the time series fewer. ``out`` (..., len(t)) and ``work`` (..., n_fft),
+        if given, are filled instead of allocating (the fitter reuses its buffers: fresh
+        multi-megabyte arrays cost page faults every call).
+        """
+        w = np.fft.irfft(spectrum, self.n_fft, axis=-1, out=work)
+        if out is None:
+            out = np.zeros(w.shape[:-1] + (self.t.size,))
+        elif self.first:
+            out[..., : self.first] = 0.0
+        o = out[..., self.first :]
+        np.multiply(w[..., self.lead + 1 : self.lead + 1 + self.n], self._growth_sum, out=o)
+        o -= w[..., :1]
         return out
 
     def head_params(self, a: float, J_rel, tau) -> np.ndarray:

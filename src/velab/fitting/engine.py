@@ -1,7 +1,8 @@
 """Numerical core of the calibration: head model with analytic Jacobian, parameter maps.
 
-Everything here is pure numpy/scipy, allocates its own buffers per instance and
-mutates no module state, so independent fits can run in parallel threads.
+Everything here is pure numpy, keeps its work buffers per instance and mutates no
+module state, so independent fits (each with its own evaluators) can run in parallel
+threads; one evaluator must not be used by two threads at once (see ``fork``).
 
 Parameters are optimised in logs, ``x = (ln a, ln E_1..E_m, ln eta_1..eta_m)``, so
 that the paper's bounds (E_k, eta_k in [1e6, 1e12]) are a box. In these variables the
@@ -12,16 +13,18 @@ wall function of physics.md section 3 reads
 
 so that every derivative of the impedance Z = -sqrt(W/Y) tanh(L sqrt(W Y)) goes
 through dZ/dY = (Zc / 2Y) (tanh g - g sech^2 g), g = L mu. Each Jacobian column
-of the head costs one inverse FFT (batched) and one cumulative sum.
+of the head costs one inverse FFT (batched); the cumulative sum of the increments is
+done in the frequency domain (``ValveHeadModel.sums_to_time``).
 """
 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
-import scipy.fft as sfft
 
 from velab.config import GRAVITY_M_S2, MODULUS_BOUNDS_PA, VISCOSITY_BOUNDS_PA_S, Rig
 from velab.model import ValveHeadModel, creep_scale
@@ -32,10 +35,22 @@ class HeadEvaluator:
 
     ``band_hz`` as in :class:`velab.model.ValveHeadModel`: ``"auto"`` evaluates Z
     only in the manoeuvre's band, ``None`` at every FFT bin (full band).
+
+    The per-bin factors that do not depend on the parameters (s gA, s Li + R, the flow
+    spectrum with the frequency-domain cumulative sum) are computed once. An evaluation
+    writes Z and the Jacobian columns straight into one half-spectrum buffer that is
+    inverse-transformed in one batched call (``ValveHeadModel.sums_to_time``).
+
+    Work buffers are kept per instance and reused (allocating megabyte arrays on every
+    evaluation costs more than the arithmetic): an instance must not be used by two
+    threads at once. :meth:`fork` gives a worker thread its own instance on the same
+    read-only model. Returned arrays are fresh unless ``out`` is passed.
     """
 
-    def __init__(self, rig: Rig, t_s, *, band_hz="auto"):
-        vm = ValveHeadModel(rig, t_s, band_hz=band_hz)
+    _WORK_SLOTS = 4
+
+    def __init__(self, rig: Rig, t_s=None, *, band_hz="auto", _model: ValveHeadModel | None = None):
+        vm = _model if _model is not None else ValveHeadModel(rig, t_s, band_hz=band_hz)
         p = rig.pipe
         self.rig = rig
         self.model = vm
@@ -45,60 +60,156 @@ class HeadEvaluator:
         self.W = self.s / self.gA + rig.linear_resistance  # s Li + R
         self.L = p.length_m
         self.c = p.constraint_alpha * rig.fluid.density_kg_m3 * p.inner_diameter_m / p.wall_thickness_m
+        self._sgA = self.s * self.gA
+        self._sigma = float(vm.sigma)
+        self._omega = self.s.imag.copy()
+        self._nb = self.s.size
+        self._nspec = vm.spec.size
+        self._mq = -vm.spec_sum  # -(flow-increment spectrum) / (exp(s dt) - 1)
+        self._sgAq2 = self._sgA * vm.spec_sum / 2.0
+        self._work: OrderedDict = OrderedDict()
         self.evaluations = 0
         self.jacobians = 0
 
+    def fork(self) -> "HeadEvaluator":
+        """Same model and grid, own counters and buffers (for a worker thread)."""
+        return HeadEvaluator(self.rig, _model=self.model)
+
     # ---------------------------------------------------------------- core
-    def _y(self, a: float, E: np.ndarray, eta: np.ndarray):
-        s = self.s
-        if E.size:
-            terms = 1.0 / (E[:, None] + s[None, :] * eta[:, None])  # (m, nb)
-            psi = terms.sum(axis=0)
+    def _buffers(self, m: int, rows: int) -> dict:
+        key = (m, rows)
+        ws = self._work.get(key)
+        if ws is None:
+            nb = self._nb
+            ws = {"im": np.empty((m, nb)), "den": np.empty((m, nb)), "terms": np.empty((m, nb), dtype=complex),
+                  "buf": np.zeros((rows, self._nspec), dtype=complex), "w": np.empty((rows, self.model.n_fft))}
+            for name in ("psi", "Y", "mu", "g", "th", "zc", "u"):
+                ws[name] = np.empty(nb, dtype=complex)
+            self._work[key] = ws
+            while len(self._work) > self._WORK_SLOTS:
+                self._work.popitem(last=False)
+        else:
+            self._work.move_to_end(key)
+        return ws
+
+    def _eval(self, a: float, E: np.ndarray, eta: np.ndarray, jac: bool, tau_free: bool,
+              out: np.ndarray | None = None) -> np.ndarray:
+        """Rows: h, then (if jac) dh/d ln a, dh/d ln E_k (tau fixed), [dh/d ln tau_k (E fixed)]."""
+        m = E.size
+        rows = 1 + (1 + m + (m if tau_free else 0) if jac else 0)
+        ws = self._buffers(m, rows)
+        Y = ws["Y"]
+        if m:
+            # t_k = 1/(E_k + s eta_k), s = sigma + i omega, in real arithmetic into kept buffers
+            # (no complex temporaries); psi = sum_k t_k; Y = s gA (1/a^2 + c psi)
+            re = E + self._sigma * eta
+            im, den, terms = ws["im"], ws["den"], ws["terms"]
+            np.multiply(self._omega[None, :], eta[:, None], out=im)
+            np.multiply(im, im, out=den)
+            den += (re * re)[:, None]
+            np.divide(re[:, None], den, out=terms.real)
+            np.divide(im, den, out=terms.imag)
+            np.negative(terms.imag, out=terms.imag)
+            psi = ws["psi"]
+            if m == 1:
+                np.copyto(psi, terms[0])
+            else:
+                np.sum(terms, axis=0, out=psi)
+            np.multiply(psi, self.c, out=Y)
+            Y += 1.0 / a**2
+            Y *= self._sgA
         else:
             terms = None
-            psi = 0.0
-        Y = s * self.gA * (1.0 / a**2 + self.c * psi)
-        return Y, terms
-
-    def _to_time(self, spectra: np.ndarray) -> np.ndarray:
-        """Spectra of head increments (..., nb) -> head series (..., n_t)."""
-        return self.model.to_time(spectra)
-
-    def head(self, a: float, E, eta) -> np.ndarray:
-        """h(t) for wave speed a (m/s) and KV elements E_k (Pa), eta_k (Pa s)."""
-        E = np.asarray(E, dtype=float)
-        eta = np.asarray(eta, dtype=float)
-        Y, _ = self._y(a, E, eta)
-        mu = np.sqrt(Y * self.W)
-        Z = -(mu / Y) * np.tanh(mu * self.L)
+            np.multiply(self._sgA, 1.0 / a**2, out=Y)
+        mu, g, th, zc = ws["mu"], ws["g"], ws["th"], ws["zc"]
+        np.multiply(Y, self.W, out=mu)
+        np.sqrt(mu, out=mu)
+        np.multiply(mu, self.L, out=g)
+        np.tanh(g, out=th)
+        np.divide(mu, Y, out=zc)  # Zc
+        b = ws["buf"][:, : self._nb]
+        np.multiply(zc, th, out=b[0])
+        b[0] *= self._mq  # Z = -Zc tanh(mu L), times the summed flow spectrum
+        if jac:
+            # dZ/dY = (Zc / 2Y) (tanh g - g sech^2 g); dY/d ln a = -2 s gA / a^2;
+            # dY/d ln E_k|tau = -s gA c t_k; dY/d ln tau_k|E = -s gA c s eta_k t_k^2
+            u = ws["u"]
+            np.multiply(th, th, out=u)
+            np.subtract(1.0, u, out=u)
+            u *= g
+            np.subtract(th, u, out=u)
+            P = zc
+            P /= Y
+            P *= u
+            P *= self._sgAq2  # dZ/dY s gA q
+            np.multiply(P, -2.0 / a**2, out=b[1])
+            if m:
+                P *= -self.c
+                cE = b[2 : 2 + m]
+                np.multiply(terms, P, out=cE)
+                if tau_free:
+                    ct = b[2 + m :]
+                    np.multiply(self.s[None, :], eta[:, None], out=ct)
+                    ct *= terms
+                    ct *= cE
         self.evaluations += 1
-        return self._to_time(Z)
+        if jac:
+            self.jacobians += 1
+        return self.model.sums_to_time(ws["buf"], out=out, work=ws["w"])
+
+    def head(self, a: float, E, eta, out: np.ndarray | None = None) -> np.ndarray:
+        """h(t) for wave speed a (m/s) and KV elements E_k (Pa), eta_k (Pa s)."""
+        o = None if out is None else out.reshape(1, -1)
+        return self._eval(a, np.asarray(E, dtype=float), np.asarray(eta, dtype=float), False, False, o)[0]
+
+    def head_jac_x(self, a: float, E, eta, tau_free: bool = True, out: np.ndarray | None = None):
+        """h(t) and the Jacobian rows in the optimiser's variables, shape (k, n_t), C-ordered:
+        d/d ln a, d/d ln E_k (tau fixed), and d/d ln tau_k (E fixed) if ``tau_free``.
+        ``out`` (1 + k, n_t) is filled if given."""
+        res = self._eval(a, np.asarray(E, dtype=float), np.asarray(eta, dtype=float), True, tau_free, out)
+        return res[0], res[1:]
 
     def head_jac(self, a: float, E, eta):
         """h(t) and dh/d(ln a, ln E_1..m, ln eta_1..m), shape (n_t, 1 + 2m)."""
         E = np.asarray(E, dtype=float)
-        eta = np.asarray(eta, dtype=float)
         m = E.size
-        s = self.s
-        Y, terms = self._y(a, E, eta)
-        mu = np.sqrt(Y * self.W)
-        g = mu * self.L
-        th = np.tanh(g)
-        zc = mu / Y
-        Z = -zc * th
-        dZdY = zc / (2 * Y) * (th - g * (1.0 - th * th))
-        cols = np.empty((1 + 2 * m + 1, self.s.size), dtype=complex)
-        cols[0] = Z
-        cols[1] = dZdY * (s * self.gA * (-2.0 / a**2))
-        if m:
-            base = dZdY * s * self.gA * self.c
-            t2 = terms * terms
-            cols[2 : 2 + m] = base * (-E[:, None] * t2)
-            cols[2 + m :] = base * (-(s[None, :] * eta[:, None]) * t2)
-        out = self._to_time(cols)
-        self.evaluations += 1
-        self.jacobians += 1
-        return out[0], out[1:].T
+        h, Jx = self.head_jac_x(a, E, eta, True)
+        # d/d ln E|eta = d/d ln E|tau - d/d ln tau|E;  d/d ln eta|E = d/d ln tau|E
+        Jf = Jx.copy()
+        Jf[1 : 1 + m] -= Jx[1 + m :]
+        return h, Jf.T
+
+
+# ----------------------------------------------------------------- reductions
+
+# Sums over the n samples are done in blocks small enough that OpenBLAS never splits
+# them over threads: a threaded dot product sums in a different order, so F would
+# depend (in the last bits) on the machine's core count and on what else is running;
+# the blocks are added in a fixed order. Measured: no slower than one threaded call.
+_BLOCK = 1024
+
+
+def sumsq(r: np.ndarray) -> float:
+    """sum(r**2), summed in fixed blocks (bit-reproducible whatever the BLAS threading)."""
+    return dot(r, r)
+
+
+def dot(u: np.ndarray, v: np.ndarray) -> float:
+    """u . v for 1-D arrays, summed in fixed blocks."""
+    n = u.shape[-1]
+    if n <= _BLOCK:
+        return float(np.dot(u, v))
+    return float(sum(np.dot(u[i : i + _BLOCK], v[i : i + _BLOCK]) for i in range(0, n, _BLOCK)))
+
+
+def gram(B: np.ndarray) -> np.ndarray:
+    """B B^T for B of shape (rows, n), rows small, summed over n in fixed blocks."""
+    n = B.shape[1]
+    M = B[:, :_BLOCK] @ B[:, :_BLOCK].T
+    for i in range(_BLOCK, n, _BLOCK):
+        b = B[:, i : i + _BLOCK]
+        M += b @ b.T
+    return M
 
 
 # ----------------------------------------------------------------- parameter maps
@@ -151,6 +262,11 @@ class ParamMap:
 
     def bounds(self):
         """The outer box (independent of x)."""
+        lo, hi = self._box
+        return lo.copy(), hi.copy()
+
+    @cached_property
+    def _box(self):
         lo = [self.ln_a_bounds[0]]
         hi = [self.ln_a_bounds[1]]
         if self.fixed_tau:

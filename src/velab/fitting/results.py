@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from velab.config import KelvinVoigt, Material
+from velab.fitting.engine import dot
 
 
 def support_category(delta_aic: float) -> str:
@@ -204,8 +205,8 @@ class SweepResult:
 
 def lag1(res: np.ndarray) -> float:
     r = np.asarray(res, dtype=float) - np.mean(res)
-    d = float(np.dot(r, r))
-    return float(np.dot(r[1:], r[:-1]) / d) if d > 0 else 0.0
+    d = dot(r, r)
+    return float(dot(r[1:], r[:-1]) / d) if d > 0 else 0.0
 
 
 __all__ = ["ModelFit", "SweepResult", "apply_criteria", "support_category", "model_name", "lag1", "asdict"]
