@@ -11,24 +11,9 @@ pytest.importorskip("pyqtgraph")
 
 from gui_fakes import FakeRecorder  # noqa: E402
 
-pytestmark = pytest.mark.gui
+pytestmark = [pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]
 
 
-@pytest.fixture(autouse=True)
-def _collect_qt_garbage(qtbot):
-    """Delete this test's windows while the QApplication lives (PySide6 crashes collecting them at exit)."""
-    yield
-    import gc
-
-    from PySide6.QtCore import QCoreApplication, QEvent
-
-    from velab.gui import tasks
-
-    tasks.wait_idle(20000)
-    for _ in range(3):
-        QCoreApplication.sendPostedEvents(None, QEvent.DeferredDelete)
-        QCoreApplication.processEvents()
-        gc.collect()
 
 
 @pytest.fixture()

@@ -8,22 +8,9 @@ import pytest
 pytest.importorskip("PySide6")
 pytest.importorskip("pyqtgraph")
 
-pytestmark = pytest.mark.gui
+pytestmark = [pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]
 
 
-@pytest.fixture(autouse=True)
-def _collect_qt_garbage(qtbot):
-    yield
-    import gc
-
-    from PySide6.QtCore import QCoreApplication, QEvent
-
-    from velab.gui import tasks
-
-    tasks.wait_idle(20000)
-    QCoreApplication.sendPostedEvents(None, QEvent.DeferredDelete)
-    QCoreApplication.processEvents()
-    gc.collect()
 
 
 @pytest.fixture()
