@@ -312,3 +312,20 @@ def test_killed_run_is_fitted_and_recovered_into_a_closed_copy(synth_run, tmp_pa
     assert "INCOMPLETE" in capsys.readouterr().out
     assert main(["recover", str(killed)]) == 2  # never overwrites
     assert "already exists" in capsys.readouterr().err
+
+
+def test_force_replaces_only_once_the_new_run_is_complete(synth_run, tmp_path, capsys):
+    """--force must not delete the old run before the new one exists: a failing import
+    (malformed CSV) leaves it as it was; a good one replaces it."""
+    target = tmp_path / "run.h5"
+    shutil.copy(synth_run, target)
+    before = target.read_bytes()
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time,head\n0,1\n0.001,oops\n")
+    assert main(["import", str(bad), "--rig", "perugia", "--force", "-o", str(target)]) == 2
+    assert "line 3" in capsys.readouterr().err
+    assert target.read_bytes() == before
+    good = tmp_path / "good.csv"
+    good.write_text("time,head\n" + "".join(f"{i * 0.001 - 0.005},30\n" for i in range(20)))
+    assert main(["import", str(good), "--rig", "perugia", "--force", "-o", str(target)]) == 0
+    assert read_run(target).status == "imported"

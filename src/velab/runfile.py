@@ -647,14 +647,19 @@ def write_run(
     title: str = "",
     extra_channels: dict[str, tuple[np.ndarray, str]] | None = None,
     sample_rate_hz: float | None = None,
+    overwrite: bool = False,
     **kwargs,
 ) -> Path:
-    """Write a whole run at once (synthetic runs, imports). Same layout as a recording."""
+    """Write a whole run at once (synthetic runs, imports). Same layout as a recording.
+
+    ``overwrite`` replaces an existing file, atomically: it is only renamed over once
+    the new file is complete, so a failure leaves the old one as it was.
+    """
     time_s = np.asarray(time_s, dtype=float)
     if time_s.size < 2:
         raise DataError(f"{path}: a run needs at least 2 samples")
     path = Path(path)
-    if path.exists():
+    if path.exists() and not overwrite:
         raise DataError(f"{path}: already exists (use --force to replace it)")
     if not path.parent.is_dir():
         raise DataError(f"{path.parent}: output directory does not exist")

@@ -35,8 +35,7 @@ def prepare_output(path: str | Path, force: bool) -> Path:
         raise VelabError(f"{path}: output must be an HDF5 file (.h5)")
     if not path.parent.is_dir():
         raise VelabError(f"{path.parent}: output directory does not exist")
-    if path.exists():
-        if not force:
-            raise VelabError(f"{path}: already exists (use --force to replace it)")
-        path.unlink()
+    if path.exists() and not force:
+        raise VelabError(f"{path}: already exists (use --force to replace it)")
+    # with --force the old file stays until the new one is complete (write_run renames over it)
     return path

@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         raise DataError(f"--trigger {args.trigger:g} s is outside the record ({rec.time_s[0]:g} .. {rec.time_s[-1]:g} s)")
     write_run(
         out, rig, t, rec.head_m, status="imported", title=args.title or Path(args.csv).name,
-        sample_rate_hz=rec.sample_rate_hz,
+        sample_rate_hz=rec.sample_rate_hz, overwrite=args.force,
         source={"kind": "csv", "file": str(Path(args.csv).resolve()), "time_column": rec.time_column,
                 "value_column": rec.value_column, "units": rec.units, "trigger_s": args.trigger},
     )

@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     title = args.title or f"synthetic {material.model_name} material {material.name} on {rig.name}"
     write_run(
         out, rig, t, head, status="synthetic", title=title, material=material, noise_std_m=s.noise_std_m,
-        extra_channels={"flow": (flow, "m^3/s")}, sample_rate_hz=s.sample_rate_hz,
+        extra_channels={"flow": (flow, "m^3/s")}, sample_rate_hz=s.sample_rate_hz, overwrite=args.force,
         source={"kind": "synth", "material": str(args.material), "rig": str(args.rig), **s.__dict__},
         settings={"synth": s.__dict__, "rig": str(args.rig), "material": str(args.material)},
     )
