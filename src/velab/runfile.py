@@ -298,8 +298,8 @@ def fits_group(path: str | os.PathLike) -> Iterator[h5py.Group]:
         yield e["fits"]
 
 
-def recover_run(src: str | os.PathLike, dst: str | os.PathLike | None = None) -> Path:
-    """Copy a run whose writer never closed it into a new, closed file.
+def recover_run(src: str | os.PathLike, dst: str | os.PathLike | None = None) -> tuple[Path, int]:
+    """Copy a run whose writer never closed it into a new, closed file; returns (copy, samples).
 
     The original is only read. HDF5 keeps a file that a killed SWMR writer held
     open flagged as "open for write" (``h5clear -s`` resets that flag in place);
@@ -311,12 +311,14 @@ def recover_run(src: str | os.PathLike, dst: str | os.PathLike | None = None) ->
     dst = Path(dst) if dst is not None else src.with_name(f"{src.stem}.recovered{src.suffix}")
     if dst.exists():
         raise DataError(f"{dst}: already exists; a run file is never overwritten")
-    run = read_run(src)  # validates the source and gives the common sample count
-    n = run.n_samples
     tmp = dst.with_name(f".{dst.name}.part")
     tmp.unlink(missing_ok=True)
     try:
         with open_run_file(src) as fin, h5py.File(tmp, "w-", libver="latest") as fout:
+            src_data = fin["entry/data"]
+            # a killed writer may leave one dataset a flush ahead: keep the common length
+            n = min(src_data[_str(src_data.attrs.get("axes", ["time"])[0])].shape[0],
+                    src_data[_str(src_data.attrs.get("signal", "head"))].shape[0])
             for k, v in fin.attrs.items():
                 fout.attrs[k] = v
             fin.copy(fin["entry"], fout, "entry")
@@ -330,7 +332,7 @@ def recover_run(src: str | os.PathLike, dst: str | os.PathLike | None = None) ->
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    return dst
+    return dst, n
 
 
 # ----------------------------------------------------------------------------- writing

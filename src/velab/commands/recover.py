@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from velab.runfile import read_run, recover_run
+from velab.runfile import recover_run
 
 
 def register(sub) -> None:
@@ -21,8 +21,6 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    src = read_run(args.run)
-    dst = recover_run(args.run, args.output)
-    state = "incomplete" if src.incomplete else src.status
-    print(f"wrote {dst}: {src.n_samples} samples ({state}); fit it with `velab fit {dst}`")
+    dst, n = recover_run(args.run, args.output)
+    print(f"wrote {dst}: {n} samples; fit it with `velab fit {dst}`")
     return 0
