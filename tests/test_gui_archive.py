@@ -12,8 +12,6 @@ from velab.cli import main as velab_main  # noqa: E402
 pytestmark = [pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]
 
 
-
-
 @pytest.fixture()
 def settings(tmp_path):
     from velab.gui.main_window import make_settings

@@ -14,8 +14,6 @@ from gui_fakes import FakeRecorder  # noqa: E402
 pytestmark = [pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]
 
 
-
-
 @pytest.fixture()
 def win(qtbot, tmp_path):
     from velab.gui.app import ensure_app

@@ -11,8 +11,6 @@ pytest.importorskip("pyqtgraph")
 pytestmark = [pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]
 
 
-
-
 @pytest.fixture()
 def win(qtbot, tmp_path):
     from velab.gui.app import ensure_app, recorder_factory

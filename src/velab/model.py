@@ -171,7 +171,6 @@ class ValveHeadModel:
         else:
             q = np.concatenate([np.zeros(lead), np.asarray(flow, dtype=float)[self.first :]])
             step = float(q[lead]) if n else 0.0
-        self.step_m3_s = step
         smooth = q - step * (t_int >= -1e-12 * dt)  # continuous at the trigger
         if flow is not None:
             smooth[:lead] = 0.0
