@@ -21,10 +21,10 @@ COMMAND_MODULES = (
     "velab.commands.import_csv",
     "velab.commands.info",
     "velab.commands.recover",
-    "velab.fitting.cli",
-    "velab.simulators.cli",
-    "velab.recorder_cli",
-    "velab.gui_cli",
+    "velab.commands.fit",
+    "velab.commands.sim",
+    "velab.commands.record",
+    "velab.commands.gui",
 )
 
 
