@@ -1,0 +1,115 @@
+"""The valve head on any sample grid from the time-domain model: :func:`moc_head`.
+
+The closure's flow q(t) = Q(t) - Q0 has a small step at the trigger (0.41 % of Q0
+for the reference sigmoid) and is continuous after it. The two parts are treated
+by the model that represents each exactly:
+
+* the continuous part, q(t) - q(0+), is integrated by the MOC on a grid that starts
+  at the trigger; its head is continuous (only kinks), so a cubic (4-point Lagrange)
+  interpolation onto the samples costs at most about 1e-4 m on the reference rig;
+* the step's response is linear in the step and is taken from the full-band
+  frequency model at the trigger's exact, possibly off-grid, instant -- exactly as
+  ``velab.model.valve_head`` does -- with the linearised steady friction and, for
+  ``"vardy-brown"``, the same unsteady friction (Brunone's has no frequency form).
+
+So with linear friction ``moc_head`` agrees with ``velab.model.valve_head`` up to
+the MOC's own discretisation error, at any trigger offset. With a nonlinear law the
+step (a 0.07 m wave on an 18 m surge) is propagated with the linearised friction:
+it interacts with the nonlinearity by a few mm at most (docs/model.md).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from threading import Lock
+
+import numpy as np
+
+from velab.config import Rig
+from velab.model import ValveHeadModel, flow_perturbation
+from velab.moc import kernel
+from velab.moc.solver import check_laws, run
+
+DEFAULT_DT_S = 2e-3  # MOC step when none is given: second order, ~1e-4 hJ on the reference rig (docs/model.md)
+_STEP_MODELS: OrderedDict = OrderedDict()
+_STEP_LOCK = Lock()
+_STEP_CACHE_SIZE = 8
+
+
+def default_dt_s(rig: Rig) -> float:
+    """MOC step: 2 ms, finer for a manoeuvre faster than beta = 42/s (at least 12 steps per 1/beta,
+    so that the cubic resampling of the closure stays below 1e-4 of the Joukowsky head)."""
+    return min(DEFAULT_DT_S, 1.0 / (12.0 * rig.manoeuvre.beta_per_s))
+
+
+def n_reaches(rig: Rig, dt_s: float) -> int:
+    """Reaches of the characteristic grid, from the rig's *nominal* wave speed.
+
+    Keeping N independent of the wave speed being evaluated (dt' = L / (N a) moves
+    instead) makes the head a smooth function of a: finite-difference Jacobians see
+    no jump where N would change.
+    """
+    if not dt_s > 0:
+        raise ValueError(f"dt_s must be positive, got {dt_s}")
+    return max(2, int(round(rig.pipe.length_m / (rig.nominal_wave_speed_m_s * dt_s))))
+
+
+def _step_model(rig: Rig, t: np.ndarray) -> ValveHeadModel:
+    """Full-band frequency model of a unit flow step at the trigger on grid t (cached per rig and grid)."""
+    key = (rig, float(t[0]), float(t[1] - t[0]), t.size)
+    with _STEP_LOCK:
+        model = _STEP_MODELS.get(key)
+        if model is not None:
+            _STEP_MODELS.move_to_end(key)
+            return model
+    model = ValveHeadModel(rig, t, band_hz=None, trigger_step=1.0)
+    with _STEP_LOCK:
+        _STEP_MODELS[key] = model
+        while len(_STEP_MODELS) > _STEP_CACHE_SIZE:
+            _STEP_MODELS.popitem(last=False)
+    return model
+
+
+def moc_head(rig: Rig, wave_speed_m_s: float, J_rel, tau_s, t_s, *, friction: str | None = None,
+             unsteady: str | None = None, dt_s: float | None = None, flow=None) -> np.ndarray:
+    """Head perturbation (m) at the valve on the sample grid t_s, from the time-domain model.
+
+    t_s : uniform grid, s from the trigger; it may start negative (zeros before 0) and
+        the trigger may fall between samples.
+    wave_speed_m_s, J_rel, tau_s : wave speed a and the Kelvin-Voigt elements as
+        dimensionless J'_k (J_k a^2 rho alpha D / e, as ``velab.model.creep_scale``) and
+        retardation times tau_k: the parameters of ``ValveHeadModel.head_params(a, J_rel, tau)``.
+    friction : steady law ``"quadratic"``, ``"linear"``, ``"none"``; None -> ``rig.friction``.
+    unsteady : ``"none"``, ``"vardy-brown"``, ``"brunone"``; None -> ``rig.friction_unsteady``.
+    dt_s : MOC step (default :func:`default_dt_s`, 1 ms on the reference rig); the grid has
+        N = round(L / (a_nominal dt_s)) reaches and its step is L / (N a).
+    flow : optional callable t -> q(t), the valve's flow perturbation for t >= 0 (m^3/s;
+        default the rig's sigmoid). Its value at t = 0 is the step at the trigger.
+    """
+    friction = rig.friction if friction is None else friction
+    unsteady = rig.friction_unsteady if unsteady is None else unsteady
+    check_laws(friction, unsteady)
+    t = np.asarray(t_s, dtype=float)
+    if t.ndim != 1 or t.size < 2:
+        raise ValueError("time grid must be a 1-D array of at least 2 samples")
+    a = float(wave_speed_m_s)
+    if not a > 0:
+        raise ValueError(f"wave speed must be positive, got {wave_speed_m_s}")
+    out = np.zeros(t.size)
+    after = t >= 0.0
+    if not after.any():
+        return out
+    n_reach = n_reaches(rig, default_dt_s(rig) if dt_s is None else float(dt_s))
+    dt = rig.pipe.length_m / (n_reach * a)
+    n_steps = int(np.floor(t[-1] / dt)) + 3  # the cubic stencil reaches two points past the last sample
+    t_grid = np.arange(n_steps) * dt
+    q_of = (lambda x: flow_perturbation(x, rig)) if flow is None else flow
+    step = float(np.asarray(q_of(np.zeros(1)), dtype=float).reshape(-1)[0])
+    q_smooth = np.asarray(q_of(t_grid), dtype=float) - step
+    head_grid, _ = run(rig, J_rel, tau_s, q_smooth, n_reach, dt, a, friction, unsteady)
+    out[after] = kernel.resample_cubic(head_grid, dt, np.ascontiguousarray(t[after]))
+    if step != 0.0:
+        lin = rig.with_changes(friction="none" if friction == "none" else "linear",
+                               friction_unsteady="vardy-brown" if unsteady == "vardy-brown" else "none")
+        out += step * _step_model(lin, t).head_params(a, np.asarray(J_rel, dtype=float), np.asarray(tau_s, dtype=float))
+    return out
