@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from velab.config import Material, Rig
-from velab.model import creep_scale, valve_flow, valve_head
+from velab.model import ValveHeadModel, creep_scale, valve_flow, valve_head
 from velab.moc import moc_head
 
 PAPER_SEED = 2018
@@ -62,17 +62,24 @@ def friction_is_linear(rig: Rig) -> bool:
     return rig.friction in ("linear", "none") and rig.friction_unsteady in ("none", "vardy-brown")
 
 
-def transient_head(t_s, rig: Rig, material: Material) -> np.ndarray:
-    """Head perturbation (m) at the valve for the rig's closure and friction laws, on the grid t_s.
+def transient_head(t_s, rig: Rig, material: Material, flow=None) -> np.ndarray:
+    """Head perturbation (m) at the valve for the rig's friction laws, on the grid t_s (s from the trigger).
 
     Full-band frequency model for linear friction laws, time-domain model (MOC) otherwise.
+    ``flow``: optional callable t -> q(t) (m^3/s, t >= 0) imposed at the valve instead of the
+    rig's sigmoid (the simulated rig's partial or interrupted closures); with the frequency
+    model its value at the first sample at or after the trigger is the step.
     """
+    t = np.asarray(t_s, dtype=float)
     if friction_is_linear(rig):
-        return valve_head(t_s, rig, material)
+        if flow is None:
+            return valve_head(t, rig, material)
+        q = np.where(t >= 0, np.asarray(flow(np.maximum(t, 0.0)), dtype=float), 0.0)
+        return ValveHeadModel(rig, t, band_hz=None, flow=q).head(material)
     a = material.wave_speed_m_s
     J_rel = np.array([e.J_per_pa for e in material.elements], dtype=float) * creep_scale(rig, a)
     tau = np.array([e.tau_s for e in material.elements], dtype=float)
-    return moc_head(rig, a, J_rel, tau, t_s)
+    return moc_head(rig, a, J_rel, tau, t, flow=flow)
 
 
 def synthesise(rig: Rig, material: Material, s: SynthSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -111,5 +111,8 @@ def moc_head(rig: Rig, wave_speed_m_s: float, J_rel, tau_s, t_s, *, friction: st
     if step != 0.0:
         lin = rig.with_changes(friction="none" if friction == "none" else "linear",
                                friction_unsteady="vardy-brown" if unsteady == "vardy-brown" else "none")
-        out += step * _step_model(lin, t).head_params(a, np.asarray(J_rel, dtype=float), np.asarray(tau_s, dtype=float))
+        h_step = _step_model(lin, t).head_params(a, np.asarray(J_rel, dtype=float), np.asarray(tau_s, dtype=float))
+        # (the band-limited step's pre-ringing on a sample less than half a step before the
+        # trigger, which valve_head keeps, is dropped: zeros before the trigger)
+        out[after] += step * h_step[after]
     return out
