@@ -35,7 +35,7 @@ import numpy as np
 from velab.config import GRAVITY_M_S2, Manoeuvre, Material, Rig
 # the actuator's state codes are the register contract: one definition, the driver's
 from velab.drivers.valve import ValveState  # noqa: F401 - re-exported for the simulators and tests
-from velab.synth import transient_head
+from velab.synth import friction_is_linear, transient_head
 
 N_ANALOG = 4  # ch0 pressure, ch1 valve position, ch2-3 spare
 
@@ -157,6 +157,10 @@ class SimulatedRig:
         self._t_base = clock.now()
         self._trigger_count = 0
         self._fault_bits_latched = 0
+        if not friction_is_linear(rig):
+            from velab.moc import warm_up  # numba, only for the time-domain model
+
+            warm_up()  # compile or load the MOC kernel now, not in arm() while a client waits
 
     # ------------------------------------------------------------ derived constants
     @property

@@ -26,7 +26,6 @@ import numpy as np
 
 from velab.config import Material, Rig
 from velab.model import ValveHeadModel, creep_scale, valve_flow, valve_head
-from velab.moc import moc_head
 
 PAPER_SEED = 2018
 PAPER_NOISE_STD_M = 0.1
@@ -76,6 +75,8 @@ def transient_head(t_s, rig: Rig, material: Material, flow=None) -> np.ndarray:
             return valve_head(t, rig, material)
         q = np.where(t >= 0, np.asarray(flow(np.maximum(t, 0.0)), dtype=float), 0.0)
         return ValveHeadModel(rig, t, band_hz=None, flow=q).head(material)
+    from velab.moc import moc_head  # numba: imported when needed, not at CLI start-up
+
     a = material.wave_speed_m_s
     J_rel = np.array([e.J_per_pa for e in material.elements], dtype=float) * creep_scale(rig, a)
     tau = np.array([e.tau_s for e in material.elements], dtype=float)

@@ -66,8 +66,8 @@ The marching loop is compiled with numba (:mod:`velab.moc.kernel`): about 30x
 faster than the vectorised numpy loop it replaces (docs/model.md, benchmarks/model_eval.py).
 """
 
-from velab.moc.head import default_dt_s, moc_head, n_reaches
+from velab.moc.head import default_dt_s, moc_head, n_reaches, warm_up
 from velab.moc.solver import FRICTION_LAWS, MocResult, grid, moc_solve, moc_valve_head
 
 __all__ = ["FRICTION_LAWS", "MocResult", "default_dt_s", "grid", "moc_head", "moc_solve", "moc_valve_head",
-           "n_reaches"]
+           "n_reaches", "warm_up"]

@@ -116,3 +116,13 @@ def moc_head(rig: Rig, wave_speed_m_s: float, J_rel, tau_s, t_s, *, friction: st
         # trigger, which valve_head keeps, is dropped: zeros before the trigger)
         out[after] += step * h_step[after]
     return out
+
+
+def warm_up() -> None:
+    """Compile (first use on a machine, a few seconds) or load from numba's cache (about 0.1 s)
+    the kernels, on a tiny problem: call it before a thread with a deadline needs the model."""
+    q = np.linspace(0.0, -1e-3, 8)
+    for mode in (kernel.UNSTEADY_NONE, kernel.UNSTEADY_WEIGHTING):
+        kernel.march(2, 1.0, q, kernel.STEADY_QUADRATIC, 0.0, 1e-3, 1e-3, np.ones(1), np.ones(1) * 0.5,
+                     np.ones(1), np.ones(1) * 0.1, np.ones(1) * 0.01, 0.1, mode, np.ones(1) * 0.5, np.ones(1), 0.0, 0.0)
+    kernel.resample_cubic(q, 1.0, np.linspace(0.0, 4.0, 5))
