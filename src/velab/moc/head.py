@@ -1,21 +1,26 @@
 """The valve head on any sample grid from the time-domain model: :func:`moc_head`.
 
 The closure's flow q(t) = Q(t) - Q0 has a small step at the trigger (0.41 % of Q0
-for the reference sigmoid) and is continuous after it. The two parts are treated
-by the model that represents each exactly:
+for the reference sigmoid) and is continuous after it. A step at an instant between
+two samples is what the frequency model represents exactly (a band-limited
+fractional delay, as ``velab.model.valve_head``) and the characteristic grid does
+not; the continuous rest is the other way round. So:
 
-* the continuous part, q(t) - q(0+), is integrated by the MOC on a grid that starts
-  at the trigger; its head is continuous (only kinks), so a cubic (4-point Lagrange)
-  interpolation onto the samples costs at most about 1e-4 m on the reference rig;
-* the step's response is linear in the step and is taken from the full-band
-  frequency model at the trigger's exact, possibly off-grid, instant -- exactly as
-  ``velab.model.valve_head`` does -- with the linearised steady friction and, for
-  ``"vardy-brown"``, the same unsteady friction (Brunone's has no frequency form).
+* linear laws (the steady law "linear" or "none", unsteady "none" or "vardy-brown"):
+  the MOC integrates the continuous part q(t) - q(0+) on a grid that starts at the
+  trigger; its head is continuous (kinks only) and a cubic (4-point Lagrange)
+  interpolation puts it on the samples; the step's response comes from the full-band
+  frequency model at the trigger's exact instant. The sum is exact by superposition;
+* nonlinear laws ("quadratic", "brunone"): superposition no longer holds, so the MOC
+  integrates the whole flow, step included (sharp, on its grid), and the *linear*
+  MOC the step alone; their difference (continuous but for the small difference of
+  the two fronts) is resampled with a stencil that never straddles a wave front, and
+  the frequency model's step response is added. The step then interacts with the
+  nonlinear friction as it does in the pipe (up to 4 cm on the imperial rig), and sits
+  at its exact instant, band-limited as in ``valve_head``.
 
-So with linear friction ``moc_head`` agrees with ``velab.model.valve_head`` up to
-the MOC's own discretisation error, at any trigger offset. With a nonlinear law the
-step (a 0.07 m wave on an 18 m surge) is propagated with the linearised friction:
-it interacts with the nonlinearity by a few mm at most (docs/model.md).
+With the linear laws ``moc_head`` agrees with ``valve_head`` up to the MOC's own
+(second-order) discretisation error, at any trigger offset (docs/model.md).
 """
 
 from __future__ import annotations
@@ -101,16 +106,26 @@ def moc_head(rig: Rig, wave_speed_m_s: float, J_rel, tau_s, t_s, *, friction: st
         return out
     n_reach = n_reaches(rig, default_dt_s(rig) if dt_s is None else float(dt_s))
     dt = rig.pipe.length_m / (n_reach * a)
-    n_steps = int(np.floor(t[-1] / dt)) + 3  # the cubic stencil reaches two points past the last sample
+    n_steps = int(np.floor(t[-1] / dt)) + 4  # the stencil reaches three points past the last sample
     t_grid = np.arange(n_steps) * dt
     q_of = (lambda x: flow_perturbation(x, rig)) if flow is None else flow
     step = float(np.asarray(q_of(np.zeros(1)), dtype=float).reshape(-1)[0])
-    q_smooth = np.asarray(q_of(t_grid), dtype=float) - step
-    head_grid, _ = run(rig, J_rel, tau_s, q_smooth, n_reach, dt, a, friction, unsteady)
-    out[after] = kernel.resample_cubic(head_grid, dt, np.ascontiguousarray(t[after]))
+    q_grid = np.asarray(q_of(t_grid), dtype=float)
+    # the linear laws closest to the requested ones: the step's response is taken with them
+    lin_friction = "none" if friction == "none" else "linear"
+    lin_unsteady = "vardy-brown" if unsteady == "vardy-brown" else "none"
+    # (in laminar flow the "quadratic" law is Poiseuille's, linear)
+    linear = (friction == lin_friction or rig.laminar) and unsteady == lin_unsteady
+    t_after = np.ascontiguousarray(t[after])
+    if linear or step == 0.0:
+        head_grid, _ = run(rig, J_rel, tau_s, q_grid - step, n_reach, dt, a, friction, unsteady)
+        out[after] = kernel.resample_cubic(head_grid, dt, t_after, 0)
+    else:
+        head_grid, _ = run(rig, J_rel, tau_s, q_grid, n_reach, dt, a, friction, unsteady)
+        step_grid, _ = run(rig, J_rel, tau_s, np.full(n_steps, step), n_reach, dt, a, lin_friction, lin_unsteady)
+        out[after] = kernel.resample_cubic(head_grid - step_grid, dt, t_after, 2 * n_reach)
     if step != 0.0:
-        lin = rig.with_changes(friction="none" if friction == "none" else "linear",
-                               friction_unsteady="vardy-brown" if unsteady == "vardy-brown" else "none")
+        lin = rig.with_changes(friction=lin_friction, friction_unsteady=lin_unsteady)
         h_step = _step_model(lin, t).head_params(a, np.asarray(J_rel, dtype=float), np.asarray(tau_s, dtype=float))
         # (the band-limited step's pre-ringing on a sample less than half a step before the
         # trigger, which valve_head keeps, is dropped: zeros before the trigger)
@@ -125,4 +140,4 @@ def warm_up() -> None:
     for mode in (kernel.UNSTEADY_NONE, kernel.UNSTEADY_WEIGHTING):
         kernel.march(2, 1.0, q, kernel.STEADY_QUADRATIC, 0.0, 1e-3, 1e-3, np.ones(1), np.ones(1) * 0.5,
                      np.ones(1), np.ones(1) * 0.1, np.ones(1) * 0.01, 0.1, mode, np.ones(1) * 0.5, np.ones(1), 0.0, 0.0)
-    kernel.resample_cubic(q, 1.0, np.linspace(0.0, 4.0, 5))
+    kernel.resample_cubic(q, 1.0, np.linspace(0.0, 4.0, 5), 4)

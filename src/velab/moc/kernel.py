@@ -3,7 +3,7 @@
 One function, :func:`march`, integrates the RPV transient on the characteristic
 grid dx = a dt in perturbation variables (h, q about the steady state); the
 formulation and the meaning of every coefficient are in :mod:`velab.moc`.
-It is compiled on first use (about 2-4 s) and cached on disk (``cache=True``):
+It releases the GIL (fits in parallel threads run in parallel) and is compiled on first use (about 2-4 s) and cached on disk (``cache=True``):
 next to this file when the package directory is writable, else in numba's
 per-user cache directory (``NUMBA_CACHE_DIR`` overrides both); a cached load
 costs about 0.1 s per process.
@@ -23,7 +23,7 @@ STEADY_NONE, STEADY_LINEAR, STEADY_QUADRATIC = 0, 1, 2
 UNSTEADY_NONE, UNSTEADY_WEIGHTING, UNSTEADY_BRUNONE = 0, 1, 2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
 def march(n_reach, B, q_valve, steady, adt_R, adt_k, q0,
           creep_old, creep_decay, creep_new, creep_rate, creep_J, creep_gain,
           unsteady, wf_decay, wf_weight, wf_gain, k3_B):
@@ -149,22 +149,37 @@ def march(n_reach, B, q_valve, steady, adt_R, adt_k, q0,
     return head, q_res
 
 
-@njit(cache=True)
-def resample_cubic(values, dt, t):
-    """4-point Lagrange interpolation of values[n] = f(n dt), f = 0 before 0, at times 0 <= t <= (size - 3) dt."""
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def resample_cubic(values, dt, t, jump_period):
+    """4-point Lagrange interpolation of values[n] = f(n dt) at times 0 <= t <= (size - 4) dt.
+
+    f = 0 before 0. If jump_period > 0, f may jump between n - 1 and n at every multiple
+    n of jump_period (wave fronts on the characteristic grid; the value at n is after the
+    jump): the stencil is then chosen on one side of the jump, so a front stays sharp.
+    """
     out = np.empty(t.size)
     n = values.size
     for p in range(t.size):
         x = t[p] / dt
         i = int(np.floor(x))
-        f = x - i
-        fm1 = f + 1.0
-        fp1 = f - 1.0
-        fp2 = f - 2.0
-        v0 = values[i - 1] if i >= 1 else 0.0
-        v1 = values[i] if i >= 0 else 0.0
-        v2 = values[i + 1] if i + 1 < n else 0.0
-        v3 = values[i + 2] if i + 2 < n else 0.0
-        out[p] = (-f * fp1 * fp2 / 6.0 * v0 + fm1 * fp1 * fp2 / 2.0 * v1
-                  - fm1 * f * fp2 / 2.0 * v2 + fm1 * f * fp1 / 6.0 * v3)
+        lo = i - 1  # first point of the stencil
+        if jump_period > 0:
+            r = i % jump_period
+            if r == 0:  # jump at i: t is after it
+                lo = i
+            elif r == jump_period - 1:  # jump at i + 1: t is before it
+                lo = i - 3
+            elif r == jump_period - 2:  # jump at i + 2
+                lo = i - 2
+        f = x - lo  # position within the stencil lo .. lo + 3
+        acc = 0.0
+        for k in range(4):
+            j = lo + k
+            v = values[j] if 0 <= j < n else 0.0
+            w = 1.0
+            for m in range(4):
+                if m != k:
+                    w *= (f - m) / (k - m)
+            acc += w * v
+        out[p] = acc
     return out
