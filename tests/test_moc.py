@@ -121,6 +121,22 @@ def test_second_order_in_dt(rig):
     assert errs[1] < 5e-3
 
 
+@pytest.mark.parametrize("rig_name", ["perugia", "imperial"])
+@pytest.mark.parametrize("unsteady", ["none", "brunone"])
+def test_moc_head_on_the_moc_grid_is_the_moc_with_the_step_inside(rig_name, unsteady):
+    """Nonlinear laws: moc_head takes the trigger step through the MOC (full flow minus the linear
+    step alone, plus the frequency model's step). On the MOC's own grid, where the step and every
+    front fall on grid points, that is exactly the MOC of the full flow (moc_solve), step and all:
+    the step meets the nonlinear friction as in the pipe."""
+    r = load_rig(rig_name)
+    mat = Material(r.nominal_wave_speed_m_s, load_material("A").elements)
+    a, J, tau = _params(r, mat)
+    sol = moc_solve(r, mat, 20.0, 1e-3, unsteady=unsteady)
+    h = moc_head(r, a, J, tau, sol.t_s, dt_s=1e-3, unsteady=unsteady)
+    assert sol.friction == "quadratic"
+    assert np.abs(h - sol.head_m).max() < 5e-4
+
+
 def test_moc_head_is_smooth_in_the_wave_speed(rig):
     """N is fixed by the nominal wave speed, so h(a) has no jumps: finite differences converge."""
     mat = load_material("A")

@@ -161,6 +161,9 @@ def resample_cubic(values, dt, t, jump_period):
     n = values.size
     for p in range(t.size):
         x = t[p] / dt
+        xr = np.floor(x + 0.5)
+        if abs(x - xr) < 1e-9:  # on a grid point (up to rounding): take its side of a front
+            x = xr
         i = int(np.floor(x))
         lo = i - 1  # first point of the stencil
         if jump_period > 0:
