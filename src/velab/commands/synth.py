@@ -14,7 +14,7 @@ from velab.synth import PAPER_NOISE_STD_M, PAPER_SEED, SynthSettings, friction_i
 def register(sub) -> None:
     p = sub.add_parser(
         "synth",
-        help="synthesise a run of a known material (the paper's synthetic experiment)",
+        help="synthesise a run of a known material (the rig's friction; --friction linear: the paper's experiment)",
         description="Synthesise the head at the valve for a pipe-wall material on a rig, add white noise, and "
         "write a run file. The rig's friction laws make the data (the reference rigs: quadratic Darcy-Weisbach, "
         "through the time-domain model); --friction linear gives the paper's synthetic experiment (the "
