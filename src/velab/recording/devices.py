@@ -106,7 +106,7 @@ def check_steady_flow(read_flow, sleep, q0: float, tolerance: float, flow_name: 
     for i in range(3):
         try:
             r = read_flow()
-        except DeviceError as exc:
+        except (DeviceError, ValueError, IndexError) as exc:
             raise DeviceFailure(f"{flow_name}: flowmeter does not answer: {exc}") from None
         if r.quality is not Quality.OK:
             raise RunRefused(f"steady flow not ready: flowmeter reading {r.value!r} is {r.quality.value}")

@@ -28,7 +28,7 @@ from velab.recording.run import DEFER, RunControl
 from velab.recording.safety import predict_surge
 from velab.recording.settings import RecordSettings
 from velab.recording.slow import valve_event
-from velab.recording.types import DeviceFailure, DeviceStatus, Fault, Hooks, RecorderEvent, RunSummary
+from velab.recording.types import DEVICE_ERRORS, DeviceFailure, DeviceStatus, Fault, Hooks, RecorderEvent, RunSummary
 
 log = logging.getLogger(__name__)
 
@@ -277,7 +277,7 @@ class Recorder(RunControl):
                 if name not in self.devices:
                     try:
                         self.devices[name] = open_device(dev)
-                    except (DeviceError, OSError) as exc:
+                    except (OSError,) + DEVICE_ERRORS as exc:
                         raise DeviceFailure(f"{name}: cannot connect: {exc}") from None
                 drv = self.devices[name]
                 try:
@@ -292,7 +292,7 @@ class Recorder(RunControl):
                         msg = drv.identify()
                     else:
                         msg = ", ".join(f"{k} {v.value:.4g} {v.units}" for k, v in drv.read_channels().items())
-                except DeviceError as exc:
+                except DEVICE_ERRORS as exc:
                     raise DeviceFailure(f"{name} ({role}): does not answer: {exc}") from None
                 self.identities[name] = identity(drv)
                 self.profiles[name] = profile_contents(drv)
@@ -314,7 +314,7 @@ class Recorder(RunControl):
         try:
             st = reopen_valve(valve, self._sleep)
             self._emit_valve(st)
-        except DeviceError as exc:
+        except DEVICE_ERRORS as exc:
             raise DeviceFailure(f"{self.roles.get('valve', 'valve')}: reset failed: {exc}") from None
         self._message(f"valve reopened: actuator {st.state.name}, {st.position.value:.1f} % open")
         if self.phase in P.END_PHASES:
@@ -324,7 +324,7 @@ class Recorder(RunControl):
     def _check_valve_ready(self) -> None:
         try:
             st = self.devices[self.roles["valve"]].read_status()
-        except DeviceError as exc:
+        except DEVICE_ERRORS as exc:
             raise DeviceFailure(f"{self.roles['valve']}: actuator does not answer: {exc}") from None
         self._emit_valve(st)
         check_valve_open(st)

@@ -18,7 +18,7 @@ import numpy as np
 
 from velab.drivers.base import DeviceError, DeviceTimeout, pressure_to_head_m
 from velab.recording.safety import SensorCheck
-from velab.recording.types import DeviceFailure
+from velab.recording.types import DEVICE_ERRORS, DeviceFailure
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +100,7 @@ class PressureSource:
                 return float(np.nanmean(h)) if np.isfinite(h).any() else float("nan"), q
             r = adc.read_pressure(pch)
             return float(pressure_to_head_m(r.value, adc.density_kg_m3)), r.quality.value
-        except DeviceError as exc:
+        except DEVICE_ERRORS as exc:
             raise DeviceFailure(f"{self.name}: pressure check failed: {exc}") from None
 
     # ---------------------------------------------------------------- acquisition
@@ -159,9 +159,9 @@ class PressureSource:
                         if last_error:
                             hooks.fault("pressure", f"answers again after: {last_error}", "no_response")
                             last_error = ""
-                except DeviceError as exc:
+                except DEVICE_ERRORS as exc:
                     if self.streaming:
-                        raise
+                        raise DeviceError(str(exc)) from None
                     # the Modbus ADC's ring keeps the samples: retry until the stall timeout
                     if not last_error:
                         hooks.fault("pressure", f"{exc} (retrying; the module's buffer keeps the samples)",

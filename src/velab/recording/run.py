@@ -21,7 +21,7 @@ from velab.recording.pressure import PressureSource
 from velab.recording.safety import ceiling_head, check_output_dir, predict_surge
 from velab.recording.slow import SlowChannels
 from velab.recording.timeline import Timeline
-from velab.recording.types import DeviceFailure, RunRefused, RunSummary
+from velab.recording.types import DEVICE_ERRORS, DeviceFailure, RunRefused, RunSummary
 from velab.recording.writer import BYTES_PER_SAMPLE, WriterStage
 
 log = logging.getLogger(__name__)
@@ -129,7 +129,7 @@ class RunControl:
             valve.set_manoeuvre(beta, gamma, end)
             valve.arm()
             valve.wait_for({ValveState.ARMED}, timeout_s=5.0)
-        except (DeviceError, DeviceFailure, ValueError) as exc:
+        except (DeviceFailure,) + DEVICE_ERRORS as exc:
             self._do_end(P.FAILED, f"arming failed: {exc}")
             raise DeviceFailure(f"arming failed: {exc}") from None
         self._slow.start()
@@ -160,11 +160,11 @@ class RunControl:
         t_est = tl.mark_trigger()
         try:
             valve.trigger()
-        except DeviceError as exc:
+        except DEVICE_ERRORS as exc:
             # the command may have arrived although its reply was lost: the valve's state decides
             try:
                 st = valve.read_status()
-            except DeviceError:
+            except DEVICE_ERRORS:
                 st = None
             if st is None or st.state not in (ValveState.RUNNING, ValveState.DONE):
                 self._do_end(P.FAILED, f"{self.roles['valve']}: trigger failed: {exc}")
@@ -255,7 +255,7 @@ class RunControl:
                 self._log("operator", {ValveState.ARMED: "actuator: armed manoeuvre cancelled (abort)",
                                        ValveState.RUNNING: "actuator: manoeuvre stopped where it is (abort)",
                                        None: "actuator: abort commanded (state unknown)"}[state])
-        except DeviceError as exc:
+        except DEVICE_ERRORS as exc:
             self._fault("valve", f"could not be commanded to its safe state: {exc}", "no_response")
 
     def _do_end(self, status: str, reason: str):
@@ -291,10 +291,11 @@ class RunControl:
         self._log("phase", status)
         if not self._writer.close(status, full_reason[:255]):
             self._fault("storage", "the run file could not be closed within 30 s", "storage")
-        try:  # where the valve ended up (the GUI offers Reset valve when it is closed)
-            self._emit_valve(self.devices[self.roles["valve"]].read_status())
-        except (DeviceError, KeyError):
-            pass
+        if self._slow is None or self._slow.valve_answering:
+            try:  # where the valve ended up (the GUI offers Reset valve when it is closed)
+                self._emit_valve(self.devices[self.roles["valve"]].read_status())
+            except DEVICE_ERRORS + (KeyError,):
+                pass
         fit_pending = self._fit is not None and self._fit.final_started and not self._halted
         if fit_pending:
             self._set_phase(P.FITTING, status=status, reason=full_reason, path=str(self.path))

@@ -14,8 +14,9 @@ import logging
 import threading
 import time
 
-from velab.drivers.base import DeviceError, DeviceFault
+from velab.drivers.base import DeviceFault
 from velab.drivers.valve import ValveState
+from velab.recording.types import DEVICE_ERRORS
 
 log = logging.getLogger(__name__)
 POLL_S = 0.15
@@ -86,7 +87,7 @@ class SlowChannels:
         except DeviceFault as exc:
             self.hooks.fault("valve", str(exc), "actuator_fault")
             self.hooks.request_end("aborted", str(exc))
-        except DeviceError as exc:
+        except DEVICE_ERRORS as exc:
             now = time.monotonic()
             if self.valve_answering:
                 self.hooks.fault("valve", f"actuator does not answer: {exc}", "no_response")
@@ -103,7 +104,7 @@ class SlowChannels:
                 self._flow_quality_seen.add(r.quality.value)
                 self.hooks.fault("flowmeter", f"flowmeter reading {r.quality.value} at t = {t:.2f} s", "quality",
                                  quality=r.quality.value)
-        except DeviceError as exc:  # the pressure recording goes on
+        except DEVICE_ERRORS as exc:  # the pressure recording goes on
             self._flow_faults += 1
             if self._flow_faults in (1, 10, 100):
                 self.hooks.fault("flowmeter", f"{exc} (pressure recording continues)", "no_response")

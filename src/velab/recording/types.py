@@ -7,8 +7,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from velab.drivers.base import DeviceError
 from velab.errors import SafetyError, VelabError
 from velab.recording.phases import exit_code
+
+
+# what a device call can raise: the drivers' named errors, and (until every bad reply has its named
+# exception in the drivers) the ValueError / IndexError a short or stale reply can still cause
+DEVICE_ERRORS = (DeviceError, ValueError, IndexError)
 
 
 class DeviceFailure(VelabError):
