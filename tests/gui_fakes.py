@@ -1,4 +1,4 @@
-"""A stand-in for velab.recorder.Recorder with the same contract (events queue, Future commands),
+"""A stand-in for velab.recording.Recorder with the same contract (events queue, Future commands),
 used to test the GUI's wiring without devices. The real engine is tested in test_gui_run.py."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""GUI wiring against a recorder stand-in (same contract as velab.recorder): live plot at 10 kHz,
+"""GUI wiring against a recorder stand-in (same contract as velab.recording): live plot at 10 kHz,
 a refusal raised by the engine's Future and a structured device fault as messages, button states.
 The real engine and simulated rig are driven in test_gui_run.py."""
 

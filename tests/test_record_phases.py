@@ -12,7 +12,7 @@ import h5py
 import pytest
 
 from velab.errors import VelabError
-from velab.recording import Recorder, RecordSettings
+from velab.recording import Recorder, RecorderEvent, RecordSettings
 from velab.runfile import read_run
 from velab.simulators.bench import SimulatedBench
 from velab.simulators.clock import make_clock
@@ -157,3 +157,21 @@ def test_record_options_are_checked(tmp_path):
     r = subprocess.run(CLI + ["record", "--simulate", "--out-dir", str(blocked / "sub")], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--out-dir" in r.stderr
+
+
+@pytest.mark.timeout(120)
+def test_no_phase_event_is_lost_when_nobody_drains_the_events(tmp_path):
+    """The bounded event queue drops live samples first: every phase, fault and the summary stay."""
+    s = RecordSettings(duration_s=3.0, pretrigger_s=0.5, sample_rate_hz=10000, fit=False, out_dir=tmp_path)
+    with Recorder.simulated(s, clock="fast") as rec:
+        for _ in range(rec.events.maxsize):  # a consumer that stopped draining: the queue is full already
+            rec.events.put_nowait(RecorderEvent("samples", 0.0, None))
+        summary = rec.run()
+        evs = []
+        while not rec.events.empty():
+            evs.append(rec.events.get_nowait())
+        assert rec.events_dropped > 0
+    phases = [e.data["phase"] for e in evs if e.kind == "phase"]
+    assert [p for p in ("ready", "armed", "triggerable", "recording", "completed") if p in phases] == \
+        ["ready", "armed", "triggerable", "recording", "completed"], phases
+    assert evs[-1].kind == "done" and evs[-1].data is summary

@@ -18,7 +18,7 @@ import time
 from typing import Any, Callable
 
 from velab.config import Rig
-from velab.drivers.base import DeviceError
+from velab.drivers.bench import open_device
 from velab.drivers.valve import ValveState
 from velab.errors import VelabError
 from velab.recording import phases as P
@@ -31,6 +31,7 @@ from velab.recording.slow import valve_event
 from velab.recording.types import DEVICE_ERRORS, DeviceFailure, DeviceStatus, Fault, Hooks, RecorderEvent, RunSummary
 
 log = logging.getLogger(__name__)
+_LIVE = ("samples", "progress", "device")  # live data: dropped first when nobody drains the events
 
 
 class Recorder(RunControl):
@@ -96,18 +97,21 @@ class Recorder(RunControl):
         try:
             self.events.put_nowait(ev)
         except queue.Full:
-            if kind in ("samples", "progress"):
+            if kind in _LIVE:
                 self.events_dropped += 1
-            else:  # make room: control events matter more than the oldest live samples
-                try:
-                    self.events.get_nowait()
-                    self.events_dropped += 1
-                except queue.Empty:
-                    pass
-                try:
-                    self.events.put_nowait(ev)
-                except queue.Full:
-                    self.events_dropped += 1
+            else:  # make room by dropping the oldest live event: a phase, fault or fit is never lost
+                q = self.events
+                with q.mutex:
+                    for i, old in enumerate(q.queue):
+                        if old.kind in _LIVE:
+                            del q.queue[i]
+                            break
+                    else:
+                        q.queue.popleft()
+                    q.queue.append(ev)
+                    q.unfinished_tasks += 1
+                    q.not_empty.notify()
+                self.events_dropped += 1
         for fn in list(self._listeners):
             try:
                 fn(ev)
@@ -264,8 +268,6 @@ class Recorder(RunControl):
         return bool(self.roles) and all(n in self.devices for n in self.roles.values())
 
     def _do_connect(self) -> list[DeviceStatus]:
-        from velab.drivers.bench import open_device
-
         if self._run_active():
             raise VelabError(f"cannot reconnect while {self.phase}")
         self._set_phase(P.CONNECTING)
