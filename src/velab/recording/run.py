@@ -157,7 +157,7 @@ class RunControl:
     def _fire_trigger(self) -> float:
         tl, valve = self._timeline, self.devices[self.roles["valve"]]
         self._steady = tl.steady_head(self._steady)
-        t_est = tl.mark_trigger()
+        t_est = tl.mark_trigger(time.time(), getattr(self.clock, "scale", 1.0) if self.clock is not None else 1.0)
         try:
             valve.trigger()
         except DEVICE_ERRORS as exc:

@@ -79,6 +79,8 @@ class Timeline:
         self.ended = False  # no more samples are taken (end requested)
         self._quick_next = 0
         self._seen_quality: set = set()
+        self._last_host: float | None = None  # host arrival time of the last processed sample
+        self._last_idx = 0
         self._lock = threading.Lock()
 
     # ---------------------------------------------------------------- counters (any thread)
@@ -98,14 +100,20 @@ class Timeline:
         return self._pre_sum / self._pre_n if self._pre_n else fallback
 
     # ---------------------------------------------------------------- the trigger (control thread)
-    def mark_trigger(self) -> float:
-        """The trigger command is being sent now: estimate its instant from the sample count."""
+    def mark_trigger(self, now_host: float, clock_scale: float = 1.0) -> float:
+        """The trigger command is being sent now: estimate its instant on the sample clock.
+
+        The samples processed so far lag the device by whatever is still queued: the estimate
+        extrapolates from the last block's host arrival time (device seconds = scale x host seconds)."""
         with self._lock:
-            cap = int((self.s.fit_window_s + 2.0) * self.fs) + 1
+            idx = self.gidx
+            if self._last_host is not None:
+                idx = max(idx, int(round(self._last_idx + (now_host - self._last_host) * self.fs * clock_scale)))
+            cap = int((self.s.fit_window_s + 2.0) * self.fs + (idx - self.gidx)) + 1
             self._fit_t, self._fit_h = np.empty(cap), np.empty(cap)
             self._fit_n = 0
-            self.trigger_idx = self.gidx
-            self.trigger_time = (self.gidx - self.n_pre) / self.fs
+            self.trigger_idx = idx
+            self.trigger_time = (idx - self.n_pre) / self.fs
         return self.trigger_time
 
     def _measure_trigger(self) -> None:
@@ -169,6 +177,7 @@ class Timeline:
         self.n_written += n
         before = self.gidx
         self.gidx += n
+        self._last_host, self._last_idx = float(b.host_time_s), self.gidx - 1
         if before < self.n_pre <= self.gidx:
             self.on_baseline()
         ok = p_codes == OK
@@ -177,11 +186,12 @@ class Timeline:
         self._quality(p_codes, "pressure", self.pch, t)
         if has_v:
             self._quality(vq, "valve", self.vch, t)
-        if self.trigger_idx is None:
-            okh = head[ok & np.isfinite(head)]
+        if self.trigger_idx is None or self.trigger_idx >= self.gidx:
+            sel = ok & np.isfinite(head) & (g < (self.trigger_idx if self.trigger_idx is not None else g[-1] + 1))
+            okh = head[sel]
             self._pre_sum += float(okh.sum())
             self._pre_n += int(okh.size)
-        else:
+        if self.trigger_idx is not None:
             self._after_trigger(t, head, pos, p_codes)
         self.hooks.emit("samples", {"time_s": t, "head_m": head, "valve_position": pos, "lost": int(b.lost_before),
                                     "quality": p_codes})
