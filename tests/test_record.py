@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from velab.errors import SafetyError, VelabError
-from velab.recorder import Recorder, RecordSettings, RunRefused
+from velab.recording import Recorder, RecordSettings, RunRefused
 from velab.runfile import read_run
 
 A_TRUE = 353.73
@@ -87,7 +87,7 @@ def test_material_A_online_fit_names_S3(tmp_path):
     assert run.rig.steady_head_m + 0.8 * run.rig.joukowsky_head_m() < summary.peak_head_m
     # live events: phases in order, samples in order, a final fit
     phases = [e.data["phase"] for e in events if e.kind == "phase"]
-    for p in ("connected", "armed", "pretrigger", "transient", "done"):
+    for p in ("ready", "armed", "triggerable", "recording", "completed"):
         assert p in phases
     t = np.concatenate([e.data["time_s"] for e in events if e.kind == "samples"])
     assert t.size == summary.n_samples and np.all(np.diff(t) > 0)
