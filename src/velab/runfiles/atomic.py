@@ -13,9 +13,10 @@ old, consistent version (POSIX); the price is one copy of the file per save
 (``os.copy_file_range``, a reflink on btrfs/xfs), measured in
 benchmarks/fit_save.py.
 
-Test hook: with ``VELAB_TEST_PAUSE_AT=<stage>`` in the environment, the edit
-prints ``velab-stage <stage>`` on stderr at that stage and sleeps, so a test
-can kill the process exactly there (stages: :data:`STAGES`).
+Test hook: with ``VELAB_TEST_PAUSE_AT=<stage>`` (or ``<stage>:<seconds>``) in the
+environment, the edit prints ``velab-stage <stage>`` on stderr at that stage and
+sleeps (an hour, or the seconds given), so a test can kill the process exactly
+there, or hold the lock while another process waits (stages: :data:`STAGES`).
 """
 
 from __future__ import annotations
@@ -42,15 +43,16 @@ except ImportError:  # Windows: no advisory locks; concurrent saves are then not
 STAGE_ENV = "VELAB_TEST_PAUSE_AT"
 STAGES = ("locked", "copying", "copied", "writing", "written", "closed", "synced", "replaced", "done")
 LOCK_TIMEOUT_S = 60.0
-_COPY_BLOCK = 8 << 20
+_COPY_BLOCK = 1 << 20
 
 
 def stage(name: str) -> None:
     """A named instant of an edit; the test hook pauses here (see the module docstring)."""
-    if os.environ.get(STAGE_ENV) == name:
+    hook = os.environ.get(STAGE_ENV)
+    if hook and hook.split(":")[0] == name:
         sys.stderr.write(f"velab-stage {name}\n")
         sys.stderr.flush()
-        time.sleep(3600)
+        time.sleep(float(hook.split(":")[1]) if ":" in hook else 3600.0)
 
 
 @contextlib.contextmanager

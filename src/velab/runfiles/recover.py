@@ -66,6 +66,8 @@ def _close_entry(fh: h5py.File, src: Path, run) -> None:
     for ds in data.values():  # one sample count for every fast channel (hard links: the same objects)
         if isinstance(ds, h5py.Dataset) and ds.maxshape == (None,) and ds.shape[0] > n:
             ds.resize((n,))
+    if not run.incomplete:
+        return  # a closed run flagged only by a killed in-place save: its facts are right as they are
     if not run.end_time:
         L.set_str(e, "end_time", _last_write_time(src, data, n))
     if not run.status_reason:
