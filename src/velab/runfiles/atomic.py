@@ -34,6 +34,7 @@ import h5py
 from velab.errors import DataError
 from velab.runfiles import layout as L
 from velab.runfiles.h5open import RunStillOpen, check_file, open_h5
+from velab.runfiles.probe import trust
 
 try:
     import fcntl
@@ -43,7 +44,8 @@ except ImportError:  # Windows: no advisory locks; concurrent saves are then not
 STAGE_ENV = "VELAB_TEST_PAUSE_AT"
 STAGES = ("locked", "copying", "copied", "writing", "written", "closed", "synced", "replaced", "done")
 LOCK_TIMEOUT_S = 60.0
-_COPY_BLOCK = 1 << 20
+_FIRST_BLOCK = 1 << 20  # small, so that `copying` is an instant of a test's copy
+_COPY_BLOCK = 256 << 20
 
 
 def stage(name: str) -> None:
@@ -104,15 +106,16 @@ def _copy(src: Path, dst: Path) -> None:
         fast = hasattr(os, "copy_file_range")
         while done < size:
             n = 0
+            block = _FIRST_BLOCK if done == 0 else _COPY_BLOCK
             if fast:
                 try:
-                    n = os.copy_file_range(fi.fileno(), fo.fileno(), min(_COPY_BLOCK, size - done), done, done)
+                    n = os.copy_file_range(fi.fileno(), fo.fileno(), min(block, size - done), done, done)
                 except OSError:
                     fast = False
             if not fast:
                 fi.seek(done)
                 fo.seek(done)
-                chunk = fi.read(min(_COPY_BLOCK, size - done))
+                chunk = fi.read(min(block, size - done))
                 n = fo.write(chunk) if chunk else 0
             if n <= 0:
                 raise DataError(f"{src}: changed size while being copied")
@@ -193,6 +196,7 @@ def edit_copy(path: str | os.PathLike) -> Iterator[h5py.File]:
                 raise DataError(f"{path}: cannot replace the run ({exc.strerror or exc}; "
                                 "is it open in another program?); nothing saved") from None
             stage("replaced")
+            trust(path)
             _fsync(path.parent, directory=True)
             stage("done")
         except BaseException:

@@ -9,6 +9,8 @@
   killed) is read through a view whose superblock has the flags cleared, as
   ``h5clear -s`` would do, without touching the file.
 * The superblock checksum is checked first, so a damaged superblock fails at once.
+* The structure is walked in a child process under a deadline before this process
+  reads it (:mod:`velab.runfiles.probe`): damage that makes HDF5 itself loop fails too.
 
 Every failure is a :class:`~velab.errors.DataError` (or :class:`RunStillOpen`) of one line.
 """
@@ -29,6 +31,7 @@ import h5py
 
 from velab.errors import DataError
 from velab.runfiles import superblock as sb_
+from velab.runfiles.probe import ensure_walkable
 
 # 2^N ns is the longest sleep of the last attempt; 24 attempts give up within ~35 ms,
 # ample for a reader that raced a live writer's flush.
@@ -149,10 +152,15 @@ def check_file(path: str | os.PathLike) -> sb_.Superblock:
 
 
 @contextlib.contextmanager
-def open_h5(path: str | os.PathLike) -> Iterator[h5py.File]:
-    """Open ``path`` read-only (see the module docstring); every failure one DataError line."""
+def open_h5(path: str | os.PathLike, *, probe: bool = True) -> Iterator[h5py.File]:
+    """Open ``path`` read-only (see the module docstring); every failure one DataError line.
+
+    ``probe``: walk the file's structure in a child process first (:mod:`velab.runfiles.probe`).
+    """
     path = Path(path)
     sb = check_file(path)
+    if probe:
+        ensure_walkable(path)
     try:
         if not sb.open_for_write:
             fh = h5py.File(path, "r", locking=False)
@@ -173,3 +181,29 @@ def open_h5(path: str | os.PathLike) -> Iterator[h5py.File]:
             fh.close()
         except Exception:  # noqa: BLE001 - closing a damaged file must not mask the real error
             pass
+
+
+def walk(path: str) -> int:
+    """Child side: open like the parent would, touch every object, attribute and chunk index."""
+    def visit(name, obj):
+        for k in obj.attrs:
+            obj.attrs.get(k)
+        if isinstance(obj, h5py.Dataset):
+            if obj.chunks is not None:
+                obj.id.get_num_chunks()
+            if obj.size <= 64 or h5py.check_string_dtype(obj.dtype) is not None and obj.size <= 4096:
+                obj[()]
+
+    try:
+        with open_h5(path, probe=False) as fh:
+            for k in fh.attrs:
+                fh.attrs.get(k)
+            fh.visititems(visit)
+    except DataError as exc:
+        print(str(exc))
+        return 3
+    except Exception as exc:  # noqa: BLE001 - anything the library raises on a damaged file
+        msg = str(exc).split("\n")[0].strip()
+        print(f"{path}: damaged HDF5 file ({type(exc).__name__}{': ' + msg if msg else ''})")
+        return 3
+    return 0

@@ -21,6 +21,7 @@ from velab.errors import DataError
 from velab.runfiles import layout as L
 from velab.runfiles import superblock as sb_
 from velab.runfiles.atomic import _copy
+from velab.runfiles.probe import trust
 from velab.runfiles.reader import read_run
 
 
@@ -46,6 +47,7 @@ def recover_run(src: str | os.PathLike, dst: str | os.PathLike | None = None) ->
             os.truncate(tmp, sb.eoa)  # space the writer had allocated but not yet written (h5clear -i)
         with h5py.File(tmp, "r+", locking=False) as fh:
             _close_entry(fh, src, run)
+        trust(tmp)  # made from a file already walked (read_run above)
         n = read_run(tmp).n_samples  # the copy must read back
         os.replace(tmp, dst)
     except BaseException as exc:

@@ -25,6 +25,7 @@ from velab.config import Manoeuvre, Material, Rig
 from velab.errors import DataError
 from velab.runfiles import layout as L
 from velab.runfiles.layout import udunits
+from velab.runfiles.probe import trust
 
 
 @dataclass(frozen=True)
@@ -399,6 +400,7 @@ class RunWriter:
         finally:
             self._closed = True
             self._fh.close()
+        trust(self.path)
 
     def __enter__(self) -> "RunWriter":
         return self
