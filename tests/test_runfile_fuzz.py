@@ -16,6 +16,7 @@ import shutil
 import subprocess
 import sys
 import textwrap
+import time
 
 import h5py
 import numpy as np
@@ -46,7 +47,7 @@ WORKER = textwrap.dedent(
             out = {"outcome": "error", "message": str(exc)}
         except BaseException:
             out = {"outcome": "crash", "traceback": traceback.format_exc()}
-        print(json.dumps(out), flush=True)
+        print(json.dumps(dict(out, path=path)), flush=True)
     """
 )
 
@@ -63,18 +64,22 @@ class Worker:
                                          stdout=subprocess.PIPE, text=True)
         self.proc.stdin.write(f"{path}\n")
         self.proc.stdin.flush()
-        ready, _, _ = select.select([self.proc.stdout], [], [], CASE_DEADLINE_S)
-        if not ready:
-            self.proc.kill()
-            self.proc.wait()
-            self.proc = None
-            return {"outcome": "hang"}
-        line = self.proc.stdout.readline()
-        if not line:
-            code = self.proc.wait()
-            self.proc = None
-            return {"outcome": "crash", "traceback": f"reader process died (exit {code})"}
-        return json.loads(line)
+        deadline = time.monotonic() + CASE_DEADLINE_S
+        while True:  # answers to an earlier, interrupted case are skipped
+            ready, _, _ = select.select([self.proc.stdout], [], [], max(0.0, deadline - time.monotonic()))
+            if not ready:
+                self.proc.kill()
+                self.proc.wait()
+                self.proc = None
+                return {"outcome": "hang"}
+            line = self.proc.stdout.readline()
+            if not line:
+                code = self.proc.wait()
+                self.proc = None
+                return {"outcome": "crash", "traceback": f"reader process died (exit {code})"}
+            answer = json.loads(line)
+            if answer["path"] == str(path):
+                return answer
 
     def close(self):
         if self.proc is not None and self.proc.poll() is None:
@@ -132,10 +137,13 @@ def _check(result: dict, case_file) -> None:
         assert "\n" not in msg and msg.startswith(str(case_file)), msg
 
 
-FUZZ = settings(max_examples=int(os.environ.get("VELAB_FUZZ_EXAMPLES", "120")), deadline=None,
+# ~1 min of CI (each case walks the file in a child process, as every velab read does);
+# VELAB_FUZZ_EXAMPLES=1000 for a longer hunt.
+FUZZ = settings(max_examples=int(os.environ.get("VELAB_FUZZ_EXAMPLES", "40")), deadline=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 
 
+@pytest.mark.timeout(1800)
 @FUZZ
 @given(base=st.sampled_from(["synth", "recorded", "flagged", "inplace"]),
        kind=st.sampled_from(["flip", "truncate", "zero"]),
@@ -172,6 +180,7 @@ ATTRS = [("/", "file_format"), ("/", "format_version"), ("entry/data", "signal")
          ("entry/data/time", "sample_rate_hz"), ("entry/sample", "noise_std_m"), ("entry/data/head", "units")]
 
 
+@pytest.mark.timeout(1800)
 @FUZZ
 @given(base=st.sampled_from(["synth", "recorded"]),
        ops=st.lists(st.tuples(st.sampled_from(["delete", "retype", "add", "attr_delete", "attr_retype", "resize"]),
@@ -218,6 +227,8 @@ def test_damaged_superblocks_fail_at_once(bases, worker, tmp_path):
         "overwritten": b"\x89HDF\r\n\x1a\n" + b"\x03\x08\x08\x00" + os.urandom(36) + base[48:],
         "zeroed": bytes(48) + base[48:],
         "root-address": base[:36] + bytes(8) + base[44:],
+        # a zeroed range in the object headers made HDF5 1.14/2.0 itself loop forever on an attribute read
+        "zeroed-headers": base[:4625] + bytes(483) + base[5108:],
     }
     for name, data in cases.items():
         case = tmp_path / f"{name}.h5"
@@ -225,3 +236,4 @@ def test_damaged_superblocks_fail_at_once(bases, worker, tmp_path):
         result = worker.read(case)
         _check(result, case)
         assert result["outcome"] == "error", name
+        assert len(result["message"]) < 300, result["message"]

@@ -160,8 +160,10 @@ def read_run(path: str | os.PathLike) -> Run:
     with open_run_file(path) as fh:
         try:
             return _read_entry(path, fh)
-        except DataError:
-            raise
+        except DataError as exc:
+            if str(exc).startswith(str(path)):
+                raise
+            raise DataError(f"{path}: damaged velab run file ({exc})") from None
         except (Exception, MemoryError) as exc:  # noqa: BLE001 - h5py and json raise many types on damage
             raise _damaged(path, exc) from None
 
