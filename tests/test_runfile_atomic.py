@@ -141,12 +141,12 @@ def test_sigkill_of_the_recorders_save_path(big_run, tmp_path):
     shutil.copy(big_run, path)
     assert main(["fit", str(path), *FIT, "--name", "seed"]) == 0
     state = recorded_state(path)
-    for stage in ("locked", "copied", "writing", "synced", "replaced"):
+    for stage in STAGES:
         env = dict(os.environ, **{STAGE_ENV: stage})
         proc = subprocess.Popen([sys.executable, "-c", RECORDER_SAVE, str(path)], env=env, stderr=subprocess.PIPE,
                                 text=True)
         _kill_at_stage(proc, stage)
-        replaced = stage == "replaced"
+        replaced = STAGES.index(stage) >= STAGES.index("replaced")
         _check_intact(path, state, "online" if replaced else None, None if replaced else "online")
         if replaced:  # start again from a run without the online fit
             shutil.copy(big_run, path)
