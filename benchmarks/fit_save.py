@@ -38,7 +38,6 @@ def make_run(path: Path, rate: float, seconds: float) -> None:
 
 
 def a_fit():
-    from velab.cli import main  # noqa: F401 - a synthetic run's real fit, from velab fit
     from velab.fitting import fit_sweep
     from velab.config import load_material, load_rig
     from velab.model import valve_head

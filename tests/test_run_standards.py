@@ -23,7 +23,7 @@ import pytest
 
 from velab.cli import main
 from velab.config import load_rig
-from velab.runfiles import Channel, HEAD, RunWriter, read_run, recover_run
+from velab.runfiles import Channel, RunWriter, read_run, recover_run
 from velab.runfiles import layout as L
 from velab.runfiles.listing import BEGIN, END, blocks, sample_files
 

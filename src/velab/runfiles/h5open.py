@@ -23,7 +23,6 @@ import glob
 import io
 import os
 import struct
-import sys
 from pathlib import Path
 from typing import Iterator
 
@@ -65,7 +64,7 @@ def _libhdf5():
     return None
 
 
-_set_attempts = _libhdf5() if sys.platform != "emscripten" else None
+_set_attempts = _libhdf5()
 
 
 def _swmr_reader(path: Path) -> h5py.File:

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import h5py
 
+from velab.cli import main as velab
+
 # Attributes that HDF5 dimension scales and our own bookkeeping add everywhere.
 _HIDDEN_ATTRS = {"units", "long_name", "DIMENSION_LIST", "REFERENCE_LIST", "CLASS", "NAME", "NX_class",
                  "mime_type", "_Netcdf4Dimid", "_Netcdf4Coordinates"}
@@ -84,18 +86,16 @@ def layout(path: str | Path) -> list[str]:
 
 def sample_files(folder: str | Path) -> dict[str, Path]:
     """A synthetic run with one fit, and a simulated recording (with its online fit)."""
-    from velab.cli import main
-
     folder = Path(folder)
     synth = folder / "synth.h5"
-    if main(["synth", "--duration", "2", "--pretrigger", "0.5", "-o", str(synth)]) != 0:
+    if velab(["synth", "--duration", "2", "--pretrigger", "0.5", "-o", str(synth)]) != 0:
         raise RuntimeError("velab synth failed")
-    if main(["fit", str(synth), "--models", "0-1", "--window", "1", "--no-polish", "--starts", "1",
+    if velab(["fit", str(synth), "--models", "0-1", "--window", "1", "--no-polish", "--starts", "1",
              "--name", "NAME"]) != 0:
         raise RuntimeError("velab fit failed")
     rec_dir = folder / "rec"
     rec_dir.mkdir()
-    if main(["record", "--simulate", "--fast", "--duration", "2", "--window", "1.5", "--models", "0-1",
+    if velab(["record", "--simulate", "--fast", "--duration", "2", "--window", "1.5", "--models", "0-1",
              "--out-dir", str(rec_dir), "--quiet"]) != 0:
         raise RuntimeError("velab record --simulate failed")
     return {"synth": synth, "recorded": next(rec_dir.glob("*.h5"))}
