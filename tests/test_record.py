@@ -79,10 +79,10 @@ def test_material_A_online_fit_names_S3(tmp_path):
     kinds = {k for _, k, _ in run.events}
     assert {"operator", "trigger", "status"} <= kinds
     with h5py.File(summary.path, "r") as fh:
-        settings = json.loads(fh["entry/notes"].attrs["settings_json"])
+        settings = json.loads(fh["entry/notes/settings_json"][()])
         assert settings["duration_s"] == 22.0
         assert fh["entry/instrument/flow/value"].shape[0] > 0
-        assert fh["entry/fits/online"].attrs["best_model"] == summary.best_model
+        assert fh["entry/fits/online/best"].asstr()[()] == summary.best_model
     # the peak: Joukowsky over the steady head, within the interlock's prediction
     assert run.rig.steady_head_m + 0.8 * run.rig.joukowsky_head_m() < summary.peak_head_m
     # live events: phases in order, samples in order, a final fit

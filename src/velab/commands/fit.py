@@ -50,6 +50,10 @@ def _options(args) -> dict:
         raise DataError(f"--jobs must be at least 1, got {args.jobs}")
     if args.plot and Path(args.plot).suffix.lower() not in (".png", ".pdf", ".svg"):
         raise DataError(f"--plot {args.plot}: use a .png, .pdf or .svg file name")
+    if args.name is not None:  # before fitting: --name can only name a fit group, never a path
+        from velab.runfiles.fits import validate_fit_name
+
+        validate_fit_name(args.name)
     return {
         "models": parse_models(args.models), "window_s": args.window, "method": args.method,
         "reduced": args.reduced, "starts": args.starts, "polish": not args.no_polish,
