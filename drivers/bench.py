@@ -1,6 +1,6 @@
 """Bench configurations: which devices velab talks to, how, and with which profile.
 
-``configs/benches/<name>.toml``::
+``benches/<name>.toml`` along the config search path (:mod:`velab.configpath`), or any path::
 
     name = "simulated rig"
     simulate = "default"            # optional: sim config that ``--simulate`` starts in-process
@@ -85,16 +85,10 @@ class Bench:
 
 
 def load_bench(name_or_path: str | os.PathLike) -> Bench:
-    from velab.config import CONFIG_ROOT, read_toml
-    from velab.errors import ConfigError
+    """A bench by short name (``benches/<name>.toml`` along the config search path) or by path."""
+    from velab.configpath import load_config
 
-    p = Path(name_or_path)
-    if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
-        p = Path(CONFIG_ROOT) / "benches" / f"{name_or_path}.toml"
-    try:
-        path, doc = read_toml(p)
-    except ConfigError as exc:
-        raise ProfileError(str(exc)) from None
+    path, doc = load_config("benches", name_or_path, error=ProfileError)
     return Bench.from_dict(doc, str(path))
 
 

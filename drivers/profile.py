@@ -1,6 +1,8 @@
 """Device profiles: register maps, data types, word order, scaling and ranges, from TOML.
 
-A profile lives in ``configs/devices/<name>.toml`` (or any path)::
+A profile is ``devices/<name>.toml`` along the config search path
+(:mod:`velab.configpath`: a lab's folders, ~/.config/velab, the built-in
+configs) or any path::
 
     kind = "flowmeter"                 # which driver class reads it
     model = "Siemens SITRANS F M MAG 6000, Modbus RTU module"
@@ -32,14 +34,9 @@ import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from velab.configpath import load_config
 from velab.drivers.base import ProfileError
 from velab.drivers.modbus import DATA_TYPES, WordOrder, decode_registers, encode_value, register_count
-
-
-def devices_dir() -> Path:
-    from velab.config import CONFIG_ROOT
-
-    return Path(CONFIG_ROOT) / "devices"
 
 
 @dataclass(frozen=True)
@@ -203,20 +200,8 @@ def profile_from_dict(doc: dict, path: str = "<profile>") -> Profile:
 
 
 def load_profile(name_or_path: str | os.PathLike | Profile) -> Profile:
-    """A profile by short name (``configs/devices/<name>.toml``) or by path."""
+    """A profile by short name (``devices/<name>.toml`` along the config search path) or by path."""
     if isinstance(name_or_path, Profile):
         return name_or_path
-    from velab.config import read_toml
-    from velab.errors import ConfigError
-
-    p = Path(name_or_path)
-    if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
-        p = devices_dir() / f"{name_or_path}.toml"
-        if not p.exists():
-            known = sorted(f.stem for f in devices_dir().glob("*.toml"))
-            raise ProfileError(f"{name_or_path}: no such device profile (built-in: {', '.join(known) or 'none'})")
-    try:
-        path, doc = read_toml(p)
-    except ConfigError as exc:
-        raise ProfileError(str(exc)) from None
+    path, doc = load_config("devices", name_or_path, error=ProfileError)
     return profile_from_dict(doc, str(path))

@@ -7,7 +7,7 @@
         sim.rig                    # the SimulatedRig (state, trigger_time, faults)
         sim.faults["flowmeter"]    # DeviceFaults of one device (protocol faults)
 
-Sim config (``configs/sim/<name>.toml``)::
+Sim config (``sim/<name>.toml`` along the config search path, :mod:`velab.configpath`)::
 
     rig = "perugia"
     material = "A"
@@ -173,12 +173,10 @@ def _load_plugins() -> None:
 
 
 def load_sim_config(name_or_path) -> tuple[Path, dict]:
-    from velab.config import CONFIG_ROOT, read_toml
+    """A sim config by short name (``sim/<name>.toml`` along the config search path) or path -> (path, doc)."""
+    from velab.configpath import load_config
 
-    p = Path(name_or_path)
-    if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
-        p = Path(CONFIG_ROOT) / "sim" / f"{name_or_path}.toml"
-    return read_toml(p)
+    return load_config("sim", name_or_path)
 
 
 class SimulatedBench:
