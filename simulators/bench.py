@@ -63,6 +63,18 @@ class Endpoint:
                 "baudrate": self.baudrate or 19200}
 
 
+def is_loopback_host(host: str) -> bool:
+    """A loopback address (127.0.0.0/8, ::1) or "localhost"? Other names are not resolved (no DNS): not loopback."""
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.split("%", 1)[0]).is_loopback
+    except ValueError:
+        return False
+
+
 SIM_DEVICES: dict[str, Callable] = {}
 
 
@@ -183,7 +195,7 @@ class SimulatedBench:
     """Start every simulated device of a sim config in-process; a context manager."""
 
     def __init__(self, config: dict, *, ephemeral: bool = False, clock=None, host: str | None = None,
-                 path: str = "<sim config>"):
+                 path: str = "<sim config>", allow_remote: bool = False):
         from velab.config import load_material, load_rig
         from velab.simulators.clock import make_clock
         from velab.simulators.faults import FaultPlan
@@ -197,6 +209,13 @@ class SimulatedBench:
         if unknown:
             raise ConfigError(f"{path}: {unknown[0]}: unknown key (known: {', '.join(sorted(known))})")
         self.host = host or config.get("host", "127.0.0.1")
+        if not isinstance(self.host, str):
+            raise ConfigError(f"{path}: host: must be a string, got {self.host!r}")
+        if not allow_remote and not is_loopback_host(self.host):
+            # the simulated actuator takes valve commands from whoever can reach it
+            raise ConfigError(f"{path}: host {self.host!r} is not a loopback address: the simulated rig (valve "
+                              f"control included) would be reachable from the network; allow it explicitly "
+                              f"(velab sim --allow-remote)")
         self.clock = clock or make_clock(config.get("clock", "realtime"))
         self.rig = SimulatedRig(load_rig(config.get("rig", "perugia")), load_material(config.get("material", "A")),
                                 self.clock, seed=int(config.get("seed", 0)), **config.get("model", {}))

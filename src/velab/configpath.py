@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import os
 import re
-from importlib import resources
 from pathlib import Path
 
 from velab.errors import ConfigError
@@ -40,6 +39,8 @@ def user_config_dir() -> Path:
 
 def builtin_configs():
     """The configs shipped with velab (a Traversable; a plain directory in any pip install)."""
+    from importlib import resources  # not at import time: `velab --help` needs no configs
+
     try:
         return resources.files("velab.configs")
     except ModuleNotFoundError:  # an editable install made before velab.configs existed

@@ -18,12 +18,12 @@ from __future__ import annotations
 
 import math
 import os
-import stat
 import tomllib
 from dataclasses import dataclass
 from typing import Any, Callable
 
 from velab.errors import ConfigError
+from velab.inputfiles import check_input_file
 
 # Configs are hand-written text of a few kB; anything past this is not one (or is
 # /dev/zero): refuse it before reading rather than parse without bound.
@@ -45,20 +45,7 @@ def read_toml(path, *, error: type[Exception] = ConfigError, max_bytes: int = MA
     directory is refused before it is opened.
     """
     if isinstance(path, (str, os.PathLike)):
-        try:
-            st = os.stat(path)
-        except FileNotFoundError:
-            raise error(f"{path}: no such file") from None
-        except OSError as exc:
-            raise error(f"{path}: cannot read: {exc.strerror or exc}") from None
-        except ValueError:  # an embedded NUL byte
-            raise error(f"{str(path)!r}: not a valid file name") from None
-        if stat.S_ISDIR(st.st_mode):
-            raise error(f"{path}: is a directory, expected a TOML file")
-        if not stat.S_ISREG(st.st_mode):
-            raise error(f"{path}: not a regular file, expected a TOML file")
-        if st.st_size > max_bytes:
-            raise error(f"{path}: {st.st_size} bytes, too large for a configuration file (limit {max_bytes})")
+        check_input_file(path, "TOML file", max_bytes, error)
     try:
         fh = open(path, "rb") if isinstance(path, (str, os.PathLike)) else path.open("rb")
         with fh:

@@ -3,21 +3,26 @@
 from __future__ import annotations
 
 import argparse
+import math
 
-import h5py
-import numpy as np
-
-from velab.runfile import Run, _str, open_run_file, read_run
+from velab.commands.common import add_json_option, write_json
 
 
 def register(sub) -> None:
     p = sub.add_parser("info", help="summarise a run file and its fits",
                        description="Print what a run file holds: status, timing, rig, material, events, gaps, fits.")
     p.add_argument("runs", nargs="+", help="run files (.h5)")
+    add_json_option(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from velab.runfile import read_run
+
+    if args.json:
+        runs = [summary(read_run(path)) for path in args.runs]
+        write_json(runs[0] if len(runs) == 1 else {"runs": runs})
+        return 0
     for i, path in enumerate(args.runs):
         if i:
             print()
@@ -25,7 +30,58 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def describe(r: Run) -> str:
+def summary(r) -> dict:
+    """What ``velab info --json`` prints for one run (non-finite numbers become null)."""
+    import numpy as np
+
+    h = r.head_m[np.isfinite(r.head_m)]
+    return {
+        "path": str(r.path), "title": r.title, "status": r.status, "status_reason": r.status_reason or None,
+        "incomplete": bool(r.incomplete), "start_time": r.start_time or None, "end_time": r.end_time or None,
+        "n_samples": int(r.n_samples), "sample_rate_hz": r.sample_rate_hz, "trigger_time_s": r.trigger_time_s,
+        "duration_after_trigger_s": r.duration_after_trigger_s, "steady_head_m": r.steady_head_m,
+        "head_max_m": float(h.max()) if h.size else None, "head_min_m": float(h.min()) if h.size else None,
+        "nan_samples": int(np.count_nonzero(~np.isfinite(r.head_m))),
+        "channels": {name: r.channel_units.get(name, "") for name in r.channels},
+        "rig": r.rig.to_dict(), "material": r.material.to_dict() if r.material is not None else None,
+        "noise_std_m": r.noise_std_m, "gaps": [{"sample_index": i, "lost": c} for i, c in r.gaps],
+        "events": [{"time_s": t, "kind": kind, "message": msg} for t, kind, msg in r.events],
+        "format_version": r.format_version, "velab_version": r.velab_version, "fits": fit_summaries(r.path),
+    }
+
+
+def fit_summaries(path) -> list[dict]:
+    import h5py
+
+    from velab.runfile import _str, open_run_file
+
+    out = []
+    with open_run_file(path) as fh:
+        fits = fh["entry"].get("fits")
+        for name, g in (fits.items() if fits is not None else ()):
+            if not isinstance(g, h5py.Group):
+                continue
+            a = g.attrs
+            models = []
+            for mname, mg in g.items():
+                if isinstance(mg, h5py.Group):
+                    ma = mg.attrs
+                    models.append({"name": mname, "m": int(ma.get("m", 0)), "k": int(ma.get("k", 0)),
+                                   "F": float(ma.get("F", math.nan)), "aic": float(ma.get("aic", math.nan)),
+                                   "delta_aic": float(ma.get("delta_aic", math.nan)),
+                                   "weight": float(ma.get("weight", math.nan)),
+                                   "wave_speed_m_s": float(ma.get("wave_speed_m_s", math.nan)),
+                                   "support": _str(ma.get("support", ""))})
+            models.sort(key=lambda m: m["m"])
+            out.append({"name": name, "method": _str(a.get("method", "")), "window_s": float(a.get("window_s", math.nan)),
+                        "n": int(a.get("n", 0)), "best_model": _str(a.get("best_model", "")),
+                        "date": _str(a.get("date", "")), "models": models})
+    return out
+
+
+def describe(r) -> str:
+    import numpy as np
+
     lines = [f"{r.path}"]
     status = r.status
     if r.incomplete:
@@ -76,6 +132,11 @@ def describe(r: Run) -> str:
 
 
 def describe_fits(path) -> list[str]:
+    import h5py
+    import numpy as np
+
+    from velab.runfile import _str, open_run_file
+
     out = []
     with open_run_file(path) as fh:
         fits = fh["entry"].get("fits")

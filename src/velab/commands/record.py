@@ -8,8 +8,6 @@ Exit codes (docs/recording.md): 0 completed; 2 bad arguments or configuration;
 
 from __future__ import annotations
 
-import argparse
-import json
 import shutil
 import signal
 import sys
@@ -17,10 +15,8 @@ import threading
 import time
 from pathlib import Path
 
-from velab.commands.common import non_negative_float, positive_float
-from velab.errors import VelabError
-
-_SEVERITY = {0: 0, 3: 1, 130: 2, 4: 3, 5: 4, 2: 5}
+from velab.commands.common import non_negative_float, positive_float, write_json
+from velab.errors import ExitCode, VelabError
 
 
 def register(subparsers) -> None:
@@ -66,7 +62,6 @@ def register(subparsers) -> None:
     p.add_argument("--models", default="0-6", help="models to fit, e.g. 0-6 or 1,3,5 (0 = EL)")
     p.add_argument("--window", type=positive_float, default=20.0, help="fit window after the trigger, s (20)")
     p.add_argument("--method", default="auto", help="fit method (auto, least-squares, nelder-mead, evolution)")
-    p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run_command)
 
 
@@ -320,7 +315,7 @@ def run_command(args) -> int:
             except (KeyboardInterrupt, _Terminate):
                 pass
         signal.signal(signal.SIGTERM, old)
-    code = max(codes, key=lambda c: _SEVERITY.get(c, 4)) if codes else 0
+    code = int(ExitCode.worst(codes))
     if args.repeat > 1 and not args.quiet:
         print(f"campaign: {len(summaries)} of {args.repeat} runs, "
               + ", ".join(f"{s.path.name if s.path else '-'}: {s.status} {s.best_model or ''}".rstrip() for s in summaries),
@@ -334,8 +329,7 @@ def run_command(args) -> int:
                                "statuses": [s.status for s in summaries],
                                "best_models": best,
                                "wave_speed_mean_m_s": (sum(a) / len(a)) if a else None}
-        json.dump(doc, sys.stdout, indent=1, default=str)
-        print()
+        write_json(doc)
     return code
 
 

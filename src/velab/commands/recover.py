@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from velab.runfile import recover_run
+from velab.commands.common import add_json_option, write_json
 
 
 def register(sub) -> None:
@@ -17,10 +17,16 @@ def register(sub) -> None:
     )
     p.add_argument("run", help="the run file")
     p.add_argument("-o", "--output", help="the copy (default: NAME.recovered.h5 beside the run)")
+    add_json_option(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from velab.runfile import recover_run
+
     dst, n = recover_run(args.run, args.output)
+    if args.json:
+        write_json({"source": str(args.run), "path": str(dst), "n_samples": int(n)})
+        return 0
     print(f"wrote {dst}: {n} samples; fit it with `velab fit {dst}`")
     return 0
