@@ -30,10 +30,11 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable
 
+from velab.configpath import config_stem
 from velab.drivers.base import ProfileError
+from velab.tomlschema import Reader
 
 
 @dataclass(frozen=True)
@@ -58,17 +59,26 @@ class Bench:
         if not isinstance(devs, dict) or not devs:
             raise ProfileError(f"{path}: [devices]: missing or empty")
         out = {}
+        r = Reader(path, d, error=ProfileError)
         for name, t in devs.items():
-            if not isinstance(t, dict) or "kind" not in t:
-                raise ProfileError(f"{path}: [devices.{name}] kind: missing key")
+            where = f"[devices.{name}]"
+            if not isinstance(t, dict):
+                raise r.fail(where, f"must be a table, got {type(t).__name__}")
             t = dict(t)
-            kind = t.pop("kind")
-            profile = t.pop("profile", None)
+            kind = r.get(t, where, "kind", str)
+            profile = r.get(t, where, "profile", str, None)
+            t.pop("kind")
+            t.pop("profile", None)
             out[name] = BenchDevice(name, kind, profile, t)
         rec = d.get("recorder") or {}
         if not isinstance(rec, dict):
             raise ProfileError(f"{path}: [recorder]: must be a table")
-        return cls(str(d.get("name", Path(path).stem)), out, d.get("simulate"), str(path), dict(rec))
+        for role, device in rec.items():
+            if not isinstance(device, str):
+                raise r.fail(f"[recorder] {role}", f"must be a device name (string), got {device!r}")
+        simulate = r.get(d, "", "simulate", str, None)
+        name = r.get(d, "", "name", str, config_stem(path))
+        return cls(name, out, simulate, str(path), dict(rec))
 
     def to_dict(self) -> dict:
         d = {"name": self.name, "devices": {}}

@@ -346,7 +346,7 @@ def load_profile(name_or_path: str | Path = "streaming_adc") -> StreamingADCProf
 
     names = {c.name for c in chans}
     enabled = r.get(acq, "acquisition", "channels", list)
-    if not enabled or len(enabled) > MAX_CHANNELS:
+    if not enabled or len(enabled) > MAX_CHANNELS or not all(isinstance(e, str) for e in enabled):
         raise r.fail("acquisition.channels", "list 1 to 4 channel names")
     for e in enabled:
         if e not in names:

@@ -126,9 +126,11 @@ class _ConsoleFormatter(logging.Formatter):
 
 
 def _close_logging() -> None:
-    for h in list(logging.getLogger(LOGGER).handlers):
-        if getattr(h, _HANDLER_TAG, False) and isinstance(h, logging.FileHandler):
-            logging.getLogger(LOGGER).removeHandler(h)
+    """Remove this invocation's handlers (main() may run many times in one process: tests, the GUI)."""
+    logger = logging.getLogger(LOGGER)
+    for h in list(logger.handlers):
+        if getattr(h, _HANDLER_TAG, False):
+            logger.removeHandler(h)
             h.close()
 
 

@@ -125,7 +125,8 @@ class Reader:
 
     def fail(self, where: str, reason: str) -> Exception:
         where = where.strip()
-        return self.error(f"{self.path}: {where}: {reason}" if where else f"{self.path}: {reason}")
+        parts = [str(p) for p in (self.path, where) if p not in (None, "")]
+        return self.error(": ".join(parts + [reason]))
 
     def table(self, name: str, required: bool = True, *, parent: dict | None = None,
               where: str | None = None, allowed=None) -> dict:
