@@ -21,6 +21,7 @@ import logging
 import sys
 
 from velab import __version__
+from velab.commands.common import one_line
 from velab.errors import ExitCode, VelabError
 
 # Modules that register subcommands, in the order --help lists them: the one registry.
@@ -44,7 +45,8 @@ class _Parser(argparse.ArgumentParser):
     """Bad arguments: one line naming the command and the problem, exit 2 (no usage dump)."""
 
     def error(self, message: str):  # noqa: D401 - argparse API
-        self.exit(ExitCode.BAD_INPUT, f"{self.prog}: {message} (see {self.prog} --help)\n")
+        self.exit(ExitCode.BAD_INPUT, f"{self.prog}: {one_line(message)} (see {self.prog} --help)\n")
+
 
 
 def _add_global_options(p: argparse.ArgumentParser, top: bool) -> None:
@@ -147,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except VelabError as exc:
         log.debug("user error", exc_info=True)
-        print(f"velab: {exc}", file=sys.stderr)
+        print(f"velab: {one_line(exc)}", file=sys.stderr)
         return int(exc.exit_code)
     except KeyboardInterrupt:
         print("velab: interrupted", file=sys.stderr)
@@ -158,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         code = _device_layer_error(exc)
         if code is None:
             raise  # a bug: keep the traceback
-        print(f"velab: {exc}", file=sys.stderr)
+        print(f"velab: {one_line(exc)}", file=sys.stderr)
         return code
     finally:
         _close_logging()

@@ -165,6 +165,11 @@ def write_json(doc, stream=None) -> None:
     out.flush()
 
 
+def one_line(text) -> str:
+    """A message on one line: control characters (a newline in a file name) shown escaped."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
+
+
 # ----------------------------------------------------------------- progress
 
 

@@ -10,7 +10,8 @@ import sys
 import time
 from pathlib import Path
 
-from velab.commands.common import ProgressLine, add_json_option, check_output_path, float_range, int_range, write_json
+from velab.commands.common import (ProgressLine, add_json_option, check_output_path, float_range, int_range, one_line,
+                                   write_json)
 from velab.errors import DataError, ExitCode, VelabError
 
 # velab.fitting.sweep.METHODS, named here so that building the parser does not import the
@@ -183,5 +184,5 @@ def _run_many(paths: list[str], opts: dict, jobs: int, as_json: bool, progress: 
             print(f"{Path(p).name:<40}{r.best.name:>6}{r.best.F:>13.5e}{r.best.wave_speed_m_s:>10.2f}"
                   f"{(second.name if second else '-'):>6}{(second.delta_aic if second else math.nan):>8.2f}{o['seconds']:>10.2f}")
     for o in failed:
-        print(f"velab: {o['error']}", file=sys.stderr)
+        print(f"velab: {one_line(o['error'])}", file=sys.stderr)
     return ExitCode.BAD_INPUT if failed else ExitCode.OK
