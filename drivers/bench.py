@@ -34,7 +34,7 @@ from typing import Callable
 
 from velab.configpath import config_stem
 from velab.drivers.base import ProfileError
-from velab.tomlschema import Reader
+from velab.tomlschema import Reader, within
 
 
 @dataclass(frozen=True)
@@ -126,6 +126,12 @@ def _modbus_factory(cls):
             raise ProfileError(f"[devices.{dev.name}]: unknown key {sorted(settings.extra)[0]!r}")
         bus = open_bus(settings, connect=connect, name=f"{dev.name} ({settings.endpoint})")
         opts = {k: v for k, v in dev.settings.items() if k in _OPTION_KEYS}
+        r = Reader(None, opts, error=ProfileError)
+        where = f"[devices.{dev.name}] "
+        r.get(opts, where, "word_order", str, None, choices=("ABCD", "CDAB", "BADC", "DCBA"))
+        r.get(opts, where, "name", str, None)
+        r.get(opts, where, "density_kg_m3", float, None, check=within(100.0, 5000.0, "kg/m3"))
+        r.get(opts, where, "channels", dict, None)
         opts.setdefault("name", dev.name)
         return cls(bus, profile, unit=settings.unit, **opts)
 

@@ -271,8 +271,11 @@ class SimulatedBench:
             self.clock = clock or make_clock(top["clock"])
         except ValueError as exc:
             raise ConfigError(f"{path}: clock: {exc}") from None
-        self.rig = SimulatedRig(load_rig(top["rig"]), load_material(top["material"]), self.clock, seed=top["seed"],
-                                **top["model"])
+        try:
+            rig, material = load_rig(top["rig"]), load_material(top["material"])
+        except ConfigError as exc:  # say which sim config named the rig or material
+            raise ConfigError(f"{path}: rig/material: {exc}") from None
+        self.rig = SimulatedRig(rig, material, self.clock, seed=top["seed"], **top["model"])
         self.handles: dict[str, object] = {}
         devices = top["devices"]
         if not devices:

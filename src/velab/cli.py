@@ -21,8 +21,7 @@ import logging
 import sys
 
 from velab import __version__
-from velab.commands.common import one_line
-from velab.errors import ExitCode, VelabError
+from velab.errors import ExitCode, VelabError, one_line
 
 # Modules that register subcommands, in the order --help lists them: the one registry.
 COMMAND_MODULES = (

@@ -30,6 +30,11 @@ _SEVERITY = {ExitCode.OK: 0, ExitCode.REFUSED: 1, ExitCode.INTERRUPTED: 2, ExitC
              ExitCode.FAILURE: 4, ExitCode.BAD_INPUT: 5}
 
 
+def one_line(text) -> str:
+    """A message on one line: control characters (a newline in a key or file name) shown escaped."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
+
+
 class VelabError(Exception):
     """A problem the user can fix; the message names what is wrong and where."""
 

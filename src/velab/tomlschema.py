@@ -22,7 +22,7 @@ import tomllib
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from velab.errors import ConfigError
+from velab.errors import ConfigError, one_line
 from velab.inputfiles import check_input_file
 
 # Configs are hand-written text of a few kB; anything past this is not one (or is
@@ -126,7 +126,7 @@ class Reader:
     def fail(self, where: str, reason: str) -> Exception:
         where = where.strip()
         parts = [str(p) for p in (self.path, where) if p not in (None, "")]
-        return self.error(": ".join(parts + [reason]))
+        return self.error(one_line(": ".join(parts + [reason])))
 
     def table(self, name: str, required: bool = True, *, parent: dict | None = None,
               where: str | None = None, allowed=None) -> dict:

@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-from velab.errors import DataError, VelabError
+from velab.errors import DataError, VelabError, one_line  # noqa: F401  (one_line: for the commands)
 
 log = logging.getLogger("velab")
 
@@ -163,11 +163,6 @@ def write_json(doc, stream=None) -> None:
     out = stream if stream is not None else sys.stdout
     out.write(text + "\n")
     out.flush()
-
-
-def one_line(text) -> str:
-    """A message on one line: control characters (a newline in a file name) shown escaped."""
-    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
 
 
 # ----------------------------------------------------------------- progress
