@@ -133,6 +133,7 @@ def _close_logging() -> None:
         if getattr(h, _HANDLER_TAG, False):
             logger.removeHandler(h)
             h.close()
+    logger.setLevel(logging.NOTSET)
 
 
 def main(argv: list[str] | None = None) -> int:
