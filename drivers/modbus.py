@@ -22,7 +22,6 @@ uint32, int32, float32, float64 in ABCD (big endian), CDAB (word swapped), BADC
 from __future__ import annotations
 
 import enum
-import math
 import socket
 import struct
 import threading
@@ -559,20 +558,29 @@ class BusSettings:
     def from_dict(cls, d: dict, where: str = "device") -> "BusSettings":
         from velab.drivers.base import ProfileError
 
+        from velab.tomlschema import Reader, above, within
+
+        r = Reader(None, d, error=ProfileError)
+        w = f"{where} "
         known = {f for f in cls.__dataclass_fields__ if f != "extra"}
-        kw = {k: v for k, v in d.items() if k in known}
         extra = {k: v for k, v in d.items() if k not in known}
-        s = cls(**kw, extra=extra)
-        if s.transport not in ("tcp", "rtu"):
-            raise ProfileError(f"{where}: transport must be 'tcp' or 'rtu', got {s.transport!r}")
-        if s.transport == "tcp" and not isinstance(s.port, int):
-            raise ProfileError(f"{where}: port must be an integer TCP port for transport 'tcp', got {s.port!r}")
-        if s.transport == "rtu" and not isinstance(s.port, str):
-            raise ProfileError(f"{where}: port must be a serial port path or socket:// URL for 'rtu', got {s.port!r}")
-        if not 0 <= s.unit <= 247:
-            raise ProfileError(f"{where}: unit must be 0..247, got {s.unit}")
-        if s.timeout_s <= 0 or math.isnan(s.timeout_s):
-            raise ProfileError(f"{where}: timeout_s must be positive, got {s.timeout_s}")
+        transport = r.get(d, w, "transport", str, "tcp", choices=("tcp", "rtu"))
+        if transport == "tcp":
+            port = r.get(d, w, "port", int, 502, check=within(1, 65535))
+        else:
+            port = r.get(d, w, "port", str, check=lambda v: None if v.strip() else "must not be empty")
+        s = cls(
+            transport=transport, host=r.get(d, w, "host", str, "127.0.0.1"), port=port,
+            unit=r.get(d, w, "unit", int, 1, check=within(0, 247)),
+            timeout_s=r.get(d, w, "timeout_s", float, 0.5, check=above(0, 600, "s")),
+            retries=r.get(d, w, "retries", int, 2, check=within(0, 100)),
+            reconnect=r.get(d, w, "reconnect", bool, True),
+            baudrate=r.get(d, w, "baudrate", int, 19200, check=within(50, 4_000_000)),
+            parity=r.get(d, w, "parity", str, "N", choices=("N", "E", "O")),
+            stopbits=r.get(d, w, "stopbits", float, 1, choices=(1.0, 1.5, 2.0)),
+            bytesize=r.get(d, w, "bytesize", int, 8, choices=(5, 6, 7, 8)),
+            extra=extra,
+        )
         return s
 
     @property

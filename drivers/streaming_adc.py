@@ -52,7 +52,6 @@ from velab.drivers.base import (
     pressure_to_head_m,
 )
 from velab.drivers.blocks import SampleBlock
-from velab.config import CONFIG_ROOT, read_toml
 from velab.errors import ConfigError
 
 # ============================================================== protocol constants
@@ -282,47 +281,6 @@ def default_profile(**overrides) -> StreamingADCProfile:
     return replace(base, **overrides)
 
 
-_REQUIRED = object()
-
-
-class _TomlReader:
-    def __init__(self, path: Path):
-        self.path = path
-
-    def fail(self, key: str, reason: str) -> StreamingADCProfileError:
-        return StreamingADCProfileError(f"{self.path}: {key}: {reason}")
-
-    def table(self, doc: dict, name: str, allowed: set[str], required: bool = False) -> dict:
-        t = doc.get(name, None)
-        if t is None:
-            if required:
-                raise self.fail(name, "missing table")
-            return {}
-        if not isinstance(t, dict):
-            raise self.fail(name, "must be a table")
-        for k in t:
-            if k not in allowed:
-                raise self.fail(f"{name}.{k}", f"unknown key (allowed: {', '.join(sorted(allowed))})")
-        return t
-
-    def get(self, t: dict, where: str, key: str, kind, default=_REQUIRED, check=None):
-        full = f"{where}.{key}"
-        if key not in t:
-            if default is _REQUIRED:
-                raise self.fail(full, "missing")
-            return default
-        v = t[key]
-        if kind is float and isinstance(v, int) and not isinstance(v, bool):
-            v = float(v)
-        if kind is int and isinstance(v, bool) or not isinstance(v, kind):
-            raise self.fail(full, f"must be {kind.__name__}, got {type(v).__name__} {v!r}")
-        if check is not None:
-            msg = check(v)
-            if msg:
-                raise self.fail(full, msg)
-        return v
-
-
 def _pos(v):
     return None if v > 0 else "must be positive"
 
@@ -332,23 +290,20 @@ def load_profile(name_or_path: str | Path = "streaming_adc") -> StreamingADCProf
 
     Every error is one line naming the file and the key.
     """
-    p = Path(name_or_path)
-    if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
-        p = CONFIG_ROOT / "devices" / f"{name_or_path}.toml"
-    try:
-        path, doc = read_toml(p)
-    except ConfigError as exc:
-        raise StreamingADCProfileError(str(exc)) from None
-    r = _TomlReader(path)
+    from velab.configpath import load_config
+    from velab.tomlschema import Reader
+
+    path, doc = load_config("devices", name_or_path, error=StreamingADCProfileError)
+    r = Reader(path, doc, error=StreamingADCProfileError)
     for k in doc:
         if k not in {"device", "acquisition", "timeouts", "reader", "fluid", "channels"}:
             raise r.fail(k, "unknown table")
-    dev = r.table(doc, "device", {"model", "url", "baudrate"})
-    acq = r.table(doc, "acquisition", {"rate_hz", "channels", "block_samples"}, required=True)
-    tmo = r.table(doc, "timeouts", {"command_s", "data_s", "reconnect", "reconnect_s", "poll_s"})
-    rdr = r.table(doc, "reader", {"queue_blocks"})
-    fluid = r.table(doc, "fluid", {"density_kg_m3"})
-    chans_doc = r.table(doc, "channels", set(doc.get("channels", {}) if isinstance(doc.get("channels"), dict) else ()), required=True)
+    dev = r.table("device", False, allowed={"model", "url", "baudrate"}, where="device")
+    acq = r.table("acquisition", True, allowed={"rate_hz", "channels", "block_samples"}, where="acquisition")
+    tmo = r.table("timeouts", False, allowed={"command_s", "data_s", "reconnect", "reconnect_s", "poll_s"}, where="timeouts")
+    rdr = r.table("reader", False, allowed={"queue_blocks"}, where="reader")
+    fluid = r.table("fluid", False, allowed={"density_kg_m3"}, where="fluid")
+    chans_doc = r.table("channels", True, where="channels")
 
     chans: list[ChannelProfile] = []
     used: dict[int, str] = {}
@@ -391,7 +346,7 @@ def load_profile(name_or_path: str | Path = "streaming_adc") -> StreamingADCProf
 
     names = {c.name for c in chans}
     enabled = r.get(acq, "acquisition", "channels", list)
-    if not enabled or len(enabled) > MAX_CHANNELS:
+    if not enabled or len(enabled) > MAX_CHANNELS or not all(isinstance(e, str) for e in enabled):
         raise r.fail("acquisition.channels", "list 1 to 4 channel names")
     for e in enabled:
         if e not in names:

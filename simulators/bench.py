@@ -7,7 +7,7 @@
         sim.rig                    # the SimulatedRig (state, trigger_time, faults)
         sim.faults["flowmeter"]    # DeviceFaults of one device (protocol faults)
 
-Sim config (``configs/sim/<name>.toml``)::
+Sim config (``sim/<name>.toml`` along the config search path, :mod:`velab.configpath`)::
 
     rig = "perugia"
     material = "A"
@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Callable
 
 from velab.errors import ConfigError
+from velab.tomlschema import Key, Reader, above, within
 
 
 @dataclass(frozen=True)
@@ -61,6 +62,18 @@ class Endpoint:
                     "unit": self.unit}
         return {"transport": "rtu", "port": self.link or self.address, "unit": self.unit,
                 "baudrate": self.baudrate or 19200}
+
+
+def is_loopback_host(host: str) -> bool:
+    """A loopback address (127.0.0.0/8, ::1) or "localhost"? Other names are not resolved (no DNS): not loopback."""
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.split("%", 1)[0]).is_loopback
+    except ValueError:
+        return False
 
 
 SIM_DEVICES: dict[str, Callable] = {}
@@ -173,19 +186,72 @@ def _load_plugins() -> None:
 
 
 def load_sim_config(name_or_path) -> tuple[Path, dict]:
-    from velab.config import CONFIG_ROOT, read_toml
+    """A sim config by short name (``sim/<name>.toml`` along the config search path) or path -> (path, doc)."""
+    from velab.configpath import load_config
 
-    p = Path(name_or_path)
-    if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
-        p = Path(CONFIG_ROOT) / "sim" / f"{name_or_path}.toml"
-    return read_toml(p)
+    return load_config("sim", name_or_path)
+
+
+# SimulatedRig keyword options ([model]) and the keys every device table may have, with their domains;
+# each device kind's factory refuses the keys it does not know.
+_MODEL = {
+    "pressure_noise_fs": Key(float, False, 2e-4, within(0, 1)),
+    "position_noise_pct": Key(float, False, 0.02, within(0, 100)),
+    "flow_noise_rel": Key(float, False, 2e-3, within(0, 1)),
+    "flow_update_s": Key(float, False, 0.5, above(0, 60, "s")),
+    "grid_dt_s": Key(float, False, 2e-4, within(1e-6, 0.1, "s")),
+    "transient_s": Key(float, False, 20.0, above(0, 3600, "s")),
+}
+_DEVICE_TYPES = {"kind": str, "profile": str, "unit": int, "word_order": str, "endpoints": list,
+                 "sample_rate_hz": int, "buffer_channels": int, "realtime": bool, "baudrate": int, "serial_no": str}
+_DEVICE_CHECKS = {"unit": within(0, 247), "sample_rate_hz": within(1, 100_000), "buffer_channels": within(1, 8),
+                  "baudrate": within(50, 4_000_000)}
+_ENDPOINT = {
+    "transport": Key(str, False, None),
+    "port": Key(int, False, 0, within(0, 65535)),
+    "baudrate": Key(int, False, 19200, within(50, 4_000_000)),
+    "link": Key(str, False, None),
+    "wire_delay": Key(bool, False, False),
+}
+
+
+def check_sim_config(config: dict, path: str = "<sim config>") -> dict:
+    """Types and domains of a sim config's keys (one-line ConfigError naming file and key) -> top-level values."""
+    r = Reader(path, config)
+    top = r.read(config, "", {
+        "name": Key(str, False, ""), "description": Key(str, False, ""), "rig": Key(str, False, "perugia"),
+        "material": Key(str, False, "A"), "seed": Key(int, False, 0, within(0, 2**32 - 1)),
+        "clock": Key(str, False, "realtime"), "host": Key(str, False, "127.0.0.1"),
+        "model": Key(dict, False, {}), "devices": Key(dict, False, {}), "faults": Key(dict, False, None),
+    })
+    top["model"] = {k: v for k, v in r.read(top["model"], "[model] ", _MODEL).items() if k in top["model"]}
+    for name, cfg in top["devices"].items():
+        where = f"[devices.{name}] "
+        if not isinstance(cfg, dict):
+            raise r.fail(where, f"must be a table, got {type(cfg).__name__}")
+        for key, kind in _DEVICE_TYPES.items():
+            if key in cfg:
+                r.get(cfg, where, key, kind, check=_DEVICE_CHECKS.get(key))
+        for i, ep in enumerate(cfg.get("endpoints", [])):
+            r.read(ep, f"{where}endpoints #{i + 1} ", _ENDPOINT)
+    faults = top["faults"] or {}
+    for name, t in faults.items():
+        if not isinstance(t, dict):
+            raise r.fail(f"[faults.{name}]", f"must be a table, got {type(t).__name__}")
+    rig_faults = faults.get("rig", {})
+    for key in ("stuck_channels", "channel_mA"):
+        for ch, v in (r.get(rig_faults, "[faults.rig] ", key, dict, {})).items():
+            if not ch.isdigit():
+                raise r.fail(f"[faults.rig] {key}.{ch}", "keys must be channel numbers")
+            r.get({ch: v}, f"[faults.rig] {key}.", ch, float)
+    return top
 
 
 class SimulatedBench:
     """Start every simulated device of a sim config in-process; a context manager."""
 
     def __init__(self, config: dict, *, ephemeral: bool = False, clock=None, host: str | None = None,
-                 path: str = "<sim config>"):
+                 path: str = "<sim config>", allow_remote: bool = False):
         from velab.config import load_material, load_rig
         from velab.simulators.clock import make_clock
         from velab.simulators.faults import FaultPlan
@@ -194,16 +260,24 @@ class SimulatedBench:
         _load_plugins()
         self.config = config
         self.path = path
-        known = {"name", "description", "rig", "material", "seed", "clock", "host", "model", "devices", "faults"}
-        unknown = sorted(set(config) - known)
-        if unknown:
-            raise ConfigError(f"{path}: {unknown[0]}: unknown key (known: {', '.join(sorted(known))})")
-        self.host = host or config.get("host", "127.0.0.1")
-        self.clock = clock or make_clock(config.get("clock", "realtime"))
-        self.rig = SimulatedRig(load_rig(config.get("rig", "perugia")), load_material(config.get("material", "A")),
-                                self.clock, seed=int(config.get("seed", 0)), **config.get("model", {}))
+        top = check_sim_config(config, path)
+        self.host = host or top["host"]
+        if not allow_remote and not is_loopback_host(self.host):
+            # the simulated actuator takes valve commands from whoever can reach it
+            raise ConfigError(f"{path}: host {self.host!r} is not a loopback address: the simulated rig (valve "
+                              f"control included) would be reachable from the network; allow it explicitly "
+                              f"(velab sim --allow-remote)")
+        try:
+            self.clock = clock or make_clock(top["clock"])
+        except ValueError as exc:
+            raise ConfigError(f"{path}: clock: {exc}") from None
+        try:
+            rig, material = load_rig(top["rig"]), load_material(top["material"])
+        except ConfigError as exc:  # say which sim config named the rig or material
+            raise ConfigError(f"{path}: rig/material: {exc}") from None
+        self.rig = SimulatedRig(rig, material, self.clock, seed=top["seed"], **top["model"])
         self.handles: dict[str, object] = {}
-        devices = config.get("devices") or {}
+        devices = top["devices"]
         if not devices:
             raise ConfigError(f"{path}: [devices]: no simulated devices")
         for name, cfg in devices.items():

@@ -31,12 +31,12 @@ def _paper_friction_sim_config(tmp_path) -> str:
     picks S2 for material A. The model-selection tests below check the recorder's fit on
     data its model can represent; switch them back to the default bench with the fitter's change.
     """
-    from velab.config import CONFIG_ROOT
+    from velab.configpath import find_config
 
-    rig = (CONFIG_ROOT / "rigs" / "perugia.toml").read_text()
+    rig = find_config("rigs", "perugia").read_text()
     assert 'friction = "quadratic"' in rig
     (tmp_path / "rig_linear.toml").write_text(rig.replace('friction = "quadratic"', 'friction = "linear"'))
-    sim = (CONFIG_ROOT / "sim" / "default.toml").read_text()
+    sim = find_config("sim", "default").read_text()
     assert 'rig = "perugia"' in sim
     (tmp_path / "sim_linear.toml").write_text(sim.replace('rig = "perugia"', f'rig = "{tmp_path / "rig_linear.toml"}"'))
     return str(tmp_path / "sim_linear.toml")

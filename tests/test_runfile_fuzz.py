@@ -35,13 +35,14 @@ WORKER = textwrap.dedent(
     import json, sys, traceback
     from velab.errors import DataError
     from velab.runfiles import read_run
-    from velab.commands.info import as_dict, describe, strict_json
+    from velab.commands.common import json_ready
+    from velab.runfiles.summary import as_dict, describe
     for line in sys.stdin:
         path = line.strip()
         try:
             run = read_run(path)
             describe(run)
-            json.dumps(strict_json(as_dict(run)), allow_nan=False)
+            json.dumps(json_ready(as_dict(run)), allow_nan=False)
             out = {"outcome": "ok"}
         except DataError as exc:
             out = {"outcome": "error", "message": str(exc)}

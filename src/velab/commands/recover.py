@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
 
-from velab.runfiles import recover_run
+from velab.commands.common import add_json_option, write_json
 
 
 def register(sub) -> None:
@@ -19,14 +18,16 @@ def register(sub) -> None:
     )
     p.add_argument("run", help="the run file")
     p.add_argument("-o", "--output", help="the copy (default: NAME.recovered.h5 beside the run)")
-    p.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+    add_json_option(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from velab.runfiles import recover_run
+
     dst, n = recover_run(args.run, args.output)
     if args.json:
-        print(json.dumps({"run": str(args.run), "recovered": str(dst), "samples": n}))
+        write_json({"source": str(args.run), "path": str(dst), "n_samples": int(n)})
     else:
         print(f"wrote {dst}: {n} samples; fit it with `velab fit {dst}`")
     return 0

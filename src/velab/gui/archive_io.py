@@ -14,7 +14,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from velab.commands.info import describe
+from velab.runfiles.summary import describe
 from velab.errors import DataError
 
 
