@@ -12,13 +12,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from velab.drivers.base import Quality, pressure_to_head_m
+from velab.drivers.base import LoopCalibration, Quality, pressure_to_head_m
 
-# per-sample quality codes (``SampleBlock.sample_quality``) index into this tuple
+# per-sample quality codes (``SampleBlock.sample_quality``, uint8) index into this tuple;
+# the codes are stored in run files: append new ones, never renumber.
 QUALITY_CODES = (Quality.OK, Quality.OVER_RANGE, Quality.UNDER_RANGE, Quality.OPEN_LOOP, Quality.NAN, Quality.FAULT,
-                 Quality.STALE)
+                 Quality.STALE, Quality.SENSOR_FAULT)
 QUALITY_CODE = {q: i for i, q in enumerate(QUALITY_CODES)}
-_SEVERITY = (Quality.FAULT, Quality.NAN, Quality.OPEN_LOOP, Quality.OVER_RANGE, Quality.UNDER_RANGE, Quality.STALE)
+_SEVERITY = (Quality.FAULT, Quality.SENSOR_FAULT, Quality.NAN, Quality.OPEN_LOOP, Quality.STALE, Quality.OVER_RANGE,
+             Quality.UNDER_RANGE)
+# codes whose value is a measurement (OK, or a bound beyond the calibrated span)
+MEASUREMENT_CODES = tuple(QUALITY_CODE[q] for q in QUALITY_CODES if q.is_measurement)
 
 
 def worst_quality(codes: np.ndarray) -> Quality:
@@ -28,6 +32,72 @@ def worst_quality(codes: np.ndarray) -> Quality:
         if q in present:
             return q
     return Quality.OK
+
+
+def signal_quality(signal: np.ndarray, cal: LoopCalibration, *, invalid: np.ndarray | None = None,
+                   clipped_hi: np.ndarray | None = None, clipped_lo: np.ndarray | None = None) -> np.ndarray:
+    """Per-sample quality codes (uint8) of one channel's signal (mA or V), by precedence:
+    NAN (invalid / NaN) > OPEN_LOOP (< 3.6 mA) > SENSOR_FAULT (outside NE43 3.8..20.5 mA)
+    > OVER_RANGE / UNDER_RANGE (beyond the calibrated span by more than range_margin, or the
+    ADC clipped at that end) > OK. One function for every sampled-data driver."""
+    s = np.asarray(signal, dtype=float)
+    q = np.zeros(s.shape, dtype=np.uint8)
+    span = cal.signal_hi - cal.signal_lo
+    with np.errstate(invalid="ignore"):
+        over = s > cal.signal_hi + cal.range_margin * span
+        under = s < cal.signal_lo - cal.range_margin * span
+        if clipped_hi is not None:
+            over |= clipped_hi
+        if clipped_lo is not None:
+            under |= clipped_lo
+        q[under] = QUALITY_CODE[Quality.UNDER_RANGE]
+        q[over] = QUALITY_CODE[Quality.OVER_RANGE]
+        fault = np.zeros(s.shape, dtype=bool)
+        if cal.fault_below is not None:
+            fault |= s < cal.fault_below
+        if cal.fault_above is not None:
+            fault |= s > cal.fault_above
+        q[fault] = QUALITY_CODE[Quality.SENSOR_FAULT]
+        if cal.open_loop_below is not None:
+            q[s < cal.open_loop_below] = QUALITY_CODE[Quality.OPEN_LOOP]
+    bad = np.isnan(s)
+    if invalid is not None:
+        bad |= invalid
+    q[bad] = QUALITY_CODE[Quality.NAN]
+    return q
+
+
+class StuckDetector:
+    """Flags runs of identical raw counts longer than ``limit`` samples (across blocks) as STALE.
+
+    A live transducer's noise moves the last bits of a 16-bit ADC at every sample: a channel
+    that repeats the same count for longer than ``limit`` samples is a stuck sensor or a frozen
+    converter. Only samples still OK are re-flagged (a worse code is kept).
+    """
+
+    def __init__(self, limit: int):
+        self.limit = int(limit)
+        self._run: dict[int, tuple[int, int]] = {}  # channel -> (raw value, run length)
+
+    def flag(self, ch: int, raw: np.ndarray, q: np.ndarray) -> None:
+        if raw.size == 0 or self.limit <= 0:
+            return
+        prev_val, prev_len = self._run.get(ch, (None, 0))
+        change = np.flatnonzero(np.diff(raw.astype(np.int64))) + 1
+        starts = np.concatenate([[0], change])
+        ends = np.concatenate([change, [raw.size]])
+        for a, b in zip(starts, ends):
+            carried = prev_len if (a == 0 and raw[0] == prev_val) else 0
+            if carried + (b - a) > self.limit:
+                first = max(a, a + self.limit - carried)
+                seg = q[first:b]
+                seg[seg == 0] = QUALITY_CODE[Quality.STALE]
+        last_start = starts[-1]
+        run = raw.size - last_start + (prev_len if last_start == 0 and raw[0] == prev_val else 0)
+        self._run[ch] = (int(raw[-1]), int(run))
+
+    def reset(self) -> None:
+        self._run.clear()
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,6 +112,10 @@ class SampleBlock:
     block and this one: exact from the device counter, except in the first block
     after a reconnection (``restarted``), where the counter restarted and the gap
     is estimated from host time. Missing samples are never filled in.
+    ``rejected_frames``: frames thrown away since the previous block (bad CRC, bad
+    header, lost sync); their samples are part of ``lost_before``.
+    ``sample_quality`` (n, ch) uint8 codes into QUALITY_CODES, always set by velab's
+    drivers; ``quality`` is the worst per channel.
     """
 
     segment: int
@@ -61,6 +135,7 @@ class SampleBlock:
     density_kg_m3: float = 998.2
     sample_quality: np.ndarray | None = None  # (n, ch) uint8 codes into QUALITY_CODES, if per-sample
     device_t0_s: float = 0.0  # device time of sample index 0
+    rejected_frames: int = 0  # corrupted / unsynchronised frames dropped just before this block
 
     # ---- sizes and axes
     @property
@@ -112,6 +187,13 @@ class SampleBlock:
         if self.units[i] != "Pa":
             raise ValueError(f"channel {channel!r} is in {self.units[i]}, not Pa")
         return pressure_to_head_m(self.values[:, i], self.density_kg_m3)
+
+    def good(self, channel: str | int = 0) -> np.ndarray:
+        """Boolean mask of the samples of a channel that are measurements (OK / over / under range)."""
+        ch = channel if isinstance(channel, int) else self.channels.index(channel)
+        if self.sample_quality is None:
+            return np.full(self.n, self.quality[ch].is_measurement)
+        return np.isin(self.sample_quality[:, ch], MEASUREMENT_CODES)
 
     def quality_of(self, i: int, ch: int = 0) -> Quality:
         """Quality of sample ``i`` of channel ``ch`` (the block's worst if not per-sample)."""

@@ -4,11 +4,12 @@ import struct
 
 import pytest
 
-from velab.drivers.base import DeviceDisconnected, DeviceException, DeviceTimeout, ProtocolError
+from velab.drivers.base import (ChecksumError, DeviceDisconnected, DeviceException, DeviceTimeout, FrameError,
+                                ProtocolError, ReplyMismatch)
 from velab.drivers.flowmeter import Flowmeter
 from velab.drivers.modbus import ModbusClient, WordOrder, crc16, decode_registers, encode_value
 from velab.drivers.modbus_device import RangeError
-from velab.drivers.testing import ExpectedProtocolTransport, expected_protocol
+from velab.drivers.testing import ExpectedProtocolTransport, Late, expected_protocol
 from velab.drivers.valve import ValveActuator
 
 
@@ -56,11 +57,26 @@ def test_tcp_mbap_frames_and_transaction_ids():
 
 
 def test_tcp_skips_late_reply_to_an_earlier_request():
-    late = struct.pack(">HHHB", 7, 0, 5, 1) + bytes([3, 2, 0, 9])
-    req = struct.pack(">HHHB", 1, 0, 6, 1) + bytes.fromhex("030000 0001".replace(" ", ""))
-    rep = struct.pack(">HHHB", 1, 0, 5, 1) + bytes([3, 2, 0, 42])
-    with expected_protocol([(req, late + rep)]) as t:
-        assert ModbusClient(t, "tcp", unit=1, timeout_s=0.05, retries=0).read_holding(0, 1) == [42]
+    """tid 1 times out; its late reply arrives glued before the reply to tid 2: dropped, not used."""
+    req1 = struct.pack(">HHHB", 1, 0, 6, 1) + bytes.fromhex("0300000001")
+    late1 = struct.pack(">HHHB", 1, 0, 5, 1) + bytes([3, 2, 0, 9])
+    req2 = struct.pack(">HHHB", 2, 0, 6, 1) + bytes.fromhex("0300000001")
+    rep2 = struct.pack(">HHHB", 2, 0, 5, 1) + bytes([3, 2, 0, 42])
+    with expected_protocol([(req1, Late(late1, with_next=True)), (req2, rep2)]) as t:
+        bus = ModbusClient(t, "tcp", unit=1, timeout_s=0.05, retries=0)
+        with pytest.raises(DeviceTimeout):
+            bus.read_holding(0, 1)
+        assert bus.read_holding(0, 1) == [42]
+    assert bus.stats.late_replies == 1
+
+
+def test_tcp_unknown_transaction_id_is_wrong_transaction():
+    req = struct.pack(">HHHB", 1, 0, 6, 1) + bytes.fromhex("0300000001")
+    rep = struct.pack(">HHHB", 7, 0, 5, 1) + bytes([3, 2, 0, 9])
+    with expected_protocol([(req, rep)]) as t:
+        with pytest.raises(ReplyMismatch, match="transaction id 7, expected 1") as ei:
+            ModbusClient(t, "tcp", unit=1, timeout_s=0.05, retries=0).read_holding(0, 1)
+    assert ei.value.reason == "wrong_transaction" and ei.value.device == "expected-protocol"
 
 
 @pytest.mark.parametrize("code,name", [(2, "illegal data address"), (3, "illegal data value"), (6, "busy")])
@@ -110,7 +126,7 @@ def test_silent_device_times_out_within_bound():
 
 @pytest.mark.parametrize("reply,match", [
     (rtu(5, 3, 4, bytes(4)), "from unit 5"),
-    (rtu(2, 4, 4, bytes(4)), "function code 4"),
+    (rtu(2, 4, 4, bytes(4)), "function code 0x04, expected 0x03"),
     (bytes.fromhex("020304406d"), "truncated"),
 ])
 def test_malformed_replies_are_protocol_errors(reply, match):
