@@ -19,7 +19,7 @@ from velab.drivers.base import LoopCalibration, Quality, pressure_to_head_m
 QUALITY_CODES = (Quality.OK, Quality.OVER_RANGE, Quality.UNDER_RANGE, Quality.OPEN_LOOP, Quality.NAN, Quality.FAULT,
                  Quality.STALE, Quality.SENSOR_FAULT)
 QUALITY_CODE = {q: i for i, q in enumerate(QUALITY_CODES)}
-_SEVERITY = (Quality.FAULT, Quality.SENSOR_FAULT, Quality.NAN, Quality.OPEN_LOOP, Quality.STALE, Quality.OVER_RANGE,
+_SEVERITY = (Quality.FAULT, Quality.OPEN_LOOP, Quality.SENSOR_FAULT, Quality.NAN, Quality.STALE, Quality.OVER_RANGE,
              Quality.UNDER_RANGE)
 # codes whose value is a measurement (OK, or a bound beyond the calibrated span)
 MEASUREMENT_CODES = tuple(QUALITY_CODE[q] for q in QUALITY_CODES if q.is_measurement)
@@ -85,16 +85,17 @@ class StuckDetector:
         prev_val, prev_len = self._run.get(ch, (None, 0))
         change = np.flatnonzero(np.diff(raw.astype(np.int64))) + 1
         starts = np.concatenate([[0], change])
-        ends = np.concatenate([change, [raw.size]])
-        for a, b in zip(starts, ends):
-            carried = prev_len if (a == 0 and raw[0] == prev_val) else 0
-            if carried + (b - a) > self.limit:
-                first = max(a, a + self.limit - carried)
-                seg = q[first:b]
-                seg[seg == 0] = QUALITY_CODE[Quality.STALE]
-        last_start = starts[-1]
-        run = raw.size - last_start + (prev_len if last_start == 0 and raw[0] == prev_val else 0)
-        self._run[ch] = (int(raw[-1]), int(run))
+        lengths = np.diff(np.concatenate([starts, [raw.size]]))
+        carried = np.zeros(starts.size, dtype=np.int64)
+        if raw[0] == prev_val:
+            carried[0] = prev_len  # the first run continues the previous block's last run
+        total = carried + lengths
+        for i in np.flatnonzero(total > self.limit):  # only the (rare) long runs: a Python loop is fine
+            a, b = int(starts[i]), int(starts[i] + lengths[i])
+            first = max(a, a + self.limit - int(carried[i]))
+            seg = q[first:b]
+            seg[seg == 0] = QUALITY_CODE[Quality.STALE]
+        self._run[ch] = (int(raw[-1]), int(total[-1]))
 
     def reset(self) -> None:
         self._run.clear()
