@@ -80,8 +80,40 @@ class Bench:
             d["devices"][n] = {"kind": dev.kind, **({"profile": dev.profile} if dev.profile else {}), **dev.settings}
         return d
 
+    def to_toml(self) -> str:
+        """This bench as a bench-config TOML text (for a file ``velab record --config`` reads)."""
+        d = self.to_dict()
+        lines = [f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict)]
+        if d.get("recorder"):
+            lines += ["", "[recorder]"] + [f"{k} = {_toml_value(v)}" for k, v in d["recorder"].items()]
+        for name, t in d["devices"].items():
+            lines += _toml_table(f"devices.{name}", t)
+        return "\n".join(lines) + "\n"
+
     def of_kind(self, kind: str) -> list[BenchDevice]:
         return [d for d in self.devices.values() if d.kind == kind]
+
+
+def _toml_value(v) -> str:
+    import json
+
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)  # a JSON string is a valid TOML basic string
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise ValueError(f"cannot write {v!r} to TOML")
+
+
+def _toml_table(name: str, t: dict) -> list[str]:
+    out = ["", f"[{name}]"] + [f"{k} = {_toml_value(v)}" for k, v in t.items() if not isinstance(v, dict)]
+    for k, v in t.items():
+        if isinstance(v, dict):
+            out += _toml_table(f"{name}.{k}", v)
+    return out
 
 
 def load_bench(name_or_path: str | os.PathLike) -> Bench:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from velab.drivers.base import LoopCalibration, Quality, pressure_to_head_m
+from velab.drivers.base import Quality, pressure_to_head_m
 
 # per-sample quality codes (``SampleBlock.sample_quality``, uint8) index into this tuple;
 # the codes are stored in run files: append new ones, never renumber.
@@ -34,36 +34,49 @@ def worst_quality(codes: np.ndarray) -> Quality:
     return Quality.OK
 
 
-def signal_quality(signal: np.ndarray, cal: LoopCalibration, *, invalid: np.ndarray | None = None,
+def quality_limits(cals) -> np.ndarray:
+    """(5, ch) thresholds of loop calibrations: open loop, NE43 fault low / high, span under / over
+    (+-inf where a check does not apply), for ``signal_quality``."""
+    inf = np.inf
+    rows = []
+    for c in cals:
+        span = c.signal_hi - c.signal_lo
+        rows.append((-inf if c.open_loop_below is None else c.open_loop_below,
+                     -inf if c.fault_below is None else c.fault_below,
+                     inf if c.fault_above is None else c.fault_above,
+                     c.signal_lo - c.range_margin * span, c.signal_hi + c.range_margin * span))
+    return np.array(rows, dtype=float).T
+
+
+_C_OVER, _C_UNDER = QUALITY_CODE[Quality.OVER_RANGE], QUALITY_CODE[Quality.UNDER_RANGE]
+_C_FAULT, _C_OPEN, _C_NAN = QUALITY_CODE[Quality.SENSOR_FAULT], QUALITY_CODE[Quality.OPEN_LOOP], QUALITY_CODE[Quality.NAN]
+
+
+def signal_quality(signal: np.ndarray, cal, *, invalid: np.ndarray | None = None,
                    clipped_hi: np.ndarray | None = None, clipped_lo: np.ndarray | None = None) -> np.ndarray:
-    """Per-sample quality codes (uint8) of one channel's signal (mA or V), by precedence:
+    """Per-sample quality codes (uint8) of signals (mA or V), by precedence:
     NAN (invalid / NaN) > OPEN_LOOP (< 3.6 mA) > SENSOR_FAULT (outside NE43 3.8..20.5 mA)
     > OVER_RANGE / UNDER_RANGE (beyond the calibrated span by more than range_margin, or the
-    ADC clipped at that end) > OK. One function for every sampled-data driver."""
+    ADC clipped at that end) > OK. ``signal`` is (n,) with one LoopCalibration, or (n, ch) with
+    ``cal`` = the (5, ch) array of ``quality_limits``. One function for every sampled-data driver."""
     s = np.asarray(signal, dtype=float)
+    lim = cal if isinstance(cal, np.ndarray) else quality_limits([cal])[:, 0]
     q = np.zeros(s.shape, dtype=np.uint8)
-    span = cal.signal_hi - cal.signal_lo
     with np.errstate(invalid="ignore"):
-        over = s > cal.signal_hi + cal.range_margin * span
-        under = s < cal.signal_lo - cal.range_margin * span
-        if clipped_hi is not None:
-            over |= clipped_hi
+        under = s < lim[3]
+        over = s > lim[4]
         if clipped_lo is not None:
             under |= clipped_lo
-        q[under] = QUALITY_CODE[Quality.UNDER_RANGE]
-        q[over] = QUALITY_CODE[Quality.OVER_RANGE]
-        fault = np.zeros(s.shape, dtype=bool)
-        if cal.fault_below is not None:
-            fault |= s < cal.fault_below
-        if cal.fault_above is not None:
-            fault |= s > cal.fault_above
-        q[fault] = QUALITY_CODE[Quality.SENSOR_FAULT]
-        if cal.open_loop_below is not None:
-            q[s < cal.open_loop_below] = QUALITY_CODE[Quality.OPEN_LOOP]
+        if clipped_hi is not None:
+            over |= clipped_hi
+        q[under] = _C_UNDER
+        q[over] = _C_OVER
+        q[(s < lim[1]) | (s > lim[2])] = _C_FAULT
+        q[s < lim[0]] = _C_OPEN
     bad = np.isnan(s)
     if invalid is not None:
         bad |= invalid
-    q[bad] = QUALITY_CODE[Quality.NAN]
+    q[bad] = _C_NAN
     return q
 
 

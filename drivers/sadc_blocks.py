@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from velab.drivers.blocks import SampleBlock, StuckDetector, signal_quality, worst_quality
+from velab.drivers.blocks import SampleBlock, StuckDetector, quality_limits, signal_quality, worst_quality
 from velab.drivers.sadc_profile import ChannelProfile, StreamingADCProfile
 from velab.drivers.sadc_protocol import (
     FLAG_INVALID,
@@ -84,6 +84,7 @@ class BlockAssembler:
         self._v_lo = np.array([c.value_lo for c in cals])
         self._v_hi = np.array([c.value_hi for c in cals])
         self._zero = np.array([c.zero_offset for c in cals])
+        self._limits = quality_limits(cals)
 
     def new_segment(self, estimated_lost: int) -> None:
         """The device was reconnected: its counter restarts at 0, the gap is an estimate."""
@@ -127,6 +128,12 @@ class BlockAssembler:
             st.overruns += overruns
         return blocks
 
+    @staticmethod
+    def _worst(sq: np.ndarray) -> tuple:
+        if not sq.any():  # the usual case: everything OK
+            return (worst_quality(sq[:0, 0]),) * sq.shape[1]
+        return tuple(worst_quality(sq[:, j]) for j in range(sq.shape[1]))
+
     def _block(self, run: list[Frame], lost: int, overrun: bool, host_t: float) -> SampleBlock:
         cfg = self.config
         chans = cfg.channels
@@ -140,11 +147,11 @@ class BlockAssembler:
         if flags & FLAG_INVALID or invalid.any():
             signal[invalid] = np.nan
         values = self._v_lo + (signal - self._s_lo) / (self._s_hi - self._s_lo) * (self._v_hi - self._v_lo) - self._zero
-        sq = np.empty(raw.shape, dtype=np.uint8)
-        for j, c in enumerate(chans):
-            sq[:, j] = signal_quality(signal[:, j], c.calibration, invalid=invalid[:, j],
-                                      clipped_hi=raw[:, j] == RAW_FULL_SCALE, clipped_lo=raw[:, j] == -RAW_FULL_SCALE)
-            self._stuck[j].flag(j, raw[:, j], sq[:, j])
+        sq = signal_quality(signal, self._limits, invalid=invalid, clipped_hi=raw == RAW_FULL_SCALE,
+                            clipped_lo=raw == -RAW_FULL_SCALE)
+        for j, d in enumerate(self._stuck):
+            if d.limit:
+                d.flag(j, raw[:, j], sq[:, j])
         lost_before = lost + self.pending_lost
         rejected, restarted = self.pending_rejected, self.pending_restart
         self.pending_lost = self.pending_rejected = 0
@@ -152,7 +159,7 @@ class BlockAssembler:
         return SampleBlock(
             segment=self.segment, first_index=run[0].first_index, rate_hz=cfg.rate_hz, host_time_s=host_t,
             raw=raw, signal=signal, values=values, channels=tuple(c.name for c in chans),
-            units=tuple(c.calibration.units for c in chans), quality=tuple(worst_quality(sq[:, j]) for j in range(nch)),
+            units=tuple(c.calibration.units for c in chans), quality=self._worst(sq),
             lost_before=lost_before, restarted=restarted, overrun=overrun, flags=flags,
             density_kg_m3=self.profile.density_kg_m3, sample_quality=sq, rejected_frames=rejected,
         )

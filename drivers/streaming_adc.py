@@ -245,7 +245,7 @@ class StreamingADC(SADCLink):
         if t is None:
             return self.stats
         self._stop_evt.set()
-        t.join(self.profile.poll_s * 4 + self.profile.command_timeout_s + 2.0)
+        t.join(self.profile.poll_s * 4 + 5 * self.profile.command_timeout_s + 2.0)  # _stop_streaming's bound
         alive = t.is_alive()
         self._thread = None
         self._streaming = False

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import signal
 import sys
 import threading
@@ -18,6 +20,9 @@ def register(subparsers) -> None:
     p.add_argument("--host", default=None, help="address to bind (default: the config's, 127.0.0.1)")
     p.add_argument("--ephemeral", action="store_true", help="ephemeral ports, no pty links (ignore fixed ports)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: Ctrl-C)")
+    p.add_argument("--json", action="store_true",
+                   help="print the endpoints as one JSON line on stdout (pid, endpoints, a bench config "
+                        "reaching them), for scripts and tests")
     p.set_defaults(func=run)
 
 
@@ -30,13 +35,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         sim.start()
         rig = sim.rig.rig
-        print(f"velab sim: rig {rig.name}, material {sim.rig.material.name}, "
-              f"Q0 = {rig.steady_flow_m3_s * 1e3:.2f} l/s, steady head {rig.steady_head_m:.2f} m")
-        for e in sim.endpoints:
-            extra = f" (link {e.link})" if e.link else ""
-            unit = f" unit {e.unit}" if e.unit is not None else ""
-            print(f"  {e.device:<14} {e.kind:<15} {e.transport:<11} {e.address}{extra}{unit}")
-        print("Ctrl-C to stop.", flush=True)
+        if args.json:
+            print(json.dumps({"pid": os.getpid(), **sim.describe()}), flush=True)
+        else:
+            _print_endpoints(sim, rig)
         try:
             stop.wait(args.duration)
         except KeyboardInterrupt:
@@ -46,3 +48,13 @@ def run(args: argparse.Namespace) -> int:
         sim.stop()
     print("velab sim: stopped", file=sys.stderr)
     return 0
+
+
+def _print_endpoints(sim, rig) -> None:
+    print(f"velab sim: rig {rig.name}, material {sim.rig.material.name}, "
+          f"Q0 = {rig.steady_flow_m3_s * 1e3:.2f} l/s, steady head {rig.steady_head_m:.2f} m")
+    for e in sim.endpoints:
+        extra = f" (link {e.link})" if e.link else ""
+        unit = f" unit {e.unit}" if e.unit is not None else ""
+        print(f"  {e.device:<14} {e.kind:<15} {e.transport:<11} {e.address}{extra}{unit}")
+    print("Ctrl-C to stop.", flush=True)
