@@ -316,6 +316,10 @@ class ModbusClient:
         if self.transport.is_open:
             self._flush("after a failed exchange")
 
+    def _pending(self) -> bool:
+        pending = getattr(self.transport, "pending", None)
+        return bool(pending()) if pending is not None else False
+
     def _read_exact(self, n: int, deadline: float, exp: _Expect, got: bytes = b"") -> bytes:
         data = self.transport.read(n, deadline)
         if len(data) < n:
@@ -347,6 +351,8 @@ class ModbusClient:
             if runit != exp.unit:
                 raise self._err(ReplyMismatch, "wrong_unit", exp, f"reply from unit {runit}", head + body)
             self._check_pdu(body, exp, head + body)
+            if self._pending():  # a device sends nothing after its reply: these bytes make it suspect
+                raise self._err(FrameError, "long_frame", exp, "bytes right behind the reply frame", head + body)
             return body
 
     def _receive_rtu(self, exp: _Expect, deadline: float) -> bytes:

@@ -6,6 +6,7 @@ timeouts and checks are the client's (velab.drivers.modbus).
 
 from __future__ import annotations
 
+import select
 import socket
 import time
 from typing import Protocol, runtime_checkable
@@ -88,6 +89,17 @@ class TcpTransport:
                 raise DeviceDisconnected(f"{self.name}: connection closed by the device")
             buf += chunk
         return bytes(buf)
+
+    def pending(self) -> bool:
+        """Bytes already received and not read (no waiting)."""
+        if self._sock is None:
+            return False
+        try:
+            if not select.select([self._sock], [], [], 0)[0]:
+                return False
+            return bool(self._sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT))  # b"": the peer closed
+        except (OSError, ValueError):
+            return False
 
     def discard_input(self) -> int:
         if self._sock is None:

@@ -83,6 +83,9 @@ class ExpectedProtocolTransport:
         del self._rx[:n]
         return out
 
+    def pending(self) -> bool:
+        return bool(self._rx)
+
     def discard_input(self) -> int:
         n = len(self._rx)
         self.discarded += self._rx

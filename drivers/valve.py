@@ -237,10 +237,10 @@ class ValveActuator(ModbusDevice):
     def _read_status_once(self) -> ValveStatus:
         st = self.profile.reg("state")
         head = self._bus_read("holding", st.address, 2)  # state, faults
+        state = self._state(head[0])
         pos = self.profile.reg("position")
         body = self._bus_read("holding", pos.address, 5)  # position, time, count
         ts = self.clock()
-        state = self._state(head[0])
         faults = tuple(self.profile.reg("faults").bit_names(head[1]))
         position = self._reading(pos, body[0:2], ts)
         if state is ValveState.FAULT and position.quality is Quality.OK:

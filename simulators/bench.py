@@ -215,6 +215,10 @@ class SimulatedBench:
         self.rig.schedule = self.schedule
         self.handles: dict[str, object] = {}
         self.kinds: dict[str, str] = {"rig": "rig"}
+        self._poller: threading.Thread | None = None
+        self._poll_stop = threading.Event()
+        self._disconnected: set[str] = set()
+        self._poll_lock = threading.Lock()
         devices = config.get("devices") or {}
         if not devices:
             raise ConfigError(f"{path}: [devices]: no simulated devices")
@@ -236,9 +240,6 @@ class SimulatedBench:
         for kw in self.plan.scheduled(self.kinds, f"{path}: [faults]"):
             self.schedule_fault(kw["device"], kw["at"], kw["duration_s"], every=kw["every"], **kw["fault"])
         self.endpoints: list[Endpoint] = []
-        self._poller: threading.Thread | None = None
-        self._poll_stop = threading.Event()
-        self._disconnected: set[str] = set()
 
     @classmethod
     def from_config(cls, name_or_path="default", **kw) -> "SimulatedBench":
@@ -319,18 +320,19 @@ class SimulatedBench:
         """Apply the faults that are states, not replies, at the current instant: a Modbus
         device's scheduled disconnect (and reconnect at its end), scheduled valve seizures.
         The poller thread does this every 10 ms; tests on a manual clock may call it."""
-        now = self.clock.now()
-        for name, h in self.handles.items():
-            if not hasattr(h, "disconnect") or self.kinds[name] == "streaming_adc":
-                continue  # the streaming ADC checks its own disconnect windows frame by frame
-            want = bool(self.schedule.merged(name, now).get("disconnect"))
-            if want and name not in self._disconnected:
-                self._disconnected.add(name)
-                h.disconnect()
-            elif not want and name in self._disconnected:
-                self._disconnected.discard(name)
-                h.reconnect()
-        self.rig.apply_due_seizures(now)
+        with self._poll_lock:  # the poller thread and a test may both call this
+            now = self.clock.now()
+            for name, h in self.handles.items():
+                if not hasattr(h, "disconnect") or self.kinds[name] == "streaming_adc":
+                    continue  # the streaming ADC checks its own disconnect windows frame by frame
+                want = bool(self.schedule.merged(name, now).get("disconnect"))
+                if want and name not in self._disconnected:
+                    self._disconnected.add(name)
+                    h.disconnect()
+                elif not want and name in self._disconnected:
+                    self._disconnected.discard(name)
+                    h.reconnect()
+            self.rig.apply_due_seizures(now)
 
     def _poll_loop(self) -> None:
         while not self._poll_stop.wait(0.01):

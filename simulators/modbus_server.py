@@ -23,6 +23,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
+import socket
+import stat
 import threading
 import time
 
@@ -37,6 +40,35 @@ log = logging.getLogger(__name__)
 
 # pymodbus logs every garbled frame at ERROR level; fault-injection tests make many.
 logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+
+def _shut_sockets_on_port(port: int) -> None:
+    """Shut down every TCP socket of this process bound to ``port`` (Linux /proc).
+
+    pymodbus does not always close a client connection it accepted just before shutting
+    down: that connection would stay open and silent, and a simulated disconnect would look
+    like a timeout. A shutdown (FIN) makes the client see the connection drop; the fd itself
+    stays with its owner."""
+    try:
+        fds = os.listdir("/proc/self/fd")
+    except OSError:
+        return
+    for name in fds:
+        try:
+            fd = int(name)
+            if not stat.S_ISSOCK(os.fstat(fd).st_mode):
+                continue
+            s = socket.socket(fileno=fd)
+        except (OSError, ValueError):
+            continue
+        try:
+            if s.family in (socket.AF_INET, socket.AF_INET6) and s.type == socket.SOCK_STREAM \
+                    and s.getsockname()[1] == port:
+                s.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        finally:
+            s.detach()
 
 
 class ModbusDeviceServer:
@@ -159,6 +191,8 @@ class ModbusDeviceServer:
             return
         self._ready.set()
         await self._server.serving
+        for _ in range(5):  # let the transports' close callbacks run: clients see the connection drop
+            await asyncio.sleep(0.002)
 
     def _run(self) -> None:
         self._loop = asyncio.new_event_loop()
@@ -194,6 +228,8 @@ class ModbusDeviceServer:
             pass
         self._thread.join(timeout_s)
         self._thread = None
+        if self.transport != "rtu":
+            _shut_sockets_on_port(self.port)
 
     def disconnect(self) -> None:
         """Drop every client and stop listening (a device power-cycling or a cable pulled)."""

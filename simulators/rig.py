@@ -282,7 +282,7 @@ class SimulatedRig:
             t = self.clock.now() if t is None else t
             tau = t - tr.trigger_time
             fault_tau = self.faults.valve_fault_after_s
-            if fault_tau is not None and tr.freeze_tau is not None and tau >= tr.freeze_tau and \
+            if fault_tau is not None and tr.freeze_tau is not None and tau >= tr.freeze_tau - 1e-9 and \
                     abs(tr.freeze_tau - fault_tau) < 1e-12:
                 return ValveState.FAULT
             if self._stopped_state is not None:
