@@ -187,7 +187,7 @@ def _try_plugins() -> None:
     """Driver modules owned elsewhere (the serial streaming ADC) register themselves on import."""
     import importlib
 
-    for mod in ("velab.drivers.streaming_adc",):
+    for mod in ("velab.drivers.sadc_bench",):
         try:
             importlib.import_module(mod)
         except ModuleNotFoundError as exc:

@@ -1,16 +1,8 @@
 """Serial streaming ADC (VELAB SADC-4 protocol): hardware-clocked, 1-4 channels.
 
-The wire protocol is specified in ``docs/devices-streaming-adc.md``; this module
-is its reference implementation on the host side (the simulator in
-``velab.simulators.streaming_adc`` is the device side and reuses the codec).
-Parts: ``sadc_protocol`` (constants, frame codec, parser), ``sadc_profile``
-(TOML profile), ``sadc_blocks`` (frames -> SampleBlocks), this module (transport,
-commands, reader thread).
-
-Qt-free. The transport is injected: a pyserial URL or path (real port, pty,
-``socket://host:port``, ``loop://``) opened with :func:`serial.serial_for_url`,
-or an already-open serial-like object (``read``, ``write``, ``in_waiting``,
-``timeout``; ``open``/``close`` for reconnection).
+Protocol: ``docs/devices-streaming-adc.md``. Parts: ``sadc_protocol`` (frame codec,
+parser), ``sadc_profile`` (TOML), ``sadc_link`` (transport, commands), ``sadc_blocks``
+(frames -> SampleBlocks), this module (configure, start/stop, reader thread). Qt-free.
 
 Typical use (the recorder's view)::
 
@@ -37,7 +29,6 @@ import re
 import threading
 import time
 from dataclasses import replace
-from pathlib import Path
 from typing import Any, Callable
 
 from velab.drivers.base import (  # noqa: F401 - pressure_to_head_m re-exported
@@ -474,42 +465,3 @@ __all__ = [
     "StreamingADC", "StreamingADCProfile", "StreamingADCProfileError", "actual_rate", "auto_block",
     "channel_mask", "crc16", "default_profile", "encode_frame", "frame_length", "load_profile", "mask_channels",
 ]
-
-
-# ---------------------------------------------------------------- bench registration
-
-_BENCH_KEYS = {"url", "port", "rate_hz", "block_samples", "baudrate", "name"}
-
-
-def _bench_factory(dev, connect: bool = True) -> "StreamingADC":
-    """``[devices.X] kind = "streaming_adc"``: ``url`` (or ``port``) = pyserial URL / path;
-    optional ``rate_hz``, ``block_samples``, ``baudrate`` override the profile."""
-    from velab.drivers.base import ProfileError
-
-    unknown = sorted(set(dev.settings) - _BENCH_KEYS)
-    if unknown:
-        raise ProfileError(f"[devices.{dev.name}]: unknown key {unknown[0]!r} (known: {', '.join(sorted(_BENCH_KEYS))})")
-    prof = load_profile(dev.profile or "streaming_adc")
-    over = {}
-    url = dev.settings.get("url") or dev.settings.get("port")
-    if url:
-        over["url"] = str(url)
-    for k in ("rate_hz", "block_samples", "baudrate"):
-        if k in dev.settings:
-            over[k] = type(getattr(prof, k))(dev.settings[k])
-    prof = replace(prof, **over)
-    if not prof.url:
-        raise ProfileError(f"[devices.{dev.name}] url: missing (a pyserial URL such as socket://host:port or a port path)")
-    adc = StreamingADC(prof.url, prof, name=str(dev.settings.get("name", dev.name)))
-    if connect:
-        adc.open()
-    return adc
-
-
-def _register_bench() -> None:
-    from velab.drivers.bench import register_driver
-
-    register_driver("streaming_adc", _bench_factory)
-
-
-_register_bench()

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from velab.errors import ConfigError
 
 ANCHORS = ("start", "arm", "trigger", "now")
+_EPS = 1e-9  # s: boundaries of fault windows are this much early (float rounding of instants)
 
 
 def _bool(v):
@@ -215,8 +216,10 @@ class ScheduledFault:
         return [t + self.at.offset_s for t in anchors]
 
     def windows(self, instants: RunInstants) -> list[tuple[float, float]]:
+        """[t0, t1) on the clock's axis, both ends moved 1 ns earlier: an instant computed another
+        way (trigger + 0.2 + 0.1 vs trigger + 0.3) falls on the same side of a boundary."""
         end = math.inf if self.duration_s is None else self.duration_s
-        return [(t0, t0 + end) for t0 in self.starts(instants)]
+        return [(t0 - _EPS, t0 + end - _EPS) for t0 in self.starts(instants)]
 
     def active_at(self, t: float, instants: RunInstants) -> bool:
         return any(t0 <= t < t1 for t0, t1 in self.windows(instants))
