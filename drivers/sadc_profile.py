@@ -58,8 +58,10 @@ class StreamingADCProfile:
 def default_profile(**overrides) -> StreamingADCProfile:
     """A built-in profile (no file): pressure 4-20 mA = 0..6 bar, valve 4-20 mA = 0..100 %, two spares."""
     chans = (
-        ChannelProfile("pressure", 0, "25MA", LoopCalibration(4.0, 20.0, 0.0, 6.0e5, "Pa", range_margin=0.02), head=True),
-        ChannelProfile("valve_position", 1, "25MA", LoopCalibration(4.0, 20.0, 0.0, 100.0, "%", range_margin=0.02)),
+        ChannelProfile("pressure", 0, "25MA", LoopCalibration(4.0, 20.0, 0.0, 6.0e5, "Pa", range_margin=0.02), head=True,
+                       stuck_s=0.1),
+        ChannelProfile("valve_position", 1, "25MA", LoopCalibration(4.0, 20.0, 0.0, 100.0, "%", range_margin=0.02),
+                       stuck_s=0.1),
         ChannelProfile("spare_2", 2, "25MA", LoopCalibration(4.0, 20.0, 4.0, 20.0, "mA")),
         ChannelProfile("spare_3", 3, "25MA", LoopCalibration(4.0, 20.0, 4.0, 20.0, "mA")),
     )

@@ -6,8 +6,8 @@ import time
 import numpy as np
 import pytest
 
-from velab.drivers.base import (DeviceDisconnected, DeviceException, DeviceFault, DeviceTimeout, ProtocolError,
-                                Quality)
+from velab.drivers.base import (DeviceDisconnected, DeviceException, DeviceFault, DeviceReset, DeviceTimeout,
+                                ProtocolError, Quality)
 from velab.drivers.bench import open_device
 from velab.drivers.valve import ValveState
 from velab.simulators.bench import SimulatedBench
@@ -249,6 +249,33 @@ def test_adc_stuck_sensor_is_flagged_stale(sim):
         assert all(b.quality_of(i, 1) is Quality.OK for i in range(len(b)))
     finally:
         adc.close()
+
+
+def test_adc_counter_going_back_is_a_device_reset(sim):
+    adc, other = connect(sim, "pressure_adc"), connect(sim, "pressure_adc")
+    try:
+        adc.start_buffer()
+        sim.clock.advance(0.1)
+        assert adc.read_buffer().n == 200
+        other.start_buffer()  # someone restarts the module's acquisition: its counter goes back to 0
+        sim.clock.advance(0.01)
+        e = bounded(adc.read_buffer, DeviceReset, "sample counter went back from 200 to 20")
+        assert e.device == "pressure_adc" and e.reason == "reset"
+        adc.attach_buffer()  # re-attaching explicitly resumes from the new counter
+        sim.clock.advance(0.01)
+        assert adc.read_buffer().n == 20
+    finally:
+        adc.close()
+        other.close()
+
+
+def test_unnamed_flow_alarm_bit_is_a_fault_not_ignored(sim):
+    fm = connect(sim, "flowmeter", "tcp")
+    try:
+        sim.rig.faults.flow_alarm_bits = 1 << 7  # a bit the profile does not name
+        assert fm.read_flow().quality is Quality.FAULT and fm.read_alarms() == ["bit 7"]
+    finally:
+        fm.close()
 
 
 def test_adc_overrun_is_a_counted_gap_not_invented_samples(sim):
