@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from velab.config import CONFIG_ROOT, read_toml
 from velab.drivers.base import LoopCalibration, ProfileError
 from velab.drivers.sadc_protocol import MAX_BLOCK, MAX_CHANNELS, RANGES_FS, RATE_MAX_HZ, RATE_MIN_HZ
 from velab.errors import ConfigError
@@ -119,8 +120,6 @@ def load_profile(name_or_path: str | Path = "streaming_adc") -> StreamingADCProf
 
     Every error is one line naming the file and the key.
     """
-    from velab.config import CONFIG_ROOT, read_toml
-
     p = Path(name_or_path)
     if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
         p = CONFIG_ROOT / "devices" / f"{name_or_path}.toml"

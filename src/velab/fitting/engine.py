@@ -27,7 +27,7 @@ from functools import cached_property
 import numpy as np
 
 from velab.config import GRAVITY_M_S2, MODULUS_BOUNDS_PA, VISCOSITY_BOUNDS_PA_S, Rig
-from velab.model import ValveHeadModel, creep_scale
+from velab.model import ValveHeadModel, creep_scale, series_impedance
 
 
 class HeadEvaluator:
@@ -57,7 +57,7 @@ class HeadEvaluator:
         self.n_t = vm.t.size
         self.s = vm.s_band.copy()
         self.gA = GRAVITY_M_S2 * p.area_m2
-        self.W = self.s / self.gA + rig.linear_resistance  # s Li + R
+        self.W = series_impedance(self.s, rig)  # s Li + R (+ unsteady R_u(s)), velab.model
         self.L = p.length_m
         self.c = p.constraint_alpha * rig.fluid.density_kg_m3 * p.inner_diameter_m / p.wall_thickness_m
         self._sgA = self.s * self.gA
