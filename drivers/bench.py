@@ -34,7 +34,9 @@ from typing import Callable
 
 from velab.configpath import config_stem
 from velab.drivers.base import ProfileError
-from velab.tomlschema import Reader, within
+from velab.tomlschema import Key, Reader, above, within
+
+RECORDER_ROLES = ("pressure_source", "valve", "flowmeter")
 
 
 @dataclass(frozen=True)
@@ -73,9 +75,10 @@ class Bench:
         rec = d.get("recorder") or {}
         if not isinstance(rec, dict):
             raise ProfileError(f"{path}: [recorder]: must be a table")
-        for role, device in rec.items():
-            if not isinstance(device, str):
-                raise r.fail(f"[recorder] {role}", f"must be a device name (string), got {device!r}")
+        # the recorder's roles name devices of this bench; armed_timeout_s disarms an armed rig left alone
+        spec = {role: Key(str, False, None, choices=tuple(out)) for role in RECORDER_ROLES}
+        spec["armed_timeout_s"] = Key(float, False, None, above(0, 86400, "s"))
+        rec = {k: v for k, v in r.read(rec, "[recorder] ", spec).items() if v is not None}
         simulate = r.get(d, "", "simulate", str, None)
         name = r.get(d, "", "name", str, config_stem(path))
         return cls(name, out, simulate, str(path), dict(rec))
@@ -90,8 +93,40 @@ class Bench:
             d["devices"][n] = {"kind": dev.kind, **({"profile": dev.profile} if dev.profile else {}), **dev.settings}
         return d
 
+    def to_toml(self) -> str:
+        """This bench as a bench-config TOML text (for a file ``velab record --config`` reads)."""
+        d = self.to_dict()
+        lines = [f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict)]
+        if d.get("recorder"):
+            lines += ["", "[recorder]"] + [f"{k} = {_toml_value(v)}" for k, v in d["recorder"].items()]
+        for name, t in d["devices"].items():
+            lines += _toml_table(f"devices.{name}", t)
+        return "\n".join(lines) + "\n"
+
     def of_kind(self, kind: str) -> list[BenchDevice]:
         return [d for d in self.devices.values() if d.kind == kind]
+
+
+def _toml_value(v) -> str:
+    import json
+
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)  # a JSON string is a valid TOML basic string
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise ValueError(f"cannot write {v!r} to TOML")
+
+
+def _toml_table(name: str, t: dict) -> list[str]:
+    out = ["", f"[{name}]"] + [f"{k} = {_toml_value(v)}" for k, v in t.items() if not isinstance(v, dict)]
+    for k, v in t.items():
+        if isinstance(v, dict):
+            out += _toml_table(f"{name}.{k}", v)
+    return out
 
 
 def load_bench(name_or_path: str | os.PathLike) -> Bench:
@@ -165,7 +200,7 @@ def _try_plugins() -> None:
     """Driver modules owned elsewhere (the serial streaming ADC) register themselves on import."""
     import importlib
 
-    for mod in ("velab.drivers.streaming_adc",):
+    for mod in ("velab.drivers.sadc_bench",):
         try:
             importlib.import_module(mod)
         except ModuleNotFoundError as exc:

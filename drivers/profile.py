@@ -35,8 +35,8 @@ from dataclasses import dataclass, field, replace
 
 from velab.configpath import config_stem, load_config
 from velab.drivers.base import ProfileError
+from velab.drivers.modbus_types import DATA_TYPES, WordOrder, decode_registers, encode_value, register_count
 from velab.tomlschema import Key, Reader, within
-from velab.drivers.modbus import DATA_TYPES, WordOrder, decode_registers, encode_value, register_count
 
 
 @dataclass(frozen=True)
@@ -84,7 +84,8 @@ class RegisterSpec:
             raise ValueError(f"{what or self.name} = {value} {self.units} is above the profile maximum {self.max}")
 
     def bit_names(self, word: int) -> list[str]:
-        return [name for bit, name in sorted(self.bits.items()) if word >> bit & 1]
+        """Names of the set bits; a set bit the profile does not name is never hidden ("bit N")."""
+        return [self.bits.get(bit, f"bit {bit}") for bit in range(word.bit_length()) if word >> bit & 1]
 
 
 @dataclass(frozen=True)

@@ -152,7 +152,9 @@ def test_record_options_are_checked(tmp_path):
     for bad in (["--ceiling", "inf"], ["--duration", "nan"], ["--rate", "-5"], ["--repeat", "0"]):
         r = rec(*bad)
         assert r.returncode == 2 and "Traceback" not in r.stderr, (bad, r.stderr)
-    r = rec("--rate", "1e9", "--duration", "1")
+    r = rec("--rate", "1e9", "--duration", "1")  # beyond any rate: refused by the option's domain
+    assert r.returncode == 2 and "--rate" in r.stderr and r.stderr.count("\n") == 1
+    r = rec("--rate", "2e5", "--duration", "1")  # a rate, but beyond the pressure source's 50 kHz
     assert r.returncode == 2 and "outside the range" in r.stderr and "Traceback" not in r.stderr
     r = rec("--ceiling", "500", "--duration", "1")
     assert r.returncode == 2 and "above the limiting pressure" in r.stderr

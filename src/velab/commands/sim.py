@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
+import os
 import signal
 import sys
 import threading
@@ -36,6 +38,9 @@ def register(subparsers) -> None:
     p.add_argument("--ephemeral", action="store_true", help="ephemeral ports, no pty links (ignore fixed ports)")
     p.add_argument("--duration", type=float_range(0, 1e7, lo_open=True, units="s"), default=None,
                    help="stop after this many seconds (default: Ctrl-C)")
+    p.add_argument("--json", action="store_true",
+                   help="print the endpoints as one JSON line on stdout (pid, endpoints, a bench config "
+                        "reaching them), for scripts and tests")
     p.set_defaults(func=run)
 
 
@@ -65,13 +70,10 @@ def run(args: argparse.Namespace) -> int:
         except (OSError, RuntimeError) as exc:  # a fixed port already taken, no ptys
             raise UnavailableError(f"cannot start the simulated rig: {exc} (another `velab sim`? try --ephemeral)") from None
         rig = sim.rig.rig
-        print(f"velab sim: rig {rig.name}, material {sim.rig.material.name}, "
-              f"Q0 = {rig.steady_flow_m3_s * 1e3:.2f} l/s, steady head {rig.steady_head_m:.2f} m")
-        for e in sim.endpoints:
-            extra = f" (link {e.link})" if e.link else ""
-            unit = f" unit {e.unit}" if e.unit is not None else ""
-            print(f"  {e.device:<14} {e.kind:<15} {e.transport:<11} {e.address}{extra}{unit}")
-        print("Ctrl-C to stop.", flush=True)
+        if args.json:
+            print(json.dumps({"pid": os.getpid(), **sim.describe()}), flush=True)
+        else:
+            _print_endpoints(sim, rig)
         try:
             stop.wait(args.duration)
         except KeyboardInterrupt:
@@ -81,3 +83,13 @@ def run(args: argparse.Namespace) -> int:
         sim.stop()
     log.info("velab sim: stopped")
     return 0
+
+
+def _print_endpoints(sim, rig) -> None:
+    print(f"velab sim: rig {rig.name}, material {sim.rig.material.name}, "
+          f"Q0 = {rig.steady_flow_m3_s * 1e3:.2f} l/s, steady head {rig.steady_head_m:.2f} m")
+    for e in sim.endpoints:
+        extra = f" (link {e.link})" if e.link else ""
+        unit = f" unit {e.unit}" if e.unit is not None else ""
+        print(f"  {e.device:<14} {e.kind:<15} {e.transport:<11} {e.address}{extra}{unit}")
+    print("Ctrl-C to stop.", flush=True)
