@@ -124,7 +124,9 @@ class ValveActuator(ModbusDevice):
     def command(self, cmd: Command) -> None:
         """Write one command. It is never repeated blindly: after a lost reply (timeout or a
         rejected reply) the state is read back; if the command took effect that is success,
-        if it clearly did not the command is sent again (up to the bus's retries)."""
+        if it clearly did not the command is sent again (up to the bus's retries). If the
+        read-back fails too (after its own retries) the actuator is not answering: the lost
+        reply's error is raised at once (more attempts would only multiply the timeouts)."""
         if cmd is Command.TRIGGER:
             self.trigger()
             return
@@ -138,8 +140,8 @@ class ValveActuator(ModbusDevice):
                 lost = exc
             try:
                 st = self.read_status()
-            except DeviceError:
-                continue  # cannot tell: another attempt of the (idempotent) command
+            except DeviceError as exc:
+                raise lost.again(f"{lost}; state not read back either: {exc}") from exc
             if st.state in _REACHED[cmd]:
                 return
         raise lost

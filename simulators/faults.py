@@ -21,10 +21,14 @@ what a sim config's ``[faults]`` says::
 Modbus protocol faults (``DeviceFaults`` fields = scheduled fault names):
 delay_s (reply delayed; longer than the client's timeout = a timeout followed by a
 late reply), exception_code, corrupt_crc (last byte flipped: a bad CRC on RTU),
-garble (every byte XOR 0x5A), silent (no reply), short_by (reply truncated by N
-bytes), extra_bytes (N junk bytes after the reply), wrong_unit (reply from another
-unit id), disconnect (scheduled only: the endpoint goes away; comes back at the end
-of the window, never without a duration), count (only the next N requests).
+garble (every byte XOR 0x5A), silent (the device takes no request and sends no
+reply), drop_reply (the request is carried out, its reply lost on the way back: a
+written command takes effect), drop_request (the request is lost on the way: not
+carried out, no reply), short_by (reply truncated by N bytes), extra_bytes (N junk
+bytes after the reply), wrong_unit (reply from another unit id), disconnect
+(scheduled only: the endpoint goes away; comes back at the end of the window, never
+without a duration); qualifiers: count (only the next N requests), writes_only (only
+write requests: commands and settings; polls go on).
 """
 
 from __future__ import annotations
@@ -48,17 +52,20 @@ class DeviceFaults:
     short_by: int = 0
     extra_bytes: int = 0
     wrong_unit: bool = False
+    drop_reply: bool = False
+    drop_request: bool = False
+    writes_only: bool = False
     count: int | None = None
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 
     def active(self) -> bool:
         return bool(self.delay_s or self.exception_code or self.corrupt_crc or self.garble or self.silent
-                    or self.short_by or self.extra_bytes or self.wrong_unit)
+                    or self.short_by or self.extra_bytes or self.wrong_unit or self.drop_reply or self.drop_request)
 
-    def consume(self) -> bool:
-        """Called once per request: True if the fault applies to this one."""
+    def consume(self, write: bool = False) -> bool:
+        """Called once per request: True if the fault applies to this one (``writes_only``: to writes only)."""
         with self._lock:
-            if not self.active():
+            if not self.active() or (self.writes_only and not write):
                 return False
             if self.count is None:
                 return True
@@ -69,11 +76,12 @@ class DeviceFaults:
 
     def as_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)
-                if not f.name.startswith("_") and f.name != "count" and getattr(self, f.name)}
+                if not f.name.startswith("_") and f.name not in ("count", "writes_only") and getattr(self, f.name)}
 
     def clear(self) -> None:
         self.delay_s, self.exception_code = 0.0, None
         self.corrupt_crc = self.garble = self.silent = self.wrong_unit = False
+        self.drop_reply = self.drop_request = self.writes_only = False
         self.short_by = self.extra_bytes = 0
         self.count = None
 

@@ -13,9 +13,11 @@ endpoint, in a daemon thread with its own asyncio loop:
 Register values are produced at request time by the device's ``read`` (no updater
 thread). Faults act here, decided once per request in the pymodbus ``action``
 callback from the device's ``DeviceFaults`` (from the start) and the rig's fault
-schedule at the request's instant: reply delay and exception replies in the action,
-corrupted / garbled / truncated / padded / wrong-unit / missing replies in
-``trace_packet``. A delay blocks this server's loop (a single-threaded device, like a
+schedule at the request's instant: a lost request or a silent device (nothing is
+carried out), reply delay and exception replies in the action; corrupted / garbled /
+truncated / padded / wrong-unit / lost replies in ``trace_packet``. A reply fault
+that begins while the request is carried out (anchored at the instant that request
+makes: the trigger) applies to its reply: the command took effect, its reply is lost. A delay blocks this server's loop (a single-threaded device, like a
 real one): requests queue behind it and every reply keeps its own transaction id.
 """
 
@@ -35,6 +37,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from velab.drivers.modbus import crc16
+from velab.simulators.schedule import MODBUS_REPLY_FAULTS, merge_faults
 
 log = logging.getLogger(__name__)
 
@@ -112,18 +115,38 @@ class ModbusDeviceServer:
         blocks = [SimData(addr, count=n, values=0, datatype=DataType.REGISTERS) for addr, n in self.device.layout()]
         return SimDevice(id=self.device.unit, simdata=blocks, action=self._action)
 
-    def _decide(self) -> dict:
-        """The faults that apply to this request: the device's own, then the schedule's at this instant."""
+    def _schedule(self):
+        return getattr(getattr(self.device, "rig", None), "schedule", None)
+
+    def _request_faults(self, write: bool) -> tuple[dict, frozenset]:
+        """The faults that apply to this request as it arrives: the device's own, then the schedule's
+        at this instant (each counted once); and the ids of the schedule entries taken."""
         dev = self.device
-        now = dict(dev.faults.as_dict()) if dev.faults.consume() else {}
-        sched = getattr(getattr(dev, "rig", None), "schedule", None)
-        if sched is not None:
-            now.update(sched.merged(dev.name, dev.rig.clock.now(), consume=True))
-        return now
+        now = dict(dev.faults.as_dict()) if dev.faults.consume(write) else {}
+        sched = self._schedule()
+        if sched is None:
+            return now, frozenset()
+        entries = sched.take(dev.name, dev.rig.clock.now(), write=write)
+        now.update(merge_faults(entries))
+        return now, frozenset(e.id for e in entries)
+
+    def _reply_faults(self, write: bool, taken: frozenset) -> dict:
+        """Reply faults of schedule entries that began while the request was carried out: a fault at
+        the trigger instant (marked by the TRIGGER being executed) hits the reply to that TRIGGER."""
+        sched = self._schedule()
+        if sched is None:
+            return {}
+        later = sched.take(self.device.name, self.device.rig.clock.now(), write=write, exclude=taken,
+                           kinds=MODBUS_REPLY_FAULTS)
+        return {k: v for k, v in merge_faults(later).items() if k in MODBUS_REPLY_FAULTS}
 
     async def _action(self, fc, start, address, count, registers, values):
         self.requests += 1
-        self._now = now = self._decide()
+        write = values is not None
+        now, taken = self._request_faults(write)
+        self._now = now
+        if now.get("silent") or now.get("drop_request") or now.get("disconnect"):
+            return None  # the device never sees the request: nothing is carried out (and no reply: _trace_packet)
         if now.get("delay_s"):
             end = time.monotonic() + now["delay_s"]
             while time.monotonic() < end and not self._stopping.is_set():  # blocking on purpose (see above)
@@ -137,11 +160,13 @@ class ModbusDeviceServer:
         try:
             if values:
                 code = self.device.write(address, list(values))
+                self._now = {**now, **self._reply_faults(write, taken)}
                 return ExcCodes(code) if code else None
             live = self.device.read(address, count)
         except Exception:  # noqa: BLE001 - a simulator bug must show, as a device failure reply
             log.exception("simulated device %s failed", getattr(self.device, "name", "?"))
             return ExcCodes.DEVICE_FAILURE
+        self._now = {**now, **self._reply_faults(write, taken)}
         off = address - start
         registers[off:off + count] = [int(v) & 0xFFFF for v in live]
         return None
@@ -152,7 +177,7 @@ class ModbusDeviceServer:
         now, self._now = self._now, {}
         if not now or not data:
             return data
-        if now.get("silent") or now.get("disconnect"):
+        if now.get("silent") or now.get("disconnect") or now.get("drop_reply") or now.get("drop_request"):
             return b""
         rtu = self.transport != "tcp"
         if now.get("wrong_unit"):

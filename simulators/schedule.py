@@ -87,7 +87,12 @@ def _exception_code(v):
 MODBUS_FAULTS = {
     "delay_s": _number(0), "exception_code": _exception_code, "corrupt_crc": _bool, "garble": _bool, "silent": _bool,
     "short_by": _int(1), "extra_bytes": _int(1), "wrong_unit": _bool, "disconnect": _bool, "count": _int(1),
+    "drop_reply": _bool, "drop_request": _bool, "writes_only": _bool,
 }
+# Modbus faults that act on a reply, and can therefore also begin between a request and its reply
+# (a fault anchored at the trigger instant hits the very reply to TRIGGER: the command was carried out)
+MODBUS_REPLY_FAULTS = ("drop_reply", "silent", "disconnect", "corrupt_crc", "garble", "short_by", "extra_bytes",
+                       "wrong_unit")
 STREAM_FAULTS = {
     "silent": _bool, "corrupt": _bool, "corrupt_every": _int(1), "drop": _bool, "garbage": _bool, "disconnect": _bool,
 }
@@ -118,6 +123,8 @@ def validate_fault(fault, family: str, where: str) -> dict:
         if k == "channel_mA":
             v = {int(c): float(mA) for c, mA in v.items()}
         out[k] = v
+    if not set(out) - {"count", "writes_only"}:
+        raise ConfigError(f"{where}: count and writes_only only qualify a fault: name one (e.g. drop_reply = true)")
     if "valve_fault_bits" in out and not out.get("valve_seize"):
         raise ConfigError(f"{where}: valve_fault_bits needs valve_seize = true")
     return out
@@ -261,14 +268,25 @@ class FaultSchedule:
 
     def merged(self, device: str, t: float, consume: bool = False) -> dict:
         """The union of the faults active at t (later entries win); ``consume`` counts Modbus requests."""
-        out: dict = {}
+        return merge_faults(self.take(device, t) if consume else self.active(device, t))
+
+    def take(self, device: str, t: float, *, write: bool = False, exclude: frozenset = frozenset(),
+             kinds: tuple | None = None) -> list[ScheduledFault]:
+        """The entries that apply to one Modbus request at t, each counted once (``count``):
+        ``writes_only`` entries only to a ``write``; entries in ``exclude`` (ids) not again; with
+        ``kinds``, only entries with one of these faults."""
+        out = []
         for e in self.active(device, t):
-            if consume and e.remaining is not None:
+            if e.id in exclude or (e.fault.get("writes_only") and not write):
+                continue
+            if kinds is not None and not any(k in e.fault for k in kinds):
+                continue
+            if e.remaining is not None:
                 with self._lock:
                     if e.remaining <= 0:
                         continue
                     e.remaining -= 1
-            out.update({k: v for k, v in e.fault.items() if k != "count"})
+            out.append(e)
         return out
 
     def windows(self, device: str, t_lo: float, t_hi: float) -> list[tuple[float, float, dict]]:
@@ -279,6 +297,14 @@ class FaultSchedule:
                 if t0 <= t_hi and t1 > t_lo:
                     out.append((t0, t1, e.fault))
         return out
+
+
+def merge_faults(entries) -> dict:
+    """One fault table from several entries (later entries win); the qualifiers (count, writes_only) dropped."""
+    out: dict = {}
+    for e in entries:
+        out.update({k: v for k, v in e.fault.items() if k not in ("count", "writes_only")})
+    return out
 
 
 def parse_schedule(items, devices: dict[str, str], where: str = "[faults]") -> list[dict]:

@@ -6,8 +6,8 @@ import struct
 
 import pytest
 
-from velab.drivers.base import (DeviceException, DeviceFault, ImplausibleReply, Quality, TriggerNotStarted,
-                                TriggerRefused, TriggerUnknown)
+from velab.drivers.base import (DeviceException, DeviceFault, DeviceTimeout, ImplausibleReply, Quality,
+                                TriggerNotStarted, TriggerRefused, TriggerUnknown)
 from velab.drivers.modbus import ModbusClient, crc16
 from velab.drivers.testing import expected_protocol
 from velab.drivers.valve import TriggerResult, ValveActuator, ValveState
@@ -106,6 +106,15 @@ def test_lost_hold_reply_read_back_not_reached_is_resent():
     pairs = [(HOLD, None)] + status(ValveState.RUNNING, 60.0, 0.05, 5) + [(HOLD, HOLD_ECHO)]
     with expected_protocol(pairs) as t:
         valve(t).hold()
+
+
+def test_lost_hold_reply_and_no_read_back_raises_at_once():
+    """The actuator answers nothing (the read-back failed after its retries too): HOLD is not sent again,
+    so a command to a dead actuator costs one write and one read-back, not three of each."""
+    pairs = [(HOLD, None)] + [(READ_HEAD, None)] * 3
+    with expected_protocol(pairs) as t:
+        with pytest.raises(DeviceTimeout, match="state not read back either"):
+            valve(t).hold()
 
 
 def test_unknown_state_code_is_re_read_once_then_implausible():

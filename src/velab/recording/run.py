@@ -10,7 +10,7 @@ import math
 import threading
 import time
 
-from velab.drivers.base import DeviceError
+from velab.drivers.base import TriggerNotStarted, TriggerUnknown
 from velab.drivers.valve import ValveState
 from velab.errors import VelabError
 from velab.recording import phases as P
@@ -51,6 +51,7 @@ class RunControl:
         self._last_progress = 0.0
         self._halted = False
         self._fit_error = ""
+        self._valve_lost = False  # the safe-state command could not reach the actuator
 
     def _run_active(self) -> bool:
         return self._writer is not None and not self._finished.is_set()
@@ -155,29 +156,39 @@ class RunControl:
         return self._fire_trigger()
 
     def _fire_trigger(self) -> float:
-        tl, valve = self._timeline, self.devices[self.roles["valve"]]
+        """TRIGGER once; the driver names the outcome (its read-back after a lost reply decides):
+        started -> the run goes on (a lost reply is a fault event); not started or refused -> failed,
+        the armed valve aborted; unknown (no read-back) -> failed, ABORT sent without asking first."""
+        tl, name = self._timeline, self.roles["valve"]
         self._steady = tl.steady_head(self._steady)
-        t_est = tl.mark_trigger(time.time(), getattr(self.clock, "scale", 1.0) if self.clock is not None else 1.0)
+        sent = time.time()
+        t_est = tl.mark_trigger(sent, getattr(self.clock, "scale", 1.0) if self.clock is not None else 1.0)
         try:
-            valve.trigger()
-        except DEVICE_ERRORS as exc:
-            # the command may have arrived although its reply was lost: the valve's state decides
-            try:
-                st = valve.read_status()
-            except DEVICE_ERRORS:
-                st = None
-            if st is None or st.state not in (ValveState.RUNNING, ValveState.DONE):
-                self._do_end(P.FAILED, f"{self.roles['valve']}: trigger failed: {exc}")
-                raise DeviceFailure(f"{self.roles['valve']}: trigger failed: {exc}") from None
-            self._fault("valve", f"trigger reply lost ({exc}), but the valve is {st.state.name}: "
-                                 "the manoeuvre runs", "protocol")
-        self._writer.put(("trigger", t_est))
-        self._writer.put(("value", "manoeuvre/trigger_host_time", time.time()))
+            out = self.devices[name].trigger()
+        except TriggerNotStarted as exc:  # also TriggerRefused: the valve is still armed, nothing moved
+            self._trigger_failed(f"trigger not started (sent at about t = {t_est:.3f} s): {exc}", ask_valve=True)
+        except (TriggerUnknown,) + DEVICE_ERRORS as exc:  # the valve may be closing: ABORT it without asking
+            self._trigger_failed(f"trigger outcome unknown (sent at about t = {t_est:.3f} s): {exc}", ask_valve=False)
+        if out.readback:
+            st = out.status
+            self._fault("valve", f"TRIGGER reply lost ({out.lost_reply}); state read back: {st.state.name}, trigger "
+                                 f"count {st.trigger_count}: the manoeuvre started", "protocol")
+        estimate_kept = tl.commit_trigger()  # not if the feedback measured it already (a slow read-back)
+        self._writer.put(("value", "manoeuvre/trigger_host_time", sent))
         self._log("operator", f"trigger commanded at about t = {t_est:.3f} s")
-        self._set_phase(P.RECORDING, trigger_time_s=t_est, fit_window_s=self.settings.fit_window_s,
+        self._set_phase(P.RECORDING, trigger_time_s=tl.trigger_time, fit_window_s=self.settings.fit_window_s,
                         remaining_s=self.settings.fit_window_s)
-        self._emit("trigger", {"trigger_time_s": t_est, "measured": False})
+        if estimate_kept:
+            self._emit("trigger", {"trigger_time_s": t_est, "measured": False})
         return t_est
+
+    def _trigger_failed(self, message: str, ask_valve: bool):
+        """The run fails, naming the valve; the valve commanded safe first (``_do_end``)."""
+        name = self.roles["valve"]
+        message = message.replace(f"): {name}: ", "): ", 1)  # the driver's message names the device: once is enough
+        self._fault("valve", message, "no_response")
+        self._do_end(P.FAILED, f"{name}: {message}", ask_valve=ask_valve)
+        raise DeviceFailure(f"{name}: {message}")
 
     # ------------------------------------------------------------------ timers (control thread)
     def _tick(self) -> None:
@@ -241,13 +252,13 @@ class RunControl:
         if final or (not fit.busy and w >= window_s):
             fit.start(t, h, w, final=final)
 
-    def _safe_valve(self) -> None:
+    def _safe_valve(self, ask: bool = True) -> None:
         valve = self.devices.get(self.roles.get("valve", ""))
         if valve is None:
             return
         try:
-            if self._slow is not None and not self._slow.valve_answering:
-                state = None  # it did not answer the last poll: command ABORT without asking first
+            if not ask or (self._slow is not None and not self._slow.valve_answering):
+                state = None  # it did not answer (its last poll, a read-back): ABORT without asking first
             else:
                 state = valve.read_status().state
             if state in (ValveState.ARMED, ValveState.RUNNING, None):
@@ -256,16 +267,17 @@ class RunControl:
                                        ValveState.RUNNING: "actuator: manoeuvre stopped where it is (abort)",
                                        None: "actuator: abort commanded (state unknown)"}[state])
         except DEVICE_ERRORS as exc:
+            self._valve_lost = True
             self._fault("valve", f"could not be commanded to its safe state: {exc}", "no_response")
 
-    def _do_end(self, status: str, reason: str):
+    def _do_end(self, status: str, reason: str, ask_valve: bool = True):
         """On the control thread: end the run with ``status`` (idempotent)."""
         if self._finished.is_set() or self._writer is None:
             return self._summary
         with self._end_lock:
             self._end_request = self._end_request or (status, reason)
         if status != P.COMPLETED:
-            self._safe_valve()  # first: the valve matters more than the file
+            self._safe_valve(ask_valve)  # first: the valve matters more than the file
         self._finished.set()
         if self._slow is not None:
             self._slow.request_stop()
@@ -284,14 +296,14 @@ class RunControl:
             status = P.COMPLETED_WITH_FAULTS
         if self._writer.error and status != P.FAILED:
             status, reason = P.FAILED, "; ".join(x for x in (self._writer.error, reason) if x)
-        marks = "; ".join(self._marks.values())
+        marks = "; ".join(m for m in self._marks.values() if m not in reason)  # each said once
         full_reason = "; ".join(x for x in (reason, marks) if x)
         self._decide_fit(status)
         self._log("status", f"{status}: {full_reason}" if full_reason else status)
         self._log("phase", status)
         if not self._writer.close(status, full_reason[:255]):
             self._fault("storage", "the run file could not be closed within 30 s", "storage")
-        if self._slow is None or self._slow.valve_answering:
+        if not self._valve_lost and (self._slow is None or self._slow.valve_answering):
             try:  # where the valve ended up (the GUI offers Reset valve when it is closed)
                 self._emit_valve(self.devices[self.roles["valve"]].read_status())
             except DEVICE_ERRORS + (KeyError,):

@@ -69,7 +69,8 @@ class Timeline:
         self._pre_n = 0
         self.trigger_idx: int | None = None
         self.trigger_time: float | None = None
-        self.trigger_measured = False
+        self.trigger_measured = False  # the feedback was looked at (whether or not a stroke was seen)
+        self.trigger_from_feedback = False  # ... and the instant measured from it
         self._pos_t: list = []
         self._pos_v: list = []
         self._fit_t = self._fit_h = None
@@ -116,6 +117,15 @@ class Timeline:
             self.trigger_time = (idx - self.n_pre) / self.fs
         return self.trigger_time
 
+    def commit_trigger(self) -> bool:
+        """The trigger command was carried out: its estimate goes into the file, unless the valve
+        feedback has measured the instant already (the command's reply was lost and read back)."""
+        with self._lock:
+            if self.trigger_from_feedback:
+                return False
+            self.write(("trigger", self.trigger_time))
+            return True
+
     def _measure_trigger(self) -> None:
         self.trigger_measured = True
         if not self._pos_t:
@@ -129,6 +139,7 @@ class Timeline:
             return
         estimate = self.trigger_time
         self.trigger_time = t0
+        self.trigger_from_feedback = True
         self.write(("trigger", t0))
         self.hooks.log("trigger", f"trigger instant measured from the valve position: t = {t0:.5f} s")
         self.hooks.emit("trigger", {"trigger_time_s": t0, "measured": True, "estimate_s": estimate})

@@ -1,0 +1,97 @@
+"""Shared by the recorder's fault tests: run a recording against the simulated rig with a deadline,
+and catch what escapes any engine thread (a traceback somewhere)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+
+import pytest
+
+from velab.errors import VelabError
+from velab.recording import Recorder, RecordSettings
+from velab.simulators.bench import SimulatedBench
+from velab.simulators.clock import make_clock
+
+DEADLINE_S = 40.0  # a scenario that has not ended by then hangs (the documented bounds are seconds)
+CWF, FAILED, ABORTED = "completed-with-faults", "failed", "aborted"
+
+
+@pytest.fixture
+def thread_errors():
+    """Exceptions escaping any thread, and ERROR logs of the engine (a traceback somewhere)."""
+    seen = []
+    old = threading.excepthook
+    threading.excepthook = lambda a: seen.append(f"{a.thread.name}: {a.exc_type.__name__}: {a.exc_value}")
+
+    class H(logging.Handler):
+        def emit(self, record):
+            seen.append(record.getMessage())
+
+    h = H(level=logging.ERROR)
+    logging.getLogger("velab").addHandler(h)
+    yield seen
+    logging.getLogger("velab").removeHandler(h)
+    threading.excepthook = old
+
+
+def fast_sim(config="default") -> SimulatedBench:
+    """The simulated rig of a sim config (name, path or dict) on the fast clock, ephemeral endpoints."""
+    if isinstance(config, dict):
+        sim = SimulatedBench(config, ephemeral=True, clock=make_clock("fast"))
+    else:
+        sim = SimulatedBench.from_config(config, ephemeral=True, clock=make_clock("fast"))
+    return sim.start()
+
+
+def short_settings(out_dir, **kw) -> RecordSettings:
+    base = dict(duration_s=3.0, pretrigger_s=0.5, fit=False, out_dir=out_dir, stall_timeout_s=1.5)
+    return RecordSettings(**(base | kw))
+
+
+def recorder(sim, settings, source: str | None = None, prefer=None) -> Recorder:
+    bench = sim.bench(prefer=prefer)
+    if source:
+        bench = dataclasses.replace(bench, recorder={"pressure_source": source})
+    return Recorder(bench, sim.rig.rig, settings, sim=sim, owns_sim=True)
+
+
+@dataclasses.dataclass
+class Outcome:
+    summary: object  # RunSummary, or None if the run could not start
+    error: Exception | None  # what rec.run() raised (refused, could not arm)
+    elapsed_s: float
+    valve_state: str  # the simulated actuator's state when the run had ended
+    triggers: int  # TRIGGERs the simulated actuator carried out
+
+
+def run_bounded(rec: Recorder, faults: list | None = None, deadline_s: float = DEADLINE_S) -> Outcome:
+    """rec.run() on a thread with a deadline; ``faults`` collects the fault events. Closes the recorder
+    (and the simulator it owns) within the deadline."""
+    if faults is not None:
+        rec.add_listener(lambda ev: faults.append(ev.data) if ev.kind == "fault" else None)
+    box: dict = {}
+
+    def run():
+        try:
+            box["summary"] = rec.run()
+        except VelabError as exc:
+            box["error"] = exc
+
+    t0 = time.monotonic()
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    th.join(deadline_s)
+    elapsed = time.monotonic() - t0
+    hung = th.is_alive()
+    phase = rec.phase
+    rig = rec.sim.rig
+    valve_state, triggers = rig.state().name, rig.trigger_count
+    closer = threading.Thread(target=rec.close, daemon=True)
+    closer.start()
+    closer.join(deadline_s)
+    assert not hung, f"no outcome within {deadline_s} s (phase {phase})"
+    assert not closer.is_alive(), "close() did not return"
+    return Outcome(box.get("summary"), box.get("error"), elapsed, valve_state, triggers)
