@@ -112,6 +112,9 @@ class ModbusADC(ModbusDevice):
         self._t0_dev = 0.0
         self._t0_host: float | None = None
         self._last_counter = 0
+        self._segment = 0  # +1 after each reset of the module (DeviceReset)
+        self._resume_after: float | None = None  # host time of the last sample before a reset
+        self._restart_pending = False
 
     def channel(self, name_or_index) -> Channel:
         for c in self.channels:
@@ -180,6 +183,7 @@ class ModbusADC(ModbusDevice):
         """(Re)start the module's acquisition: the counter restarts at 0; read from sample 0."""
         self.write_value("acquisition_control", 1)
         self._attach(from_start=True)
+        self._resume_after, self._restart_pending = None, False  # a new acquisition, not a resumed one
 
     def stop_buffer(self) -> None:
         self.write_value("acquisition_control", 0)
@@ -213,9 +217,15 @@ class ModbusADC(ModbusDevice):
         return self._fs
 
     def _counter(self) -> int:
-        """The module's sample counter; it never goes backwards unless the module restarted."""
+        """The module's sample counter; it never goes backwards unless the module restarted. A counter
+        that went back is read once more first (a corrupted reply gets one more chance). After a reset
+        the next block starts a new segment, ``restarted``, its gap estimated from host time."""
         c = int(self.read_value("sample_counter"))
         if c < self._last_counter:
+            c = int(self.read_value("sample_counter"))
+        if c < self._last_counter:
+            if self._next is not None and self._fs:
+                self._resume_after = self._t0_host + (self._next - 1) / self._fs  # host time of the last sample
             self._next = None  # re-attach explicitly (start_buffer / attach_buffer)
             raise DeviceReset(f"{self.name}: sample counter went back from {self._last_counter} to {c} "
                               f"(module restarted): samples since are not continuous", device=self.name)
@@ -226,6 +236,9 @@ class ModbusADC(ModbusDevice):
         """Everything new since the last call (or up to max_samples), never invented, losses counted."""
         if self._next is None:
             self.attach_buffer()
+            if self._resume_after is not None:  # after a reset: a new segment, never silently contiguous
+                self._segment += 1
+                self._restart_pending = True
         fs, nch, cap = self._fs, self._nch, self._cap
         self.stats.polls += 1
         counter = self._counter()
@@ -263,9 +276,14 @@ class ModbusADC(ModbusDevice):
         self.stats.lost += lost
         self.stats.samples += n
         self._next = start + n
-        return self._block(start, raw, lost)
+        restarted = False
+        if self._restart_pending and n:
+            # the samples between the reset and the re-attach are unknown: the gap is estimated from host time
+            lost += max(0, int(round((self._t0_host + start / fs - self._resume_after) * fs)) - 1)
+            self._restart_pending, self._resume_after, restarted = False, None, True
+        return self._block(start, raw, lost, restarted)
 
-    def _block(self, first: int, raw: np.ndarray, lost: int) -> SampleBlock:
+    def _block(self, first: int, raw: np.ndarray, lost: int, restarted: bool = False) -> SampleBlock:
         nch, fs = raw.shape[1], self._fs
         chans = self.channels[:nch]
         signal = np.empty(raw.shape)
@@ -280,7 +298,7 @@ class ModbusADC(ModbusDevice):
             self._stuck.flag(j, raw[:, j], quality[:, j])
         n = raw.shape[0]
         return SampleBlock(
-            segment=0, first_index=first, rate_hz=fs, host_time_s=self._t0_host + (first + n - 1) / fs,
+            segment=self._segment, first_index=first, rate_hz=fs, restarted=restarted, host_time_s=self._t0_host + (first + n - 1) / fs,
             raw=raw, signal=signal, values=values, channels=tuple(c.name for c in chans),
             units=tuple(c.calibration.units for c in chans),
             quality=tuple(worst_quality(quality[:, j]) for j in range(nch)), lost_before=lost,

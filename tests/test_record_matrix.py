@@ -12,21 +12,18 @@ armed, and no traceback from any engine thread.
 from __future__ import annotations
 
 import dataclasses
-import logging
-import math
 import threading
 import time
 
 import pytest
 
+from record_helpers import ABORTED, CWF, DEADLINE_S, FAILED, thread_errors  # noqa: F401 - a fixture
 from velab.errors import VelabError
 from velab.recording import Recorder, RecordSettings
 from velab.runfile import read_run
 from velab.simulators.bench import SimulatedBench
 from velab.simulators.clock import make_clock
 
-DEADLINE_S = 40.0  # a scenario that has not ended by then hangs (the documented bounds are seconds)
-CWF, FAILED, ABORTED = "completed-with-faults", "failed", "aborted"
 REFUSED = "refused"  # arm raises RunRefused (3) or DeviceFailure (5): nothing moved
 
 # (source, target, fault, instant, expected statuses)
@@ -52,12 +49,8 @@ for instant in ("at_arm", "mid_record"):
         ("streaming_adc", "streaming_adc", "corrupt", instant, {CWF}),
     ]
 SCENARIOS.append(("streaming_adc", "streaming_adc", "silent", "at_trigger", {FAILED}))
-# sensor faults: before the trigger the transducer is not trusted for a manoeuvre (aborted); after it,
-# the data are flagged and the run completes with faults; a 22 mA loop is never a pressure-ceiling abort
-for src in ("streaming_adc", "pressure_adc"):
-    for fault in ("stuck", "mA22", "mA2") + (("nan",) if src == "streaming_adc" else ()):
-        SCENARIOS.append((src, "transducer", fault, "at_arm", {ABORTED}))
-        SCENARIOS.append((src, "transducer", fault, "mid_record", {CWF}))
+# sensor faults of the pressure transducer (stuck, 2 mA, 22 mA, NaN, implausible replies), both sources, before
+# and after the trigger: tests/test_record_quality.py, scheduled from a sim config
 SCENARIOS.append(("streaming_adc", "position_feedback", "stuck", "at_arm", {CWF}))
 SCENARIOS.append(("pressure_adc", "position_feedback", "stuck", "at_arm", {CWF}))
 # planned before arm (the simulated actuator plans its stroke when armed): it seizes 0.08 s into the stroke
@@ -65,7 +58,7 @@ SCENARIOS.append(("streaming_adc", "valve", "seized", "before_arm", {ABORTED}))
 SCENARIOS.append(("streaming_adc", "flowmeter", "flow_nan", "mid_record", {CWF}))
 SCENARIOS.append(("streaming_adc", "flowmeter", "flow_alarm", "mid_record", {CWF}))  # empty-pipe alarm
 
-DEVICE_OF = {"transducer": None, "position_feedback": "valve"}
+DEVICE_OF = {"position_feedback": "valve"}
 
 
 def _later(dt, fn):
@@ -100,17 +93,8 @@ def inject(sim, rec, target: str, fault: str) -> None:
             f.set(reconnect_delay_s=0.2, disconnect_after_frames=0)
         elif fault == "corrupt":
             f.set(corrupt_every=5)
-    elif target in ("transducer", "position_feedback"):
-        ch = 0 if target == "transducer" else 1
-        if fault == "stuck":
-            rf.stuck_channels = {**rf.stuck_channels, ch: sim.clock.now()}
-        elif fault == "mA22":
-            rf.channel_mA = {ch: 22.0}
-        elif fault == "mA2":
-            rf.channel_mA = {ch: 2.0}
-        elif fault == "nan":  # a 0.5 s NaN burst on the stream's own time axis
-            t = rec._timeline.baseline_s if rec._timeline else 0.0
-            sim.faults["streaming_adc"].set(input_faults=((ch, t, t + 0.5, math.nan),))
+    elif target == "position_feedback" and fault == "stuck":
+        rf.stuck_channels = {**rf.stuck_channels, 1: sim.clock.now()}
     elif fault == "seized":
         rf.valve_fault_after_s = 0.08
     elif fault == "flow_nan":
@@ -119,24 +103,6 @@ def inject(sim, rec, target: str, fault: str) -> None:
         rf.flow_alarm_bits = 1
     else:
         raise AssertionError(f"unknown scenario {target} {fault}")
-
-
-@pytest.fixture
-def thread_errors():
-    """Exceptions escaping any thread, and ERROR logs of the engine (a traceback somewhere)."""
-    seen = []
-    old = threading.excepthook
-    threading.excepthook = lambda a: seen.append(f"{a.thread.name}: {a.exc_type.__name__}: {a.exc_value}")
-
-    class H(logging.Handler):
-        def emit(self, record):
-            seen.append(record.getMessage())
-
-    h = H(level=logging.ERROR)
-    logging.getLogger("velab").addHandler(h)
-    yield seen
-    logging.getLogger("velab").removeHandler(h)
-    threading.excepthook = old
 
 
 @pytest.mark.timeout(120)
@@ -228,8 +194,6 @@ def test_fault_table(tmp_path, thread_errors, source, target, fault, instant, ex
     assert not run.incomplete and run.status == summary.status
     if summary.status in (ABORTED, FAILED):
         assert summary.reason
-    if fault == "mA22":
-        assert "pressure ceiling" not in summary.reason  # a sensor fault, not an overpressure
     named = [f for f in faults if device is None or f["device"] == device]
     assert named or (device and device in summary.reason), [str(f) for f in faults]
     assert any(k == "fault" for _, k, _ in run.events) or summary.status in (ABORTED, FAILED)

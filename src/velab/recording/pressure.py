@@ -2,8 +2,10 @@
 
 One class for both kinds: ``look()`` (a short pressure reading before anything is armed),
 ``start(on_block)`` (its own acquisition thread), ``stop()`` (bounded). Every block goes to
-``on_block(block, pressure_codes, valve_codes)`` with the plausibility codes of
-``velab.recording.safety.SensorCheck``. Failures end the run through ``hooks.request_end``:
+``on_block(block, pressure_codes, valve_codes)`` with the driver's per-sample quality codes of
+those channels (``SampleBlock.sample_quality``: the one source of per-sample quality; NE43
+limits, open loop, NaN, stuck counts are the driver's, from its profile). Failures end the run
+through ``hooks.request_end``:
 a fatal driver error at once, a source that delivers nothing for ``stall_timeout_s`` (wall
 seconds: a silent, frozen or vanished device, a reconnection that takes too long) as well.
 """
@@ -16,8 +18,11 @@ import time
 
 import numpy as np
 
+from dataclasses import asdict
+
 from velab.drivers.base import DeviceError, DeviceTimeout, pressure_to_head_m
-from velab.recording.safety import SensorCheck
+from velab.drivers.blocks import QUALITY_CODE, worst_quality
+from velab.drivers.streaming_adc import MAX_BLOCK, RATE_MAX_HZ, RATE_MIN_HZ, auto_block
 from velab.recording.types import DEVICE_ERRORS, DeviceFailure
 
 log = logging.getLogger(__name__)
@@ -55,24 +60,16 @@ class PressureSource:
     def rate_range(self) -> tuple[float, float]:
         """The sample rates this source accepts (Hz)."""
         if self.streaming:
-            from velab.drivers.streaming_adc import RATE_MAX_HZ, RATE_MIN_HZ
-
             return float(RATE_MIN_HZ), float(RATE_MAX_HZ)
         spec = self.adc.profile.reg("sample_rate")
         return float(spec.min if spec.min is not None else 1.0), float(spec.max if spec.max is not None else 1e4)
 
     def calibration(self) -> dict:
         if self.streaming:
-            from dataclasses import asdict
-
             return {c.name: asdict(c.calibration) | {"range": c.range, "input": c.index} for c in self.adc.profile.channels}
-        from dataclasses import asdict
-
         return {c.name: asdict(c.calibration) | {"type_code": c.type_code, "input": c.index} for c in self.adc.channels}
 
     def _block_samples(self, fs: float) -> int:
-        from velab.drivers.streaming_adc import MAX_BLOCK, auto_block
-
         scale = getattr(self.clock, "scale", 1.0) if self.clock is not None else 1.0
         return int(min(MAX_BLOCK, max(auto_block(fs, 2), auto_block(fs * scale, 2))))
 
@@ -84,16 +81,15 @@ class PressureSource:
             if self.streaming:
                 adc.configure(fs, [pch], self._block_samples(fs))
                 adc.start()
-                vals, q = [], "ok"
+                vals, codes = [], []
                 try:
                     need = max(10, int(0.05 * fs))
                     deadline = time.monotonic() + 5.0
                     while sum(v.size for v in vals) < need and time.monotonic() < deadline:
                         b = adc.get_block(timeout=2.0)
                         vals.append(b.head_m(pch))
-                        codes = SensorCheck(None).codes(b.raw[:, 0], b.signal[:, 0], b.values[:, 0])
-                        if b.quality[0].value != "ok" or codes.any():
-                            q = b.quality[0].value if b.quality[0].value != "ok" else "implausible (out of 3.8-20.5 mA)"
+                        codes.append(sample_codes(b, pch))
+                    q = worst_quality(np.concatenate(codes)).value if codes else "ok"
                 finally:
                     adc.stop()
                 h = np.concatenate(vals) if vals else np.array([np.nan])
@@ -104,7 +100,7 @@ class PressureSource:
             raise DeviceFailure(f"{self.name}: pressure check failed: {exc}") from None
 
     # ---------------------------------------------------------------- acquisition
-    def start(self, fs: float, stuck_after_s: float, stall_timeout_s: float, on_block, hooks) -> float:
+    def start(self, fs: float, stall_timeout_s: float, on_block, hooks) -> float:
         """Start the device and the acquisition thread; returns the device's actual rate."""
         adc = self.adc
         chans = [self.pressure_channel] + ([self.valve_channel] if self.valve_channel else [])
@@ -117,8 +113,6 @@ class PressureSource:
             adc.configure_buffer(int(fs), len(chans))
             adc.start_buffer()
             self.fs = float(adc.sample_rate_hz or fs)
-        stuck = max(20, int(round(stuck_after_s * self.fs)))
-        self._checks = (SensorCheck(stuck), SensorCheck(None))
         self._stop.clear()
         self.outcome = ""
         self._thread = threading.Thread(target=self._loop, args=(on_block, hooks, stall_timeout_s), daemon=True,
@@ -127,17 +121,8 @@ class PressureSource:
         return self.fs
 
     def _codes(self, b):
-        out = []
-        for ch, check in zip((self.pressure_channel, self.valve_channel), self._checks):
-            if ch is None or ch not in b.channels:
-                out.append(None)
-                continue
-            j = b.channels.index(ch)
-            dq = None if b.sample_quality is None else b.sample_quality[:, j]
-            cal = self.adc.profile.channel(ch).calibration if self.streaming else self.adc.channel(ch).calibration
-            units = getattr(cal, "signal_units", "mA")
-            out.append(check.codes(b.raw[:, j], b.signal[:, j], b.values[:, j], units, dq))
-        return out
+        return [None if ch is None or ch not in b.channels else sample_codes(b, ch)
+                for ch in (self.pressure_channel, self.valve_channel)]
 
     def _loop(self, on_block, hooks, stall_timeout_s: float) -> None:
         adc = self.adc
@@ -216,3 +201,12 @@ class PressureSource:
             if self._thread.is_alive():
                 problem = (problem + "; " if problem else "") + "acquisition thread did not end within 5 s"
         return problem
+
+
+def sample_codes(b, channel: str) -> np.ndarray:
+    """The driver's per-sample quality codes of one channel (a driver that gives only a worst
+    quality per block: that, for every sample)."""
+    j = b.channels.index(channel)
+    if b.sample_quality is not None:
+        return b.sample_quality[:, j]
+    return np.full(b.n, QUALITY_CODE[b.quality[j]], np.uint8)

@@ -124,7 +124,7 @@ class RunControl:
                                   on_valve=lambda st: setattr(self, "_valve_state", st.state))
         # 5. start the stream, then arm the actuator
         try:
-            actual = source.start(fs, s.stuck_after_s, s.stall_timeout_s, self._timeline.process, self.hooks)
+            actual = source.start(fs, s.stall_timeout_s, self._timeline.process, self.hooks)
             if abs(actual - fs) > 1e-6 * fs:
                 self._message(f"{source.name} runs at {actual:g} Hz (asked {fs:g} Hz)")
             valve.set_manoeuvre(beta, gamma, end)

@@ -1,8 +1,12 @@
-"""Safety: the surge interlock, the pressure ceiling, the output-directory check, sensor plausibility.
+"""Safety: the surge interlock, the pressure ceiling, the output-directory check.
 
-Pure functions and one small stateful checker (no I/O but the directory probe): each can be
-tested alone. A sensor fault is a sensor fault: a 22 mA loop current is flagged OVER_RANGE
-(and never counted as a pressure-ceiling crossing, which only OK samples can make).
+Pure functions (no I/O but the directory probe), each tested alone. Per-sample quality is the
+drivers' (``SampleBlock.sample_quality``: NE43 limits, open loop, NaN, stuck counts, device
+fault bits): the one source, used as it comes. What stays here is what a driver cannot judge,
+because it needs the rig: the pressure ceiling (the pipe's rating and the transducer's span
+as head) and the surge interlock. A sensor fault is a sensor fault: a 22 mA loop current is
+``sensor_fault``, not a measurement, and never trips the ceiling; an over-range sample (a
+measurement: the pressure is at least this) does.
 """
 
 from __future__ import annotations
@@ -17,14 +21,11 @@ import numpy as np
 
 from velab.config import Rig
 from velab.drivers.base import GRAVITY_M_S2, Quality
-from velab.drivers.blocks import QUALITY_CODE, QUALITY_CODES
+from velab.drivers.blocks import MEASUREMENT_CODES, QUALITY_CODE, QUALITY_CODES
 from velab.recording.settings import RecordSettings
 from velab.recording.types import RunRefused
 
-# NAMUR NE43: 3.8..20.5 mA is the measuring range of a 4-20 mA loop; beyond it the transmitter
-# signals a failure (below 3.6 mA: open loop)
-LOOP_MIN_MA, LOOP_MAX_MA, OPEN_LOOP_MA = 3.8, 20.5, 3.6
-OK, STALE = QUALITY_CODE[Quality.OK], QUALITY_CODE[Quality.STALE]
+OK = QUALITY_CODE[Quality.OK]
 
 
 @dataclass(frozen=True)
@@ -99,53 +100,6 @@ def check_output_dir(out_dir: Path, planned_bytes: int) -> None:
                          f"({free / 1e6:.1f} MB free, {need / 1e6:.1f} MB needed)")
 
 
-class SensorCheck:
-    """Per-sample plausibility of one analogue channel, block after block.
-
-    Codes (uint8, ``velab.drivers.blocks.QUALITY_CODES``) start from the driver's per-sample
-    quality when it gives one, and add: NaN (value or signal), loop current outside
-    3.8..20.5 mA (below 3.6 mA: open loop), and a stuck channel (identical raw counts for more
-    than ``stuck_samples`` samples in a row, across blocks: a live transducer's noise always
-    moves the last bits). ``stuck_samples=None`` disables the stuck test (a valve-position
-    feedback legitimately sits still at its ends).
-    """
-
-    def __init__(self, stuck_samples: int | None):
-        self.stuck_samples = stuck_samples
-        self._run_value = None
-        self._run_len = 0
-
-    def codes(self, raw: np.ndarray, signal: np.ndarray, values: np.ndarray, signal_units: str = "mA",
-              driver_codes: np.ndarray | None = None) -> np.ndarray:
-        n = raw.shape[0]
-        q = np.zeros(n, np.uint8) if driver_codes is None else np.asarray(driver_codes, np.uint8).copy()
-        if signal_units == "mA":
-            with np.errstate(invalid="ignore"):
-                q[(q == OK) & (signal > LOOP_MAX_MA)] = QUALITY_CODE[Quality.OVER_RANGE]
-                q[(q == OK) & (signal < LOOP_MIN_MA)] = QUALITY_CODE[Quality.UNDER_RANGE]
-                q[signal < OPEN_LOOP_MA] = QUALITY_CODE[Quality.OPEN_LOOP]
-        q[~np.isfinite(values) | ~np.isfinite(signal)] = QUALITY_CODE[Quality.NAN]
-        if self.stuck_samples:
-            self._stuck(np.asarray(raw).astype(np.int64), q)
-        return q
-
-    def _stuck(self, raw: np.ndarray, q: np.ndarray) -> None:
-        if raw.size == 0:
-            return
-        change = np.flatnonzero(np.diff(raw)) + 1
-        starts = np.concatenate([[0], change])
-        ends = np.concatenate([change, [raw.size]])
-        for a, b in zip(starts, ends):
-            carried = self._run_len if (a == 0 and raw[0] == self._run_value) else 0
-            if carried + (b - a) > self.stuck_samples:
-                first = max(a, a + self.stuck_samples - carried)
-                seg = q[first:b]
-                seg[seg == OK] = STALE
-        last = starts[-1]
-        self._run_len = raw.size - last + (self._run_len if last == 0 and raw[0] == self._run_value else 0)
-        self._run_value = raw[-1]
-
-
 def describe_codes(codes: np.ndarray) -> str:
     """'stale 120, over_range 3' for the non-OK codes of a block (the worst first)."""
     vals, counts = np.unique(codes[codes != OK], return_counts=True)
@@ -154,9 +108,10 @@ def describe_codes(codes: np.ndarray) -> str:
 
 
 def ceiling_crossing(head: np.ndarray, codes: np.ndarray, ceiling_m: float) -> int | None:
-    """Index of the first OK sample above the ceiling (flagged samples never trip it), or None."""
+    """Index of the first measured sample (ok, over or under range) above the ceiling, or None;
+    samples that are not measurements (sensor fault, open loop, NaN, stuck, device fault) never trip it."""
     with np.errstate(invalid="ignore"):
-        over = (head > ceiling_m) & (codes == OK)
+        over = (head > ceiling_m) & np.isin(codes, MEASUREMENT_CODES)
     idx = np.flatnonzero(over)
     return int(idx[0]) if idx.size else None
 

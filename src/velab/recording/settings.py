@@ -48,10 +48,9 @@ class RecordSettings:
     intermediate_fits: bool = True
     run_number: int = 1
     head_range: tuple = (0.5, 1.5)  # steady head accepted as this range x the rig's steady head
-    # bounds on waiting (engine) and sensor plausibility (safety)
+    # bounds on waiting (engine); per-sample quality (stuck counts, NE43 limits) is the drivers', from their profiles
     armed_timeout_s: float | None = None  # None -> the bench's [recorder] armed_timeout_s, else 300 s
     stall_timeout_s: float = 3.0  # wall seconds without pressure samples -> the run fails
-    stuck_after_s: float = 0.25  # identical raw counts for this long (device time) -> stuck channel
 
     def __post_init__(self):
         object.__setattr__(self, "out_dir", Path(self.out_dir))
@@ -62,7 +61,7 @@ class RecordSettings:
             raise VelabError(f"fit_models and head_range must be numbers, got {self.fit_models!r}, "
                              f"{self.head_range!r}") from None
         for name in ("duration_s", "sample_rate_hz", "fit_window_s", "flush_interval_s", "fit_rate_hz",
-                     "stall_timeout_s", "stuck_after_s"):
+                     "stall_timeout_s"):
             _finite(name, getattr(self, name), 0.0, strict_lo=True)
         _finite("pretrigger_s", self.pretrigger_s, 0.05)
         _finite("end_position_pct", self.end_position_pct, 0.0)

@@ -159,7 +159,7 @@ class Timeline:
 
     def _process(self, b, p_codes, v_codes) -> None:
         s, fs = self.s, self.fs
-        if b.lost_before:
+        if b.lost_before or b.restarted:  # a restarted device is never taken as contiguous, even with 0 lost
             self._gap(int(b.lost_before), bool(b.restarted))
         n = b.n
         g = self.gidx + np.arange(n)
@@ -217,7 +217,7 @@ class Timeline:
         self.lost += lost
         self.gaps += 1
         self.gidx += lost
-        what = "estimated (reconnection)" if restarted else "exact"
+        what = "estimated (reconnection or restart)" if restarted else "exact"
         note = f"{lost} samples lost before sample {self.gidx} ({what})"
         if restarted:
             note = "pressure ADC reconnected; " + note

@@ -1,0 +1,98 @@
+"""One sensor-quality path, for both pressure sources (streaming ADC, buffered Modbus ADC).
+
+The faults come from a sim config's ``[[faults.schedule]]`` (the config path, through the API):
+a stuck transducer, a 2 mA (open loop) and a 22 mA (NE43 failure-high) loop current, a NaN burst,
+an implausible reply (corrupted stream frames; Modbus-TCP replies with a flipped data byte, which
+make the module's sample counter jump: re-read, then a reset with an estimated gap, or, when it
+never stops, a failed run naming the ADC).
+Each is flagged by the driver's per-sample quality (the one source), written into the file's
+``pressure_quality`` channel, detected once (one fault event per quality code), and ends the run
+as docs/recording.md says: before the trigger a sensor fault aborts the run (blind: no manoeuvre),
+after it the data are flagged and the run completes with faults; a 22 mA reading is a sensor
+fault, never a pressure-ceiling abort. Faults after the trigger have a duration: they clear
+again mid-record, and the samples after them are OK again.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+
+from record_helpers import ABORTED, CWF, FAILED, fast_sim, recorder, run_bounded, short_settings, thread_errors  # noqa: F401
+from velab.drivers.blocks import QUALITY_CODES
+from velab.runfile import read_run
+from velab.simulators.bench import load_sim_config
+
+pytestmark = pytest.mark.timeout(120)
+
+SENSOR = {  # fault -> (schedule entry, expected quality by source)
+    "stuck": ({"device": "rig", "fault": {"stuck_channels": [0]}}, {"streaming_adc": "stale", "pressure_adc": "stale"}),
+    "2mA": ({"device": "rig", "fault": {"channel_mA": {"0": 2.0}}},
+            {"streaming_adc": "open_loop", "pressure_adc": "open_loop"}),
+    "22mA": ({"device": "rig", "fault": {"channel_mA": {"0": 22.0}}},
+             {"streaming_adc": "sensor_fault", "pressure_adc": "sensor_fault"}),
+    # the Modbus ADC's ring has no invalid-conversion code: a NaN input reads 0 mA, an open loop
+    "nan": ({"device": "rig", "fault": {"channel_mA": {"0": math.nan}}},
+            {"streaming_adc": "nan", "pressure_adc": "open_loop"}),
+}
+IMPLAUSIBLE = {"streaming_adc": {"device": "streaming_adc", "fault": {"corrupt_every": 3}},
+               "pressure_adc": {"device": "pressure_adc", "fault": {"corrupt_crc": True}}}
+SCENARIOS = [(src, f, at) for src in ("streaming_adc", "pressure_adc") for f in (*SENSOR, "implausible")
+             for at in ("arm", "trigger")]
+
+
+def sim_config(entry: dict, at: str) -> dict:
+    _, doc = load_sim_config("default")
+    doc = copy.deepcopy(dict(doc))
+    entry = dict(entry, at="arm+0.2") if at == "arm" else dict(entry, at="trigger+0.4", duration_s=0.4)
+    doc["faults"] = {"schedule": [entry]}
+    return doc
+
+
+@pytest.mark.parametrize("source,fault,at", SCENARIOS, ids=[f"{s}-{f}-at_{a}" for s, f, a in SCENARIOS])
+def test_sensor_quality_path(tmp_path, thread_errors, source, fault, at):
+    entry = IMPLAUSIBLE[source] if fault == "implausible" else SENSOR[fault][0]
+    sim = fast_sim(sim_config(entry, at))
+    # at arm: a long baseline, so that the fault (0.2 s after ARM) is in it before the trigger goes out
+    s = short_settings(tmp_path, duration_s=1.5, pretrigger_s=1.0 if at == "arm" else 0.5)
+    faults: list = []
+    out = run_bounded(recorder(sim, s, source=source), faults)
+    assert not thread_errors, thread_errors
+    assert out.error is None, out.error
+    summary = out.summary
+    run = read_run(summary.path)
+    assert not run.incomplete and run.status == summary.status
+    codes = run.channels["pressure_quality"]
+    seen = {QUALITY_CODES[int(c)].value for c in np.unique(codes)}
+    pressure_faults = [f for f in faults if f["role"] == "pressure"]
+    assert all(f["device"] == source for f in pressure_faults), pressure_faults
+    print(f"{source} {fault} at {at}: {summary.status} in {out.elapsed_s:.1f} s; codes {sorted(seen)}, "
+          f"gaps {run.gaps}; {summary.reason[:100]}")
+    if fault == "implausible":  # never taken as data: dropped (a counted gap), or the device named and the run marked
+        assert pressure_faults
+        if source == "pressure_adc" and at == "arm":  # corrupted for good: no trustworthy sample -> failed, named
+            assert summary.status == FAILED and summary.reason.startswith("pressure_adc (pressure source)")
+            return
+        assert summary.status == CWF, (summary.status, summary.reason)
+        assert run.gaps, seen  # the corrupted frames / the counter that went back: a counted gap in the file
+        return
+    want = SENSOR[fault][1][source]
+    assert want in seen, (want, seen)
+    assert seen <= {"ok", want}, seen  # nothing else flagged: one path, one code
+    detected = [f for f in pressure_faults if f["kind"] in ("quality", "stuck")]
+    assert len(detected) == 1 and detected[0]["quality"] == want, [str(f) for f in detected]  # detected once
+    assert any(k == "fault" and want in m for _, k, m in run.events), run.events  # in the file's event log
+    assert "pressure ceiling" not in summary.reason  # a sensor fault, never an overpressure
+    if at == "arm":  # blind before the trigger: no manoeuvre, the armed valve cancelled
+        assert summary.status == ABORTED and "before the trigger" in summary.reason, summary.reason
+        assert out.triggers == 0 and out.valve_state in ("ABORTED", "IDLE")
+    else:  # flagged data after the trigger: completed with faults; the fault cleared, later samples are OK
+        assert summary.status == CWF, (summary.status, summary.reason)
+        assert out.triggers == 1
+        flagged = np.flatnonzero(codes != 0)
+        assert flagged.size and codes[-1] == 0 and flagged[-1] < codes.size - 1
+        t = run.time_s
+        assert 0.3 < t[flagged[0]] - run.trigger_time_s < 0.9, t[flagged[0]] - run.trigger_time_s
