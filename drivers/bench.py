@@ -22,18 +22,26 @@
     valve = "valve"
     flowmeter = "flowmeter"
 
-``open_device(bench.devices["flowmeter"])`` builds the bus and the driver. Other
-device kinds (the streaming ADC) add themselves with ``register_driver``.
+``open_device(bench.devices["flowmeter"])`` builds the bus and the driver. The built-in kinds
+(Modbus ADC, flowmeter, valve actuator, streaming ADC) are registered here; other kinds can be
+added with ``register_driver``.
 """
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 from typing import Callable
 
-from velab.configpath import config_stem
+from velab.configpath import config_stem, load_config
 from velab.drivers.base import ProfileError
+from velab.drivers.flowmeter import Flowmeter
+from velab.drivers.modbus import BusSettings, open_bus
+from velab.drivers.modbus_adc import ModbusADC
+from velab.drivers.profile import load_profile
+from velab.drivers.sadc_bench import open_streaming_adc
+from velab.drivers.valve import ValveActuator
 from velab.tomlschema import Key, Reader, above, within
 
 RECORDER_ROLES = ("pressure_source", "valve", "flowmeter")
@@ -108,8 +116,6 @@ class Bench:
 
 
 def _toml_value(v) -> str:
-    import json
-
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, (int, float)):
@@ -131,8 +137,6 @@ def _toml_table(name: str, t: dict) -> list[str]:
 
 def load_bench(name_or_path: str | os.PathLike) -> Bench:
     """A bench by short name (``benches/<name>.toml`` along the config search path) or by path."""
-    from velab.configpath import load_config
-
     path, doc = load_config("benches", name_or_path, error=ProfileError)
     return Bench.from_dict(doc, str(path))
 
@@ -150,9 +154,6 @@ def register_driver(kind: str, factory: Callable[[BenchDevice, bool], object]) -
 
 def _modbus_factory(cls):
     def make(dev: BenchDevice, connect: bool = True):
-        from velab.drivers.modbus import BusSettings, open_bus
-        from velab.drivers.profile import load_profile
-
         profile = load_profile(dev.profile or cls.default_profile)
         conn = {k: v for k, v in dev.settings.items() if k not in _OPTION_KEYS}
         conn.setdefault("unit", profile.default_unit)
@@ -175,10 +176,6 @@ def _modbus_factory(cls):
 
 def open_device(dev: BenchDevice, connect: bool = True):
     """Build the driver for one bench device (and connect its transport)."""
-    if not DRIVERS:
-        _register_builtin()
-    if dev.kind not in DRIVERS:
-        _try_plugins()
     try:
         factory = DRIVERS[dev.kind]
     except KeyError:
@@ -187,25 +184,6 @@ def open_device(dev: BenchDevice, connect: bool = True):
     return factory(dev, connect)
 
 
-def _register_builtin() -> None:
-    from velab.drivers.flowmeter import Flowmeter
-    from velab.drivers.modbus_adc import ModbusADC
-    from velab.drivers.valve import ValveActuator
-
-    for cls in (ModbusADC, Flowmeter, ValveActuator):
-        DRIVERS.setdefault(cls.kind, _modbus_factory(cls))
-
-
-def _try_plugins() -> None:
-    """Driver modules owned elsewhere (the serial streaming ADC) register themselves on import."""
-    import importlib
-
-    for mod in ("velab.drivers.sadc_bench",):
-        try:
-            importlib.import_module(mod)
-        except ModuleNotFoundError as exc:
-            if exc.name != mod:
-                raise
-
-
-_register_builtin()
+for _cls in (ModbusADC, Flowmeter, ValveActuator):
+    register_driver(_cls.kind, _modbus_factory(_cls))
+register_driver("streaming_adc", open_streaming_adc)

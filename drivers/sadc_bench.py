@@ -1,11 +1,13 @@
-"""The streaming ADC as a bench device: ``[devices.X] kind = "streaming_adc"`` (velab.drivers.bench)."""
+"""The streaming ADC as a bench device: ``[devices.X] kind = "streaming_adc"``.
+
+``open_streaming_adc`` is the factory that velab.drivers.bench registers for that kind (the
+bench imports this module, never the other way round: no import cycle)."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 
 from velab.drivers.base import ProfileError
-from velab.drivers.bench import register_driver
 from velab.drivers.sadc_profile import load_profile
 from velab.drivers.streaming_adc import StreamingADC
 
@@ -16,7 +18,7 @@ _BENCH_OVERRIDES = {"rate_hz": "rate_hz", "block_samples": "block_samples", "bau
 _BENCH_KEYS = {"url", "port", "name", *_BENCH_OVERRIDES}
 
 
-def _bench_factory(dev, connect: bool = True) -> "StreamingADC":
+def open_streaming_adc(dev, connect: bool = True) -> StreamingADC:
     """``[devices.X] kind = "streaming_adc"``: ``url`` (or ``port``) = pyserial URL / path;
     optional ``rate_hz``, ``block_samples``, ``baudrate``, ``command_s``, ``data_s``, ``reconnect``,
     ``reconnect_s`` override the profile."""
@@ -41,6 +43,3 @@ def _bench_factory(dev, connect: bool = True) -> "StreamingADC":
     if connect:
         adc.open()
     return adc
-
-
-register_driver("streaming_adc", _bench_factory)

@@ -26,55 +26,40 @@ Sim config (``sim/<name>.toml`` along the config search path, :mod:`velab.config
     [faults.<device name>] / [faults.rig]   # from the start: see velab.simulators.faults
     [[faults.schedule]]                     # at an instant: see velab.simulators.schedule
 
-Device kinds are a registry (``register_sim_device``): the streaming-ADC simulator
-adds ``kind = "streaming_adc"`` by registering a factory
+Device kinds are a registry (``register_sim_device``) of factories
 ``factory(name, rig, cfg: dict, host: str) -> handle`` where the handle has
-``start() -> list[Endpoint]``, ``stop()`` and ``faults``; the module
-``velab.simulators.streaming_adc`` is imported (if present) before the config is read.
+``start() -> list[Endpoint]``, ``stop()`` and ``faults``; this module registers the built-in
+kinds (the Modbus devices and the streaming ADC): it imports them, they never import it.
 """
 
 from __future__ import annotations
 
-import importlib
+import ipaddress
 import os
 import threading
-from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
+from velab.config import load_material, load_rig
+from velab.configpath import load_config
+from velab.drivers.bench import Bench, BenchDevice
 from velab.errors import ConfigError
+from velab.simulators.clock import make_clock
+from velab.simulators.endpoint import Endpoint
+from velab.simulators.faults import FaultPlan
+from velab.simulators.modbus_devices import SimFlowmeter, SimModbusADC, SimValveActuator
+from velab.simulators.modbus_server import ModbusDeviceServer
+from velab.simulators.pty_bridge import PtyPair
+from velab.simulators.rig import SimulatedRig
+from velab.simulators.schedule import FaultSchedule, Instant, ScheduledFault, fault_family, validate_fault
+from velab.simulators.streaming_adc import StreamingADCSimHandle
 from velab.tomlschema import Key, Reader, above, within
 
-
-@dataclass(frozen=True)
-class Endpoint:
-    device: str
-    kind: str
-    transport: str  # "tcp" | "rtu-socket" | "rtu-pty" | other kinds' own
-    address: str  # tcp://host:port, socket://host:port, /dev/pts/N
-    unit: int | None = None
-    port: int | None = None
-    link: str | None = None  # stable symlink to a pty path
-    baudrate: int | None = None
-
-    def to_dict(self) -> dict:
-        return {k: v for k, v in asdict(self).items() if v is not None}
-
-    def bench_settings(self) -> dict:
-        """The [devices.X] connection keys that reach this endpoint."""
-        if self.kind == "streaming_adc":  # a serial stream: a pyserial URL (socket://) or the pty path
-            return {"url": self.address if self.transport == "socket" else (self.link or self.address)}
-        if self.transport == "tcp":
-            return {"transport": "tcp", "host": self.address.split("//")[1].rsplit(":", 1)[0], "port": self.port,
-                    "unit": self.unit}
-        return {"transport": "rtu", "port": self.link or self.address, "unit": self.unit,
-                "baudrate": self.baudrate or 19200}
+__all__ = ["Endpoint", "SIM_DEVICES", "SimulatedBench", "is_loopback_host", "load_sim_config", "register_sim_device"]
 
 
 def is_loopback_host(host: str) -> bool:
     """A loopback address (127.0.0.0/8, ::1) or "localhost"? Other names are not resolved (no DNS): not loopback."""
-    import ipaddress
-
     if host == "localhost":
         return True
     try:
@@ -95,16 +80,12 @@ class ModbusSimHandle:
     """One simulated Modbus device served on one or more endpoints."""
 
     def __init__(self, name: str, device, endpoints_cfg: list[dict], host: str):
-        from velab.simulators.modbus_server import ModbusDeviceServer
-        from velab.simulators.pty_bridge import PtyPair
-
         self.name, self.device, self.host = name, device, host
         self.faults = device.faults
         self.servers: list = []
         self.ptys: list = []
         self._links: list[str] = []
         self._cfg = endpoints_cfg
-        self._Server, self._Pty = ModbusDeviceServer, PtyPair
 
     def start(self) -> list[Endpoint]:
         eps = []
@@ -112,15 +93,15 @@ class ModbusSimHandle:
             tr = ep.get("transport", "tcp")
             baud = int(ep.get("baudrate", 19200))
             if tr == "tcp" or tr == "rtu-socket":
-                srv = self._Server(self.device, tr, host=self.host, port=int(ep.get("port", 0)), baudrate=baud,
+                srv = ModbusDeviceServer(self.device, tr, host=self.host, port=int(ep.get("port", 0)), baudrate=baud,
                                    wire_delay=bool(ep.get("wire_delay", False))).start()
                 self.servers.append(srv)
                 eps.append(Endpoint(self.name, self.device.kind, tr, srv.endpoint, self.device.unit, srv.port,
                                     baudrate=baud if tr != "tcp" else None))
             elif tr == "rtu-pty":
-                pair = self._Pty(baudrate=baud if ep.get("wire_delay", False) else None).start()
+                pair = PtyPair(baudrate=baud if ep.get("wire_delay", False) else None).start()
                 self.ptys.append(pair)
-                srv = self._Server(self.device, "rtu", serial_path=pair.device_path, baudrate=baud).start()
+                srv = ModbusDeviceServer(self.device, "rtu", serial_path=pair.device_path, baudrate=baud).start()
                 self.servers.append(srv)
                 link = ep.get("link")
                 if link:
@@ -161,10 +142,8 @@ class ModbusSimHandle:
 _DEVICE_KEYS = {"kind", "profile", "unit", "word_order", "endpoints", "sample_rate_hz", "buffer_channels"}
 
 
-def _modbus_factory(cls_path: str):
+def _modbus_factory(Cls):
     def make(name, rig, cfg, host):
-        mod, cls = cls_path.rsplit(".", 1)
-        Cls = getattr(importlib.import_module(mod), cls)
         unknown = sorted(set(cfg) - _DEVICE_KEYS)
         if unknown:
             raise ConfigError(f"[devices.{name}] {unknown[0]}: unknown key (known: {', '.join(sorted(_DEVICE_KEYS))})")
@@ -178,24 +157,13 @@ def _modbus_factory(cls_path: str):
     return make
 
 
-register_sim_device("modbus_adc", _modbus_factory("velab.simulators.modbus_devices.SimModbusADC"))
-register_sim_device("flowmeter", _modbus_factory("velab.simulators.modbus_devices.SimFlowmeter"))
-register_sim_device("valve_actuator", _modbus_factory("velab.simulators.modbus_devices.SimValveActuator"))
-
-
-def _load_plugins() -> None:
-    for mod in ("velab.simulators.streaming_adc",):
-        try:
-            importlib.import_module(mod)
-        except ModuleNotFoundError as exc:
-            if exc.name != mod:
-                raise
+for _cls in (SimModbusADC, SimFlowmeter, SimValveActuator):
+    register_sim_device(_cls.kind, _modbus_factory(_cls))
+register_sim_device("streaming_adc", StreamingADCSimHandle)
 
 
 def load_sim_config(name_or_path) -> tuple[Path, dict]:
     """A sim config by short name (``sim/<name>.toml`` along the config search path) or path -> (path, doc)."""
-    from velab.configpath import load_config
-
     return load_config("sim", name_or_path)
 
 
@@ -261,13 +229,6 @@ class SimulatedBench:
 
     def __init__(self, config: dict, *, ephemeral: bool = False, clock=None, host: str | None = None,
                  path: str = "<sim config>", allow_remote: bool = False):
-        from velab.config import load_material, load_rig
-        from velab.simulators.clock import make_clock
-        from velab.simulators.faults import FaultPlan
-        from velab.simulators.rig import SimulatedRig
-        from velab.simulators.schedule import FaultSchedule
-
-        _load_plugins()
         self.config = config
         self.path = path
         top = check_sim_config(config, path)
@@ -351,8 +312,6 @@ class SimulatedBench:
         each optionally "+seconds", or seconds after the start; for ``duration_s`` (None: until
         cleared); ``every``: at every arm/trigger, not only the next. Returns the ScheduledFault
         (pass it to clear_fault). Bad arguments: ConfigError, one line."""
-        from velab.simulators.schedule import Instant, ScheduledFault, fault_family, validate_fault
-
         if device not in self.kinds:
             raise ConfigError(f"schedule_fault: no simulated device {device!r} "
                               f"(have: {', '.join(sorted(self.kinds))})")
@@ -441,8 +400,6 @@ class SimulatedBench:
         Each device uses its first endpoint in config order, or the first of ``prefer``
         (e.g. ("rtu-pty", "tcp")) it has; ``device_options[name]`` adds/overrides keys.
         """
-        from velab.drivers.bench import Bench, BenchDevice
-
         devices = {}
         for name, h in self.handles.items():
             eps = [e for e in self.endpoints if e.device == name]

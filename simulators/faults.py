@@ -37,6 +37,7 @@ import threading
 from dataclasses import dataclass, field, fields
 
 from velab.errors import ConfigError
+from velab.simulators.sadc_device import FaultPlan as StreamFaults
 from velab.simulators.schedule import parse_schedule
 
 
@@ -145,16 +146,12 @@ class FaultPlan:
 
 
 def _validate_device_faults(faults: dict, where: str) -> None:
-    """Modbus protocol faults, or the streaming ADC's (velab.simulators.streaming_adc.FaultPlan)."""
+    """Modbus protocol faults, or the streaming ADC's (velab.simulators.sadc_device.FaultPlan)."""
     try:
         DeviceFaults().set(**faults)
         return
     except ConfigError as exc:
         first = ConfigError(f"{where}: {exc}")
-    try:
-        from velab.simulators.streaming_adc import FaultPlan as StreamFaults
-    except ImportError:
-        raise first from None
     try:
         StreamFaults().set(**faults)
     except (ValueError, TypeError):

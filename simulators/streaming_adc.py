@@ -33,6 +33,8 @@ import time
 import tty
 
 from velab.drivers.sadc_protocol import ERR_LINE_TOO_LONG, MAX_LINE
+from velab.errors import ConfigError
+from velab.simulators.endpoint import Endpoint
 from velab.simulators.sadc_device import (  # noqa: F401 - the device's names, re-exported
     FaultPlan,
     SADCDevice,
@@ -336,7 +338,7 @@ class StreamingADCSimulator(SADCDevice):
         self.close()
 
 
-# ---------------------------------------------------------------- `velab sim` registration
+# ---------------------------------------------------------------- a SimulatedBench device (velab.simulators.bench)
 
 
 class StreamingADCSimHandle:
@@ -351,8 +353,6 @@ class StreamingADCSimHandle:
     KEYS = {"kind", "endpoints", "realtime", "baudrate", "serial_no", "profile"}
 
     def __init__(self, name: str, rig, cfg: dict, host: str):
-        from velab.errors import ConfigError
-
         unknown = sorted(set(cfg) - self.KEYS)
         if unknown:
             raise ConfigError(f"[devices.{name}] {unknown[0]}: unknown key (known: {', '.join(sorted(self.KEYS))})")
@@ -361,9 +361,6 @@ class StreamingADCSimHandle:
         self.simulators: list[StreamingADCSimulator] = []
 
     def start(self) -> list:
-        from velab.errors import ConfigError
-        from velab.simulators.bench import Endpoint
-
         eps = []
         for ep in self.cfg.get("endpoints") or [{"transport": "socket", "port": 0}]:
             tr = ep.get("transport", "socket")
@@ -394,17 +391,6 @@ class StreamingADCSimHandle:
         """Back to no frame-numbered faults (the FaultPlan is shared by every endpoint's simulator)."""
         for k, f in FaultPlan.__dataclass_fields__.items():
             setattr(self.faults, k, f.default_factory() if callable(f.default_factory) else f.default)
-
-
-def _register() -> None:
-    try:
-        from velab.simulators.bench import register_sim_device
-    except ImportError:  # the bench is optional
-        return
-    register_sim_device("streaming_adc", StreamingADCSimHandle)
-
-
-_register()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -68,6 +68,7 @@ class Recorder(RunControl):
 
         ``clock``: "realtime", "fast" (12 x real time), "scaled:K", or a clock object.
         """
+        # not at module level: a recorder on a real bench never loads the simulators (servers, ptys)
         from velab.simulators.bench import SimulatedBench, load_sim_config
         from velab.simulators.clock import make_clock
 

@@ -348,7 +348,7 @@ class RunControl:
             result, error, latency = fit.result, fit.error, fit.latency_s
             if result is not None and self.path is not None:
                 try:
-                    from velab.fitting.store import save_fit
+                    from velab.fitting.store import save_fit  # scipy (velab.fitting): only when there is a fit
 
                     save_fit(self.path, result, name="online")
                 except Exception as exc:  # noqa: BLE001 - the fit is still in the summary

@@ -1,0 +1,88 @@
+"""Import hygiene: every module imports on its own in a fresh interpreter (an import cycle that only
+works in one order is caught), and the device layer stays below the application.
+
+Function-level imports that dodge a cycle are not allowed (issue 11): a cycle hidden that way
+breaks a standalone import sooner or later. Lazy imports of heavy libraries for start-up speed
+(the CLI's command modules) are fine and do not show here.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = {"velab": ROOT / "src" / "velab", "velab.drivers": ROOT / "drivers", "velab.simulators": ROOT / "simulators"}
+
+
+def modules(package: str) -> list[str]:
+    base = PACKAGES[package]
+    out = []
+    for f in sorted(base.rglob("*.py")):
+        rel = f.relative_to(base).with_suffix("")
+        parts = [p for p in rel.parts if p != "__init__"]
+        out.append(".".join([package, *parts]))
+    return out
+
+
+ALL = modules("velab") + modules("velab.drivers") + modules("velab.simulators")
+DEVICE_LAYER = modules("velab.drivers") + modules("velab.simulators")
+
+
+# One interpreter per module, made cheap: a parent imports the third-party libraries velab uses (never
+# a velab module), then forks a child per module, which imports that one module into a sys.modules that
+# holds no velab module: for velab's own imports this is a fresh interpreter, at a fork's cost.
+_FORKER = r"""
+import ast, importlib, os, sys
+from pathlib import Path
+names, files = sys.argv[1].split(","), sys.argv[2:]
+third = set()
+for f in files:
+    for node in ast.walk(ast.parse(Path(f).read_text())):
+        if isinstance(node, ast.Import):
+            third.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            third.add(node.module)
+for lib in sorted(t for t in third if t.split(".")[0] != "velab"):
+    try:
+        importlib.import_module(lib)
+    except Exception:
+        pass
+assert not [m for m in sys.modules if m == "velab" or m.startswith("velab.")], "a library imported velab"
+bad = 0
+for name in names:
+    pid = os.fork()
+    if pid == 0:
+        try:
+            importlib.import_module(name)
+        except BaseException as exc:
+            sys.stderr.write(f"{name}: {type(exc).__name__}: {exc}\n")
+            sys.stderr.flush()
+            os._exit(1)
+        os._exit(0)
+    bad += os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]) != 0
+sys.exit(1 if bad else 0)
+"""
+
+
+@pytest.mark.timeout(600)
+def test_every_module_imports_alone_in_a_fresh_interpreter():
+    assert len(ALL) > 100 and "velab.recording.engine" in ALL and "velab.simulators.bench" in ALL
+    files = [str(f) for base in PACKAGES.values() for f in sorted(base.rglob("*.py"))]
+    p = subprocess.run([sys.executable, "-c", _FORKER, ",".join(ALL), *files], capture_output=True, text=True,
+                       timeout=500)
+    assert p.returncode == 0, p.stderr
+
+
+def test_device_layer_does_not_import_the_application():
+    code = (f"import sys\nfor m in {DEVICE_LAYER!r}:\n    __import__(m)\n"
+            "print(' '.join(sorted(m for m in sys.modules if m.startswith('velab.'))))")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    loaded = p.stdout.split()
+    assert "velab.simulators.bench" in loaded and "velab.drivers.streaming_adc" in loaded  # the code above ran
+    heavy = [m for m in loaded if m.split(".")[1] in ("recording", "fitting", "gui", "commands", "runfiles")]
+    assert not heavy, heavy
