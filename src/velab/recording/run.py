@@ -161,14 +161,22 @@ class RunControl:
         the armed valve aborted; unknown (no read-back) -> failed, ABORT sent without asking first."""
         tl, name = self._timeline, self.roles["valve"]
         self._steady = tl.steady_head(self._steady)
+        if self._slow is not None and not self._slow.valve_answering:
+            # its polls go unanswered: a TRIGGER would most likely be lost, or start a stroke nobody can watch
+            self._trigger_failed(f"does not answer its status polls ({self._slow.valve_error}): not triggered",
+                                 ask_valve=False)
         sent = time.time()
         t_est = tl.mark_trigger(sent, getattr(self.clock, "scale", 1.0) if self.clock is not None else 1.0)
+        if self._slow is not None:
+            self._slow.hold_valve(True)  # the trigger and its read-back have the bus to themselves
         try:
             out = self.devices[name].trigger()
         except TriggerNotStarted as exc:  # also TriggerRefused: the valve is still armed, nothing moved
             self._trigger_failed(f"trigger not started (sent at about t = {t_est:.3f} s): {exc}", ask_valve=True)
         except (TriggerUnknown,) + DEVICE_ERRORS as exc:  # the valve may be closing: ABORT it without asking
             self._trigger_failed(f"trigger outcome unknown (sent at about t = {t_est:.3f} s): {exc}", ask_valve=False)
+        if self._slow is not None:
+            self._slow.hold_valve(False)
         if out.readback:
             st = out.status
             self._fault("valve", f"TRIGGER reply lost ({out.lost_reply}); state read back: {st.state.name}, trigger "
@@ -276,11 +284,11 @@ class RunControl:
             return self._summary
         with self._end_lock:
             self._end_request = self._end_request or (status, reason)
+        if self._slow is not None:
+            self._slow.request_stop()  # no new poll queues up in front of the safe-state command
         if status != P.COMPLETED:
             self._safe_valve(ask_valve)  # first: the valve matters more than the file
         self._finished.set()
-        if self._slow is not None:
-            self._slow.request_stop()
         problem = self._source.stop() if self._source is not None else ""
         if problem and status == P.COMPLETED:
             self._fault("pressure", problem, "no_response")

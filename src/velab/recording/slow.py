@@ -36,11 +36,13 @@ class SlowChannels:
         self.stall_timeout_s = stall_timeout_s
         self.on_valve = on_valve or (lambda st: None)
         self.valve_answering = True
+        self.valve_error = ""  # why the last valve poll failed
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._flow_faults = 0
         self._valve_silent_since: float | None = None
         self._flow_quality_seen: set = set()
+        self._valve_held = threading.Event()
 
     def start(self) -> None:
         self._stop.clear()
@@ -67,10 +69,33 @@ class SlowChannels:
                 self.hooks.fault("recorder", f"slow-channel poll failed: {type(exc).__name__}: {exc}")
             self._stop.wait(max(0.0, POLL_S - (time.monotonic() - t0)))
 
+    def hold_valve(self, held: bool) -> None:
+        """While held, the polls leave the actuator alone: a command in flight (the trigger and its
+        read-back) has the bus to itself instead of queueing behind a poll's timeouts."""
+        (self._valve_held.set if held else self._valve_held.clear)()
+
     def poll(self) -> None:
         readings = {}
         t = self.now_axis()
         epoch = time.time()  # the host instant of this poll, stored with the slow channels (NXlog time)
+        if not self._valve_held.is_set():
+            self._poll_valve(readings, t, epoch)
+        try:
+            r = self.flowmeter.read_flow()
+            readings["flow"] = r
+            self.write(("slow", "flow", t, r.value, time.time()))
+            if r.quality.value != "ok" and r.quality.value not in self._flow_quality_seen:
+                self._flow_quality_seen.add(r.quality.value)
+                self.hooks.fault("flowmeter", f"flowmeter reading {r.quality.value} at t = {t:.2f} s", "quality",
+                                 quality=r.quality.value)
+        except DEVICE_ERRORS as exc:  # the pressure recording goes on
+            self._flow_faults += 1
+            if self._flow_faults in (1, 10, 100):
+                self.hooks.fault("flowmeter", f"{exc} (pressure recording continues)", "no_response")
+        if readings:
+            self.hooks.emit("device", readings)
+
+    def _poll_valve(self, readings: dict, t: float, epoch: float) -> None:
         try:
             st = self.valve.read_status()
             if not self.valve_answering:
@@ -90,6 +115,7 @@ class SlowChannels:
             self.hooks.request_end("aborted", str(exc))
         except DEVICE_ERRORS as exc:
             now = time.monotonic()
+            self.valve_error = str(exc)
             if self.valve_answering:
                 self.hooks.fault("valve", f"actuator does not answer: {exc}", "no_response")
                 self._valve_silent_since = now
@@ -97,17 +123,3 @@ class SlowChannels:
             if not self.triggered() and now - (self._valve_silent_since or now) > self.stall_timeout_s:
                 self.hooks.request_end("failed", f"{self.valve_name} (valve): no answer for "
                                                  f"{self.stall_timeout_s:g} s before the trigger: {exc}")
-        try:
-            r = self.flowmeter.read_flow()
-            readings["flow"] = r
-            self.write(("slow", "flow", t, r.value, time.time()))
-            if r.quality.value != "ok" and r.quality.value not in self._flow_quality_seen:
-                self._flow_quality_seen.add(r.quality.value)
-                self.hooks.fault("flowmeter", f"flowmeter reading {r.quality.value} at t = {t:.2f} s", "quality",
-                                 quality=r.quality.value)
-        except DEVICE_ERRORS as exc:  # the pressure recording goes on
-            self._flow_faults += 1
-            if self._flow_faults in (1, 10, 100):
-                self.hooks.fault("flowmeter", f"{exc} (pressure recording continues)", "no_response")
-        if readings:
-            self.hooks.emit("device", readings)
