@@ -9,8 +9,10 @@ import math
 import numpy as np
 import pytest
 
+from sim_helpers import manual_sim
+
 from velab.drivers.base import (ChecksumError, DeviceDisconnected, DeviceException, DeviceTimeout, FrameError,
-                                ProtocolError, Quality, ReplyMismatch)
+                                ProtocolError, Quality, ReplyMismatch, TriggerNotStarted)
 from velab.drivers.bench import open_device
 from velab.drivers.valve import ValveState
 from velab.errors import ConfigError
@@ -33,8 +35,7 @@ TIMEOUT = 0.25  # short (silence costs a timeout per request) but not tight on a
 
 @pytest.fixture(scope="module")
 def sim():
-    with SimulatedBench(CONFIG, clock=ManualClock(), ephemeral=True) as s:
-        yield s
+    yield from manual_sim(CONFIG)
 
 
 @pytest.fixture(autouse=True)
@@ -74,6 +75,7 @@ BAD_SCHEDULES = [
     ({"device": "nosuch", "fault": {"silent": True}, "at": "trigger"}, "device: no simulated device 'nosuch'"),
     ({"device": "flowmeter", "fault": {"explode": True}, "at": "trigger"}, "fault 'explode' is not a modbus fault"),
     ({"device": "flowmeter", "fault": {"silent": 1}, "at": "trigger"}, "fault silent = 1: must be true or false"),
+    ({"device": "valve", "fault": {"writes_only": True, "count": 1}, "at": "arm"}, "only qualify a fault: name one"),
     ({"device": "flowmeter", "fault": {"exception_code": 7}, "at": "arm"}, "must be a Modbus exception code"),
     ({"device": "flowmeter", "fault": {}, "at": "arm"}, "fault must be a non-empty table"),
     ({"device": "flowmeter", "fault": {"silent": True}, "at": "trigger-1"}, "'trigger-1' is not an instant"),
@@ -140,6 +142,37 @@ def test_silent_mid_record_starts_and_ends_at_its_instant(sim, transport):
         assert works(fm.read_flow) is True
     finally:
         fm.close()
+        v.close()
+
+
+@pytest.mark.parametrize("transport", ["tcp", "rtu-pty"])
+def test_lost_reply_is_carried_out_lost_request_is_not(sim, transport):
+    """drop_reply: the actuator carries TRIGGER out and the reply is lost (anchored at the trigger instant,
+    which that very TRIGGER makes); drop_request (writes only, once): TRIGGER never arrives, polls go on."""
+    v = connect(sim, "valve", transport, retries=1)
+    try:
+        n0 = sim.rig.trigger_count
+        sim.clock.advance(0.5)  # after any earlier trigger: "at trigger" is the next one
+        sim.schedule_fault("valve", at="trigger", drop_reply=True, count=1)
+        v.set_manoeuvre(32.0, -5.5)
+        v.arm()
+        sim.clock.advance(1.0)
+        out = v.trigger()  # the reply is lost: the driver reads the state back
+        assert out.started and out.readback and isinstance(out.lost_reply, DeviceTimeout)
+        assert sim.rig.trigger_count == n0 + 1 and sim.rig.state() is ValveState.RUNNING
+        assert v.read_status().state is ValveState.RUNNING  # count 1: the next replies come again
+        sim.clear_fault()
+        sim.rig.reset()
+        v.reset()
+        sim.schedule_fault("valve", at="arm", drop_request=True, writes_only=True, count=1)
+        v.set_manoeuvre(32.0, -5.5)
+        v.arm()
+        assert v.read_status().state is ValveState.ARMED  # a read: not affected
+        with pytest.raises(TriggerNotStarted):
+            v.trigger()
+        assert sim.rig.trigger_count == n0 + 1 and sim.rig.state() is ValveState.ARMED  # the valve never moved
+        assert v.trigger().started  # the next write gets through
+    finally:
         v.close()
 
 

@@ -5,13 +5,13 @@ import math
 import numpy as np
 import pytest
 
+from sim_helpers import manual_sim
+
 from velab.config import load_rig
 from velab.drivers.base import DeviceException, Quality, pressure_to_head_m
 from velab.drivers.bench import Bench, load_bench, open_device
 from velab.drivers.modbus_device import RangeError
 from velab.drivers.valve import ValveState
-from velab.simulators.bench import SimulatedBench
-from velab.simulators.clock import ManualClock
 
 CONFIG = {
     "rig": "perugia", "material": "A", "seed": 3, "clock": "manual",
@@ -27,8 +27,7 @@ CONFIG = {
 
 @pytest.fixture(scope="module")
 def sim():
-    with SimulatedBench(CONFIG, clock=ManualClock(), ephemeral=True) as s:
-        yield s
+    yield from manual_sim(CONFIG)
 
 
 @pytest.fixture(autouse=True)

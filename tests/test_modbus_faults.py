@@ -6,6 +6,8 @@ import time
 import numpy as np
 import pytest
 
+from sim_helpers import manual_sim
+
 from velab.drivers.base import (DeviceDisconnected, DeviceException, DeviceFault, DeviceReset, DeviceTimeout,
                                 ProtocolError, Quality)
 from velab.drivers.bench import open_device
@@ -28,8 +30,7 @@ TIMEOUT = 0.15
 
 @pytest.fixture(scope="module")
 def sim():
-    with SimulatedBench(CONFIG, clock=ManualClock(), ephemeral=True) as s:
-        yield s
+    yield from manual_sim(CONFIG)
 
 
 @pytest.fixture(autouse=True)

@@ -8,9 +8,11 @@ import time
 import numpy as np
 import pytest
 
+from sim_helpers import stream_profile
+
 from velab.drivers.base import DeviceDisconnected, DeviceTimeout, StreamSilent
 from velab.drivers.bench import open_device
-from velab.drivers.streaming_adc import StreamingADC, default_profile
+from velab.drivers.streaming_adc import StreamingADC
 from velab.simulators.bench import SimulatedBench
 from velab.simulators.clock import ManualClock, RealTimeClock
 from velab.simulators.schedule import FaultSchedule, Instant, RunInstants, ScheduledFault
@@ -22,12 +24,7 @@ FS = 10_000
 K = 20  # samples per frame
 
 
-def profile(**kw):
-    kw.setdefault("command_timeout_s", 1.0)
-    kw.setdefault("data_timeout_s", 1.0)
-    kw.setdefault("reconnect_timeout_s", 5.0)
-    kw.setdefault("poll_s", 0.02)
-    return default_profile(**kw)
+profile = stream_profile
 
 
 class Rig:

@@ -11,8 +11,10 @@ import time
 import numpy as np
 import pytest
 
+from sim_helpers import stream_profile
+
 from velab.drivers.base import DeviceDisconnected, DeviceException, DeviceTimeout, Quality
-from velab.drivers.streaming_adc import RAW_FULL_SCALE, StreamingADC, default_profile
+from velab.drivers.streaming_adc import RAW_FULL_SCALE, StreamingADC
 from velab.simulators.streaming_adc import FaultPlan, StreamingADCSimulator, ramp_source
 
 pytestmark = pytest.mark.timeout(60)
@@ -20,12 +22,7 @@ pytestmark = pytest.mark.timeout(60)
 ALL4 = ["pressure", "valve_position", "spare_2", "spare_3"]
 
 
-def profile(**kw):
-    kw.setdefault("command_timeout_s", 1.0)
-    kw.setdefault("data_timeout_s", 1.0)
-    kw.setdefault("reconnect_timeout_s", 5.0)
-    kw.setdefault("poll_s", 0.02)
-    return default_profile(**kw)
+profile = stream_profile
 
 
 @pytest.fixture(params=["pty", "tcp"])
