@@ -77,7 +77,7 @@ def inject(sim, rec, target: str, fault: str) -> None:
     if target in ("pressure_adc", "valve", "flowmeter") and fault in MODBUS_PERSISTENT + ("outage",):
         f = sim.faults[target]
         if fault == "timeout":
-            f.set(delay_s=2.0)  # longer than every attempt of a call (3 x 0.5 s)
+            f.set(delay_s=0.75)  # longer than the client's timeout (0.5 s): every attempt times out, the reply comes late
         elif fault == "exception":
             f.set(exception_code=4)
         elif fault == "garbled":
