@@ -72,7 +72,8 @@ def test_fit_table_and_plot(run_a, tmp_path, capsys):
     code, out = _json(capsys, ["fit", str(run_a), "--models", "0-2", "--window", "5", "--no-save",
                                "--plot", str(png)])
     assert code == 0
-    assert "best model (minimum AIC)" in out.out and "lag-1" in out.out and "n = 5000" in out.out
+    assert "best model (minimum AIC AR1)" in out.out and "lag-1" in out.out and "n = 5000" in out.out
+    assert "bounds: tau in [" in out.out and "+-" in out.out
     assert png.read_bytes()[:4] == b"\x89PNG"
 
 

@@ -207,6 +207,18 @@ class Transducer:
 
 
 @dataclass(frozen=True)
+class FitSettings:
+    """Optional ``[fit]`` table of a rig file: the calibration's retardation-time bounds (s).
+
+    None: derived from the data (velab.fitting.params.derive_bounds). ``velab fit
+    --tau-min/--tau-max`` and ``fit_sweep(tau_min_s=, tau_max_s=)`` take precedence.
+    """
+
+    tau_min_s: float | None = None
+    tau_max_s: float | None = None
+
+
+@dataclass(frozen=True)
 class Rig:
     """Reservoir - pipe - valve rig (physics.md section 1)."""
 
@@ -220,6 +232,7 @@ class Rig:
     nominal_wave_speed_m_s: float
     friction: str = "blasius"
     source: str = ""
+    fit: FitSettings = field(default_factory=FitSettings)
 
     # ---- derived quantities, named as in physics.md
     @property
@@ -348,6 +361,13 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
         {"full_scale_bar": _Key(float, check=_positive), "accuracy_fs": _Key(float, False, 0.0015, _non_negative)},
     )
     wave = r.read(r.table("wave"), "[wave] ", {"nominal_speed_m_s": _Key(float, check=_positive)})
+    fit = r.read(
+        r.table("fit", required=False) or {},
+        "[fit] ",
+        {"tau_min_s": _Key(float, False, None, _positive), "tau_max_s": _Key(float, False, None, _positive)},
+    )
+    if fit["tau_min_s"] is not None and fit["tau_max_s"] is not None and not fit["tau_min_s"] < fit["tau_max_s"]:
+        raise r.fail("[fit] tau_max_s", f"must be greater than tau_min_s (got {fit['tau_max_s']} <= {fit['tau_min_s']})")
     rig = Rig(
         name=top["name"],
         pipe=Pipe(
@@ -366,6 +386,7 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
         nominal_wave_speed_m_s=wave["nominal_speed_m_s"],
         friction=flow["friction"],
         source=str(path),
+        fit=FitSettings(**fit),
     )
     if rig.steady_head_m <= 0:
         raise r.fail("[flow] reservoir_head_m", f"smaller than the steady head loss {rig.steady_head_loss_m:.3g} m")
@@ -495,6 +516,7 @@ def rig_from_dict(d: dict) -> Rig:
             nominal_wave_speed_m_s=float(d["nominal_wave_speed_m_s"]),
             friction=d.get("friction", "blasius"),
             source=d.get("source", ""),
+            fit=FitSettings(**(d.get("fit") or {})),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"rig description: invalid or incomplete ({exc})") from None

@@ -15,6 +15,8 @@ from velab.errors import DataError, VelabError
 
 
 def register(sub) -> None:
+    from velab.fitting.friction import STEADY_LAWS, UNSTEADY_LAWS
+    from velab.fitting.results import SELECTIONS
     from velab.fitting.sweep import METHODS
 
     p = sub.add_parser(
@@ -32,6 +34,18 @@ def register(sub) -> None:
     p.add_argument("--reduced", action="store_true", help="also fit the reduced S1r..S5r (tau fixed at 0.01..100 s)")
     p.add_argument("--starts", type=int, default=None, help="cap on the number of starts per model (default: all)")
     p.add_argument("--no-polish", action="store_true", help="skip the full-band polish (quick look only)")
+    p.add_argument("--tau-min", type=float, default=None, metavar="S",
+                   help="shortest retardation time calibrated, s (default: the rig's [fit] table, else "
+                   "max(2 sampling steps, closure time / 10))")
+    p.add_argument("--tau-max", type=float, default=None, metavar="S",
+                   help="longest retardation time calibrated, s (default: the rig's [fit] table, else 10 x window)")
+    p.add_argument("--selection", choices=SELECTIONS, default="ar1",
+                   help="model choice: ar1 (default; AIC of an AR(1) likelihood of the residuals, robust to "
+                   "correlated residuals) or white (the paper's AIC)")
+    p.add_argument("--friction", choices=STEADY_LAWS, default=None,
+                   help="steady friction law of the calibration model (default: the rig's)")
+    p.add_argument("--friction-unsteady", choices=UNSTEADY_LAWS, default=None,
+                   help="unsteady friction law of the calibration model (default: the rig's)")
     p.add_argument("--json", action="store_true", help="print one JSON document on stdout instead of tables")
     p.add_argument("--plot", metavar="FILE", help="write report figures (.png or .pdf); with several runs, "
                    "one file per run named FILE-stem_RUN-stem.suffix")
@@ -50,10 +64,17 @@ def _options(args) -> dict:
         raise DataError(f"--jobs must be at least 1, got {args.jobs}")
     if args.plot and Path(args.plot).suffix.lower() not in (".png", ".pdf", ".svg"):
         raise DataError(f"--plot {args.plot}: use a .png, .pdf or .svg file name")
+    for opt, v in (("--tau-min", args.tau_min), ("--tau-max", args.tau_max)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise DataError(f"{opt} must be a positive number of seconds, got {v:g}")
+    if args.tau_min is not None and args.tau_max is not None and not args.tau_min < args.tau_max:
+        raise DataError(f"--tau-min {args.tau_min:g} must be below --tau-max {args.tau_max:g}")
     return {
         "models": parse_models(args.models), "window_s": args.window, "method": args.method,
         "reduced": args.reduced, "starts": args.starts, "polish": not args.no_polish,
         "save": not args.no_save, "name": args.name, "plot": args.plot,
+        "tau_min_s": args.tau_min, "tau_max_s": args.tau_max, "selection": args.selection,
+        "friction": args.friction, "friction_unsteady": args.friction_unsteady,
     }
 
 
@@ -74,7 +95,9 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
     t, h = run.fit_window(opts["window_s"])
     result = fit_sweep(t, h, run.rig, models=opts["models"], window_s=None, method=opts["method"],
                        reduced=opts["reduced"], starts=opts["starts"], polish=opts["polish"],
-                       progress=progress)
+                       progress=progress, tau_min_s=opts["tau_min_s"], tau_max_s=opts["tau_max_s"],
+                       selection=opts["selection"], friction=opts["friction"],
+                       friction_unsteady=opts["friction_unsteady"])
     result.settings["window_s_requested"] = opts["window_s"]
     name = None
     if opts["save"]:
