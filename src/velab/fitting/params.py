@@ -58,11 +58,20 @@ class FitBounds:
     wave_speed_max_m_s: float
     J_rel_min: float = J_REL_MIN
     J_rel_max: float = J_REL_MAX
+    tau_floor_s: float = 0.0  # the shortest retardation time the sampling resolves (2 steps)
     sources: dict = field(default_factory=dict, compare=False)
+
+    def hint(self, key: str) -> str:
+        """The option (with a value to try) that moves bound ``key`` ("tau_min_s"/"tau_max_s")."""
+        if key == "tau_min_s":
+            if self.tau_floor_s and self.tau_floor_s < self.tau_min_s * 0.999:
+                return f"{BOUND_OPTIONS[key]} {self.tau_floor_s:.3g}"
+            return BOUND_OPTIONS[key]
+        return f"{BOUND_OPTIONS[key]} {10 * self.tau_max_s:.3g}"
 
     def to_dict(self) -> dict:
         return {
-            "tau_min_s": self.tau_min_s, "tau_max_s": self.tau_max_s,
+            "tau_min_s": self.tau_min_s, "tau_max_s": self.tau_max_s, "tau_floor_s": self.tau_floor_s,
             "wave_speed_min_m_s": self.wave_speed_min_m_s, "wave_speed_max_m_s": self.wave_speed_max_m_s,
             "J_rel_min": self.J_rel_min, "J_rel_max": self.J_rel_max, "sources": dict(self.sources),
         }
@@ -123,7 +132,7 @@ def derive_bounds(rig: Rig, dt_s: float, window_s: float, *, tau_min_s=None, tau
     a = rig.nominal_wave_speed_m_s
     sources["wave_speed"] = f"nominal {a:g} m/s / {WAVE_SPEED_FACTOR:g} .. x {WAVE_SPEED_FACTOR:g}"
     return FitBounds(tau_min_s=lo, tau_max_s=hi, wave_speed_min_m_s=a / WAVE_SPEED_FACTOR,
-                     wave_speed_max_m_s=a * WAVE_SPEED_FACTOR, sources=sources)
+                     wave_speed_max_m_s=a * WAVE_SPEED_FACTOR, tau_floor_s=TAU_MIN_SAMPLES * dt_s, sources=sources)
 
 
 @dataclass(frozen=True)
@@ -246,5 +255,5 @@ def bound_hits(pm: ParamMap, x, skip_elements=(), order=None, tol: float = 1e-6)
             if side:
                 key = "tau_min_s" if side == "lower" else "tau_max_s"
                 out.append({"parameter": f"tau_{rank[k] + 1}", "bound": side, "value": math.exp(x[1 + m + k]),
-                            "limit": getattr(b, key), "option": BOUND_OPTIONS[key]})
+                            "limit": getattr(b, key), "option": BOUND_OPTIONS[key], "hint": b.hint(key)})
     return out

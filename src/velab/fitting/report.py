@@ -20,13 +20,14 @@ def bounds_line(f) -> str:
     """One line for the parameters of model ``f`` that ended on a bound, grouped by bound."""
     groups: dict = {}
     for b in f.at_bounds:
-        groups.setdefault((b["bound"], b["limit"], b.get("option"), b["parameter"].split("_")[0]), []).append(b)
+        groups.setdefault((b["bound"], b["limit"], b.get("hint") or b.get("option"), b["parameter"].split("_")[0]),
+                          []).append(b)
     parts = []
     for (side, limit, option, kind), bs in groups.items():
         unit = " m/s" if kind == "wave" else (" s" if kind == "tau" else "")
         names = ", ".join(b["parameter"] for b in bs)
         text = f"{names} on the {side} bound {limit:.4g}{unit}"
-        parts.append(text + (f" ({option} moves it)" if option else ""))
+        parts.append(text + (f" (try {option})" if option else ""))
     return f"{f.name}: " + "; ".join(parts)
 
 

@@ -108,9 +108,7 @@ class ModelFit:
 
     @property
     def note(self) -> str:
-        """"S2 = S1 + negligible element" where extra elements vanished, else ""."""
-        if not self.equivalent_to:
-            return ""
+        """"S2 = S1 + negligible element" where extra elements vanished (or split), else ""."""
         k = sum(bool(v) for v in self.negligible)
         parts = []
         if k:
@@ -118,7 +116,9 @@ class ModelFit:
         if self.split_elements:
             s = self.split_elements
             parts.append("an element split in two" if s == 1 else f"{s} elements split")
-        return f"{self.name} = {self.equivalent_to} + " + " + ".join(parts)
+        if not parts:
+            return ""
+        return (f"{self.name} = {self.equivalent_to} + " if self.equivalent_to else "") + " + ".join(parts)
 
     def material(self) -> Material:
         return Material(
