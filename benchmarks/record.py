@@ -26,7 +26,7 @@ def rss_mb() -> float:
 
 
 def record(rate: float, seconds: float, scale: float, out: Path, fit: bool = False, window: float = 20.0):
-    from velab.recorder import Recorder, RecordSettings
+    from velab.recording import Recorder, RecordSettings
 
     s = RecordSettings(duration_s=seconds, pretrigger_s=2.0, sample_rate_hz=rate, out_dir=out, fit=fit,
                        fit_window_s=window, intermediate_fits=False)

@@ -33,7 +33,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from velab.config import CONFIG_ROOT, read_toml
 from velab.drivers.base import ProfileError
+from velab.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -85,9 +87,6 @@ class Bench:
 
 
 def load_bench(name_or_path: str | os.PathLike) -> Bench:
-    from velab.config import CONFIG_ROOT, read_toml
-    from velab.errors import ConfigError
-
     p = Path(name_or_path)
     if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
         p = Path(CONFIG_ROOT) / "benches" / f"{name_or_path}.toml"

@@ -33,12 +33,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from velab.drivers.base import ProfileError
+from velab.config import CONFIG_ROOT, read_toml
 from velab.drivers.modbus import DATA_TYPES, WordOrder, decode_registers, encode_value, register_count
+from velab.errors import ConfigError
 
 
 def devices_dir() -> Path:
-    from velab.config import CONFIG_ROOT
-
     return Path(CONFIG_ROOT) / "devices"
 
 
@@ -206,9 +206,6 @@ def load_profile(name_or_path: str | os.PathLike | Profile) -> Profile:
     """A profile by short name (``configs/devices/<name>.toml``) or by path."""
     if isinstance(name_or_path, Profile):
         return name_or_path
-    from velab.config import read_toml
-    from velab.errors import ConfigError
-
     p = Path(name_or_path)
     if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
         p = devices_dir() / f"{name_or_path}.toml"

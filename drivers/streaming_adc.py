@@ -52,6 +52,7 @@ from velab.drivers.base import (
     pressure_to_head_m,
 )
 from velab.drivers.blocks import SampleBlock
+from velab.config import CONFIG_ROOT, read_toml
 from velab.errors import ConfigError
 
 # ============================================================== protocol constants
@@ -331,8 +332,6 @@ def load_profile(name_or_path: str | Path = "streaming_adc") -> StreamingADCProf
 
     Every error is one line naming the file and the key.
     """
-    from velab.config import CONFIG_ROOT, read_toml
-
     p = Path(name_or_path)
     if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
         p = CONFIG_ROOT / "devices" / f"{name_or_path}.toml"

@@ -11,8 +11,11 @@ streaming ADC) samples this object; none has physics of its own.
 
   With end = 0 the flow is exactly velab's sigmoid Q0 / (1 + exp(beta tau + gamma)).
 * The head after the trigger is ``rig.steady_head_m + h(tau)``, h from velab's own
-  frequency-domain model (``velab.model.ValveHeadModel``) for the commanded
-  manoeuvre, computed once per arm/hold on a fine grid and interpolated.
+  models with the rig's friction law (``velab.synth.transient_head``: the time-domain
+  model for quadratic or Brunone friction, the frequency-domain model for linear laws)
+  for the commanded manoeuvre -- partial closure, or the opening frozen by a hold or a
+  seizure, so that the imposed flow freezes -- computed once per arm/hold on a fine
+  grid and interpolated.
 * Transducer: gauge pressure = head * rho * g, 4-20 mA over 0..full scale, plus
   Gaussian noise that is a deterministic function of (seed, channel, time), so any
   two devices sampling the same instant see the same value.
@@ -32,7 +35,7 @@ import numpy as np
 from velab.config import GRAVITY_M_S2, Manoeuvre, Material, Rig
 # the actuator's state codes are the register contract: one definition, the driver's
 from velab.drivers.valve import ValveState  # noqa: F401 - re-exported for the simulators and tests
-from velab.model import ValveHeadModel
+from velab.synth import friction_is_linear, transient_head
 
 N_ANALOG = 4  # ch0 pressure, ch1 valve position, ch2-3 spare
 
@@ -154,6 +157,10 @@ class SimulatedRig:
         self._t_base = clock.now()
         self._trigger_count = 0
         self._fault_bits_latched = 0
+        if not friction_is_linear(rig):
+            from velab.moc import warm_up  # numba, only for the time-domain model
+
+            warm_up()  # compile or load the MOC kernel now, not in arm() while a client waits
 
     # ------------------------------------------------------------ derived constants
     @property
@@ -295,8 +302,9 @@ class SimulatedRig:
         rig_c = self.rig.with_changes(manoeuvre=Manoeuvre(beta_per_s=beta, gamma=gamma))
         q0 = self.rig.steady_flow_m3_s
         standard = end == 0.0 and freeze_tau is None
-        flow = None if standard else q0 * opening / 100.0 - q0
-        head = ValveHeadModel(rig_c, tau, flow=flow, band_hz=None).head(self.material)  # full band, as valve_head
+        # the rig's friction law: frequency model if linear, time-domain model (MOC) otherwise
+        flow = None if standard else (lambda x: q0 * self._opening(x, beta, gamma, end, freeze_tau) / 100.0 - q0)
+        head = transient_head(tau, rig_c, self.material, flow=flow)
         qabs = q0 * opening / 100.0
         volume = np.concatenate([[0.0], np.cumsum(0.5 * (qabs[1:] + qabs[:-1]) * dt)])
         done_tau = (math.log(999.0) - gamma) / beta

@@ -1,4 +1,4 @@
-"""A stand-in for velab.recorder.Recorder with the same contract (events queue, Future commands),
+"""A stand-in for velab.recording.Recorder with the same contract (events queue, Future commands),
 used to test the GUI's wiring without devices. The real engine is tested in test_gui_run.py."""
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ class FakeRecorder:
     refuse_beta: float = 50.0
     block_s: float = 0.02
     events: queue.Queue = field(default_factory=queue.Queue)
-    phase: str = "idle"
+    phase: str = "disconnected"
 
     def __post_init__(self):
         self.rate = float(self.settings.get("sample_rate_hz", 1000.0))
@@ -87,7 +87,7 @@ class FakeRecorder:
 
         def work():
             time.sleep(0.05)
-            self._phase("connected")
+            self._phase("ready")
             self.events.put(Ev("device", time.time(), {"pressure_adc.head": _R(30.0, "m"), "flowmeter.flow": _R(1.2, "l/s")}))
             f.set_result([Status("pressure_adc", True), Status("flowmeter", True), Status("valve", True)])
         threading.Thread(target=work, daemon=True).start()
@@ -97,7 +97,7 @@ class FakeRecorder:
         beta = self.settings.get("beta_per_s") or 10.0
         if beta > self.refuse_beta:
             return self._done(exc=SafetyError(f"closure rate {beta:g} 1/s: predicted peak over the pipe rating"))
-        self._phase("pretrigger")
+        self._phase("triggerable")
         self._thread = threading.Thread(target=self._acquire, daemon=True)
         self._thread.start()
         return self._done("runs/fake.h5")
@@ -116,14 +116,14 @@ class FakeRecorder:
             t += k / self.rate
             if t >= dur:
                 break
-            if self.phase == "pretrigger" and t >= 0:  # wait at the trigger until triggered
+            if self.phase == "triggerable" and t >= 0:  # wait at the trigger until triggered
                 while self._triggered_at is None and not self._stop.is_set():
                     time.sleep(0.005)
-                self._phase("transient")
+                self._phase("recording")
             next_t += self.block_s
             time.sleep(max(0.0, next_t - time.perf_counter()))
         status = "aborted" if self._stop.is_set() else "completed"
-        self._phase("done" if status == "completed" else "aborted")
+        self._phase("completed" if status == "completed" else "aborted")
         self.events.put(Ev("done", time.time(), Summary("runs/fake.h5", status, n_samples=self.n, peak_head_m=70.0)))
 
     def trigger(self):

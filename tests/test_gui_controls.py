@@ -1,4 +1,4 @@
-"""GUI wiring against a recorder stand-in (same contract as velab.recorder): live plot at 10 kHz,
+"""GUI wiring against a recorder stand-in (same contract as velab.recording): live plot at 10 kHz,
 a refusal raised by the engine's Future and a structured device fault as messages, button states.
 The real engine and simulated rig are driven in test_gui_run.py."""
 
@@ -44,7 +44,7 @@ def test_run_through_controls_live_plot(qtbot, win):
     rp.rate_combo.setCurrentIndex(rp.rate_combo.findData(10000.0))
     rp.beta_spin.setValue(10.0)
     qtbot.mouseClick(win.devices.reconnect_button, Qt.LeftButton)
-    qtbot.waitUntil(lambda: win.controller.phase == "connected", timeout=5000)
+    qtbot.waitUntil(lambda: win.controller.phase == "ready", timeout=5000)
     qtbot.waitUntil(lambda: "pressure_adc.head" in win.devices.readings, timeout=5000)
     qtbot.mouseClick(rp.arm_button, Qt.LeftButton)
     qtbot.waitUntil(lambda: rp.trigger_button.isEnabled(), timeout=5000)
@@ -52,7 +52,7 @@ def test_run_through_controls_live_plot(qtbot, win):
     redraws = win.live.redraws
     qtbot.waitUntil(lambda: win.live.redraws > redraws, timeout=5000)
     qtbot.mouseClick(rp.trigger_button, Qt.LeftButton)
-    qtbot.waitUntil(lambda: win.controller.phase == "done", timeout=10000)
+    qtbot.waitUntil(lambda: win.controller.phase == "completed", timeout=10000)
     assert win.live.mode == "whole"
     assert win.live.samples_received == win.made[-1].n >= 13000
     assert win.live.trigger_time_s == 0.0
@@ -71,7 +71,7 @@ def test_engine_refusal_is_a_message(qtbot, win):
 
 def test_device_fault_is_a_message(qtbot, win):
     win.controller.connect_devices(win.run_panel.settings())
-    qtbot.waitUntil(lambda: win.controller.phase == "connected", timeout=5000)
+    qtbot.waitUntil(lambda: win.controller.phase == "ready", timeout=5000)
     win.made[-1].inject_fault("flowmeter", "no response (timeout)")
     qtbot.waitUntil(lambda: bool(win.log.texts("error")), timeout=5000)
     assert "flowmeter" in win.log.texts("error")[-1] and "no response" in win.banner.text()

@@ -41,7 +41,7 @@ def test_whole_run_through_the_window(qtbot, win):
     rp.title_edit.setText("GUI test run")
     assert "within limits" in rp.prediction.text()  # shown before arming
     qtbot.mouseClick(rp.arm_button, Qt.LeftButton)
-    qtbot.waitUntil(lambda: win.controller.phase == "pretrigger", timeout=60000)
+    qtbot.waitUntil(lambda: win.controller.phase == "triggerable", timeout=60000)
     assert rp.trigger_button.isEnabled() and not rp.arm_button.isEnabled()
     qtbot.waitUntil(lambda: win.live.samples_received > 6000, timeout=30000)  # baseline complete at 10 kHz
     qtbot.waitUntil(lambda: win.live.redraws > 0, timeout=5000)
@@ -85,7 +85,7 @@ def test_device_fault_is_a_message(qtbot, win):
     rp.duration_spin.setValue(60.0)
     rp.pre_spin.setValue(30.0)  # stays in the pre-trigger while the flowmeter goes silent
     win.arm()
-    qtbot.waitUntil(lambda: win.controller.phase == "pretrigger", timeout=60000)
+    qtbot.waitUntil(lambda: win.controller.phase == "triggerable", timeout=60000)
     win.controller.recorder.sim.faults["flowmeter"].silent = True
     qtbot.waitUntil(lambda: any("flowmeter" in t for t in win.log.texts("error")), timeout=30000)
     text = [t for t in win.log.texts("error") if "flowmeter" in t][-1]
@@ -110,7 +110,7 @@ def test_second_run_on_the_same_connection(qtbot, win):
 
     def one_run():
         qtbot.mouseClick(rp.arm_button, Qt.LeftButton)
-        qtbot.waitUntil(lambda: win.controller.phase == "pretrigger", timeout=60000)
+        qtbot.waitUntil(lambda: win.controller.phase == "triggerable", timeout=60000)
         qtbot.waitUntil(lambda: win.live.samples_received > 600, timeout=30000)  # the 0.5 s baseline is in
         qtbot.mouseClick(rp.trigger_button, Qt.LeftButton)
         qtbot.waitUntil(lambda: win.last_summary is not None, timeout=90000)

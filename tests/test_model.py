@@ -149,7 +149,7 @@ def test_joukowsky_head_with_friction(rig):
     assert hj < peak < hj + _line_packing_bound(rig)
 
 
-@pytest.mark.parametrize("friction", ["none", "blasius"])
+@pytest.mark.parametrize("friction", ["none", "linear"])
 def test_period_is_4L_over_a(rig, friction):
     r = rig.with_changes(friction=friction)
     el = load_material("elastic")

@@ -18,7 +18,7 @@ import h5py
 import numpy as np
 import pytest
 
-from velab.recorder import Recorder, RecordSettings, RunRefused
+from velab.recording import Recorder, RecordSettings, RunRefused
 from velab.runfile import read_run
 
 
@@ -101,20 +101,21 @@ def test_flowmeter_timeout_does_not_stop_the_pressure_recording(tmp_path):
     faults = []
 
     def during(sim, ev):
-        if ev.kind == "phase" and ev.data["phase"] == "transient" and not fired:
+        if ev.kind == "phase" and ev.data["phase"] == "recording" and not fired:
             fired.append(1)
             sim.faults["flowmeter"].set(silent=True)
         if ev.kind == "fault":
             faults.append(ev.data)
 
     summary = _record(tmp_path, during=during)
-    assert summary.status == "completed" and summary.lost_samples == 0
+    # flow data missing: never a plain "completed"
+    assert summary.status == "completed-with-faults" and summary.exit_code == 6 and summary.lost_samples == 0
     # structured fault data, and a readable line for the CLI
     f = faults[0]
     assert f["device"] == "flowmeter" and f["role"] == "flowmeter" and f["kind"] == "no_response"
     assert "no reply" in f["message"] and str(f) == f"flowmeter: {f['message']}"
     run = read_run(summary.path)
-    assert run.status == "completed" and "flowmeter" in run.status_reason
+    assert run.status == "completed-with-faults" and "flowmeter" in run.status_reason
     assert run.duration_after_trigger_s > 5.9
     assert any(k == "fault" and "flowmeter" in m for _, k, m in run.events)
 
@@ -124,7 +125,7 @@ def test_streaming_adc_disconnect_is_a_recorded_gap(tmp_path):
         sim.faults["streaming_adc"].set(disconnect_after_frames=50, reconnect_delay_s=0.2)
 
     summary = _record(tmp_path, before=before)
-    assert summary.status == "completed"
+    assert summary.status == "completed-with-faults"
     assert summary.gaps >= 1 and summary.lost_samples > 0
     run = read_run(summary.path)
     assert run.gaps and "reconnected" in run.status_reason

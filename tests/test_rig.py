@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from velab.config import Manoeuvre, load_material, load_rig
-from velab.model import valve_head
+from velab.synth import transient_head
 from velab.simulators.clock import ManualClock, RealTimeClock
 from velab.simulators.rig import CommandRefused, SimulatedRig, ValveState
 
@@ -43,7 +43,8 @@ def test_transient_is_velab_model_for_commanded_manoeuvre(rig):
     t0 = rig.trigger()
     assert rig.trigger_time == t0 == 2.0 and rig.state() is ValveState.RUNNING
     tau = np.arange(0, 3, 1e-3)
-    ref = valve_head(np.arange(0, 20 + 1e-4, 2e-4), rig.rig.with_changes(manoeuvre=Manoeuvre(40.0, -6.0)), rig.material)
+    # the rig's own friction law (quadratic: the time-domain model)
+    ref = transient_head(np.arange(0, 20 + 1e-4, 2e-4), rig.rig.with_changes(manoeuvre=Manoeuvre(40.0, -6.0)), rig.material)
     ref_i = np.interp(tau, np.arange(ref.size) * 2e-4, ref)
     assert rig.head_m(t0 + tau) - rig.rig.steady_head_m == pytest.approx(ref_i, abs=0.02)
     assert rig.head_m(np.array([t0 - 0.1]))[0] == rig.rig.steady_head_m

@@ -4,16 +4,16 @@ Rig control, HDF5 run files and calibration of the pipe-wall rheology
 (spring + m Kelvin-Voigt elements) by the Akaike information criterion.
 """
 
-__version__ = "0.1.0"
-
-from velab.errors import VelabError  # noqa: E402
+from velab.errors import VelabError
+from velab.version import __version__
 
 __all__ = ["VelabError", "__version__", "Recorder", "RecordSettings"]
+_RECORDING = ("Recorder", "RecordSettings", "RunSummary", "SurgePrediction", "RecorderEvent")
 
 
-def __getattr__(name):  # lazy: `import velab` stays light (no numpy/h5py/device layer)
-    if name in ("Recorder", "RecordSettings", "RunSummary", "SurgePrediction", "RecorderEvent"):
-        from velab import recorder
+def __getattr__(name):  # lazy for start-up speed only: `import velab` stays light (no numpy/h5py/devices)
+    if name in _RECORDING:
+        import velab.recording
 
-        return getattr(recorder, name)
+        return getattr(velab.recording, name)
     raise AttributeError(f"module 'velab' has no attribute {name!r}")

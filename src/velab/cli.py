@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "velab.commands.fit",
     "velab.commands.sim",
     "velab.commands.record",
+    "velab.commands.valve",
     "velab.commands.gui",
 )
 

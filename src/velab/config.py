@@ -15,13 +15,24 @@ from __future__ import annotations
 import math
 import os
 import tomllib
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 from velab.errors import ConfigError
-
-GRAVITY_M_S2 = 9.81
+from velab.friction import FACTOR_LAWS, STEADY_LAWS, UNSTEADY_LAWS
+# the rig's data classes live in velab.rig; re-exported here, where they always were
+from velab.rig import (  # noqa: F401
+    GRAVITY_M_S2,
+    FitSettings,
+    Fluid,
+    Manoeuvre,
+    Pipe,
+    Rig,
+    Transducer,
+    constraint_coefficient,
+    rig_from_dict,
+)
 
 # The repository's configs/ folder (editable install); VELAB_CONFIGS overrides it.
 CONFIG_ROOT = Path(os.environ.get("VELAB_CONFIGS", Path(__file__).resolve().parents[2] / "configs"))
@@ -160,136 +171,10 @@ def resolve(name_or_path: str | os.PathLike, kind: str) -> Path:
     )
 
 
-# --------------------------------------------------------------------------- rig
-
-
-@dataclass(frozen=True)
-class Pipe:
-    length_m: float
-    inner_diameter_m: float
-    wall_thickness_m: float
-    constraint_alpha: float
-    material: str = ""
-    pressure_rating_pa: float | None = None
-
-    @property
-    def area_m2(self) -> float:
-        return math.pi * self.inner_diameter_m**2 / 4.0
-
-
-@dataclass(frozen=True)
-class Fluid:
-    density_kg_m3: float = 998.2
-    kinematic_viscosity_m2_s: float = 1.004e-6
-
-
-@dataclass(frozen=True)
-class Manoeuvre:
-    """The valve closure Q(t) = Q0 / (1 + exp(beta t + gamma)), t >= 0 from the trigger."""
-
-    beta_per_s: float = 32.0
-    gamma: float = -5.5
-
-    @property
-    def half_closure_s(self) -> float:
-        return -self.gamma / self.beta_per_s
-
-    @property
-    def closure_time_s(self) -> float:
-        """90 % -> 10 % of Q0."""
-        return math.log(81.0) / self.beta_per_s
-
-
-@dataclass(frozen=True)
-class Transducer:
-    full_scale_pa: float = 6.0e5
-    accuracy_fs: float = 0.0015
-
-
-@dataclass(frozen=True)
-class FitSettings:
-    """Optional ``[fit]`` table of a rig file: the calibration's retardation-time bounds (s).
-
-    None: derived from the data (velab.fitting.params.derive_bounds). ``velab fit
-    --tau-min/--tau-max`` and ``fit_sweep(tau_min_s=, tau_max_s=)`` take precedence.
-    """
-
-    tau_min_s: float | None = None
-    tau_max_s: float | None = None
-
-
-@dataclass(frozen=True)
-class Rig:
-    """Reservoir - pipe - valve rig (physics.md section 1)."""
-
-    name: str
-    pipe: Pipe
-    fluid: Fluid
-    steady_flow_m3_s: float
-    reservoir_head_m: float
-    manoeuvre: Manoeuvre
-    transducer: Transducer
-    nominal_wave_speed_m_s: float
-    friction: str = "blasius"
-    source: str = ""
-    fit: FitSettings = field(default_factory=FitSettings)
-
-    # ---- derived quantities, named as in physics.md
-    @property
-    def reynolds(self) -> float:
-        v = self.steady_flow_m3_s / self.pipe.area_m2
-        return abs(v) * self.pipe.inner_diameter_m / self.fluid.kinematic_viscosity_m2_s
-
-    @property
-    def friction_factor(self) -> float:
-        """Darcy f at the steady state: Blasius (turbulent, smooth) or 64/Re."""
-        re = self.reynolds
-        if self.friction == "none" or re == 0:
-            return 0.0
-        if re < 2300:
-            return 64.0 / re
-        return 0.316 * re**-0.25
-
-    @property
-    def linear_resistance(self) -> float:
-        """Tangent R = f Q0 / (g D A^2), s/m^3 per metre of pipe (head per flow per length)."""
-        p = self.pipe
-        return self.friction_factor * self.steady_flow_m3_s / (GRAVITY_M_S2 * p.inner_diameter_m * p.area_m2**2)
-
-    @property
-    def steady_head_loss_m(self) -> float:
-        p = self.pipe
-        return self.friction_factor * p.length_m * self.steady_flow_m3_s**2 / (
-            2 * GRAVITY_M_S2 * p.inner_diameter_m * p.area_m2**2
-        )
-
-    @property
-    def steady_head_m(self) -> float:
-        """Head at the transducer (just upstream of the valve) before the trigger."""
-        return self.reservoir_head_m - self.steady_head_loss_m
-
-    def joukowsky_head_m(self, wave_speed_m_s: float | None = None) -> float:
-        a = wave_speed_m_s or self.nominal_wave_speed_m_s
-        return a * self.steady_flow_m3_s / (GRAVITY_M_S2 * self.pipe.area_m2)
-
-    def with_changes(self, **changes) -> "Rig":
-        from dataclasses import replace
-
-        return replace(self, **changes)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
+# --------------------------------------------------------------------------- rig files
 
 
 _ANCHORING = ("upstream", "throughout", "expansion_joints")
-
-
-def constraint_coefficient(anchoring: str, poisson: float, d: float, e: float, thick: bool) -> float:
-    """Pipe constraint coefficient alpha (Wylie & Streeter), thin- or thick-walled form."""
-    if not thick:
-        return {"upstream": 1 - poisson / 2, "throughout": 1 - poisson**2, "expansion_joints": 1.0}[anchoring]
-    base = {"upstream": 1 - poisson / 2, "throughout": 1 - poisson**2, "expansion_joints": 1.0}[anchoring]
-    return (2 * e / d) * (1 + poisson) + d * base / (d + e)
 
 
 def load_rig(name_or_path: str | os.PathLike) -> Rig:
@@ -347,9 +232,15 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
         {
             "steady_flow_m3_s": _Key(float, check=_positive),
             "reservoir_head_m": _Key(float, check=_positive),
-            "friction": _Key(str, False, "blasius", choices=("blasius", "none")),
+            # "blasius" is the name before quadratic friction existed: linear + Blasius f
+            "friction": _Key(str, False, "quadratic", choices=STEADY_LAWS + ("blasius",)),
+            "friction_factor": _Key(str, False, None, choices=FACTOR_LAWS),
+            "roughness_m": _Key(float, False, None, _non_negative),
+            "friction_unsteady": _Key(str, False, "none", choices=UNSTEADY_LAWS),
+            "brunone_k3": _Key(float, False, None, _brunone_k3),
         },
     )
+    friction = _friction_keys(r, flow, pipe["inner_diameter_m"])
     man = r.read(
         r.table("manoeuvre"),
         "[manoeuvre] ",
@@ -384,13 +275,42 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
         manoeuvre=Manoeuvre(**man),
         transducer=Transducer(full_scale_pa=tr["full_scale_bar"] * 1e5, accuracy_fs=tr["accuracy_fs"]),
         nominal_wave_speed_m_s=wave["nominal_speed_m_s"],
-        friction=flow["friction"],
+        **friction,
         source=str(path),
         fit=FitSettings(**fit),
     )
     if rig.steady_head_m <= 0:
         raise r.fail("[flow] reservoir_head_m", f"smaller than the steady head loss {rig.steady_head_loss_m:.3g} m")
     return rig
+
+
+def _brunone_k3(v: float) -> str | None:
+    return None if 0 < v <= 0.2 else "must be in (0, 0.2] (measured values are 0.01-0.05)"
+
+
+def _friction_keys(r: "_Reader", flow: dict, diameter_m: float) -> dict:
+    """The [flow] friction keys -> Rig fields, rejecting contradictory combinations."""
+    law, factor = flow["friction"], flow["friction_factor"]
+    if law == "blasius":
+        if factor not in (None, "blasius"):
+            raise r.fail("[flow] friction", '"blasius" is the old name of friction = "linear" with '
+                         'friction_factor = "blasius"; give friction = "linear" (or "quadratic") instead')
+        law, factor = "linear", "blasius"
+    factor = factor or "blasius"
+    roughness = flow["roughness_m"]
+    if factor == "colebrook":
+        if roughness is None:
+            raise r.fail("[flow] roughness_m", 'missing key (needed with friction_factor = "colebrook"; 0 = smooth)')
+        if roughness > 0.05 * diameter_m:
+            raise r.fail("[flow] roughness_m", f"must be at most 5 % of the inner diameter for Colebrook-White "
+                         f"(got {roughness} m, D = {diameter_m} m)")
+    elif roughness:
+        raise r.fail("[flow] roughness_m", 'only used with friction_factor = "colebrook" (Blasius is a smooth pipe)')
+    k3 = flow["brunone_k3"]
+    if k3 is not None and flow["friction_unsteady"] != "brunone":
+        raise r.fail("[flow] brunone_k3", 'only used with friction_unsteady = "brunone"')
+    return {"friction": law, "friction_factor_law": factor, "roughness_m": roughness or 0.0,
+            "friction_unsteady": flow["friction_unsteady"], "brunone_k3": 0.02 if k3 is None else k3}
 
 
 # --------------------------------------------------------------------------- material
@@ -500,23 +420,3 @@ def load_material_doc(path: Path, doc: dict) -> Material:
         else:
             raise r.fail(where.strip(), "give either E_pa + eta_pa_s or J_per_pa + tau_s")
     return Material(wave_speed_m_s=top["wave_speed_m_s"], elements=tuple(elements), name=top["name"])
-
-
-def rig_from_dict(d: dict) -> Rig:
-    """Inverse of :meth:`Rig.to_dict` (run files store the rig as JSON)."""
-    try:
-        return Rig(
-            name=d["name"],
-            pipe=Pipe(**d["pipe"]),
-            fluid=Fluid(**d["fluid"]),
-            steady_flow_m3_s=float(d["steady_flow_m3_s"]),
-            reservoir_head_m=float(d["reservoir_head_m"]),
-            manoeuvre=Manoeuvre(**d["manoeuvre"]),
-            transducer=Transducer(**d["transducer"]),
-            nominal_wave_speed_m_s=float(d["nominal_wave_speed_m_s"]),
-            friction=d.get("friction", "blasius"),
-            source=d.get("source", ""),
-            fit=FitSettings(**(d.get("fit") or {})),
-        )
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ConfigError(f"rig description: invalid or incomplete ({exc})") from None

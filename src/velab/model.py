@@ -24,6 +24,7 @@ import numpy as np
 import scipy.fft as sfft
 
 from velab.config import GRAVITY_M_S2, Material, Rig
+from velab.friction import unsteady_resistance
 
 
 def spring_modulus_pa(rig: Rig, wave_speed_m_s: float) -> float:
@@ -53,20 +54,40 @@ def _phi_s(s: np.ndarray, J_rel: np.ndarray, tau: np.ndarray) -> np.ndarray:
     return out
 
 
+def series_impedance(s, rig: Rig) -> np.ndarray:
+    """Series impedance per unit length W(s) = s Li + R + R_u(s) (head gradient per flow, s/m^3 per m).
+
+    Li = 1/(gA) is the inertance and R = ``rig.linear_resistance`` the tangent of the
+    steady friction at Q0 (0 for friction "none"; for "quadratic" this is the
+    linearisation, velab.moc carries the true law). R_u(s) is the weighting-function
+    unsteady friction when ``rig.friction_unsteady == "vardy-brown"`` (Zielke's for
+    laminar flow): it is linear in q, so this is exact (velab.friction). It vanishes
+    at s = 0: the steady friction is unchanged. Brunone's model depends on the sign of
+    Q and on |dQ/dx|, so it has no frequency-domain form and adds nothing here.
+    The frequency model and the calibration's evaluator both take W from here.
+    """
+    p = rig.pipe
+    gA = GRAVITY_M_S2 * p.area_m2
+    s = np.asarray(s, dtype=complex)
+    W = s / gA + rig.linear_resistance
+    if rig.friction_unsteady == "vardy-brown":
+        W = W + unsteady_resistance(s, gravity_area=gA, diameter_m=p.inner_diameter_m,
+                                    kinematic_viscosity_m2_s=rig.fluid.kinematic_viscosity_m2_s,
+                                    reynolds=rig.reynolds)
+    return W
+
+
 def _impedance_s(s: np.ndarray, a: float, phi_s: np.ndarray, rig: Rig) -> np.ndarray:
     """Z(s) = -Zc tanh(mu L) for s != 0; s == 0 gets the steady -R L."""
     p = rig.pipe
-    A = p.area_m2
-    C = GRAVITY_M_S2 * A / a**2
-    Li = 1.0 / (GRAVITY_M_S2 * A)
-    R = rig.linear_resistance
+    C = GRAVITY_M_S2 * p.area_m2 / a**2
     s = np.asarray(s, dtype=complex)
     zero = s == 0
     s_safe = np.where(zero, 1.0, s)
     Y = s_safe * C * (1.0 + phi_s)  # shunt admittance per unit length
-    mu = np.sqrt(Y * (s_safe * Li + R))  # principal branch: Re(mu) >= 0
+    mu = np.sqrt(Y * series_impedance(s_safe, rig))  # principal branch: Re(mu) >= 0
     Z = -(mu / Y) * np.tanh(mu * p.length_m)
-    return np.where(zero, -R * p.length_m, Z)
+    return np.where(zero, -rig.linear_resistance * p.length_m, Z)
 
 
 def impedance(omega, rig: Rig, material: Material) -> np.ndarray:
@@ -143,12 +164,15 @@ class ValveHeadModel:
     flow : optional flow perturbation q(t) on the same grid (default: the rig's
         sigmoid); its value at the first sample at or after the trigger is taken as
         the step at the trigger.
+    trigger_step : if given, the flow is only a step of this size (m^3/s) at the
+        trigger's exact, possibly off-grid, instant (velab.moc integrates the
+        continuous rest of a closure in the time domain and adds this step's response).
     """
 
     LEAD_SAMPLES = 64  # full band: the step's pre-ringing one lead-in away is < 0.2 % of it
 
     def __init__(self, rig: Rig, t_s, *, band_hz: float | str | None = "auto", pad: float = 2.0,
-                 sigma_T: float = 8.0, flow=None):
+                 sigma_T: float = 8.0, flow=None, trigger_step: float | None = None):
         t = np.asarray(t_s, dtype=float)
         if t.ndim != 1 or t.size < 2:
             raise ValueError("time grid must be a 1-D array of at least 2 samples")
@@ -165,7 +189,10 @@ class ValveHeadModel:
         # internal grid: `lead` empty samples, then the record from `first` on
         t0 = (t[self.first] if n else 0.0) - lead * dt
         t_int = t0 + np.arange(lead + n) * dt
-        if flow is None:
+        if trigger_step is not None:
+            q = np.where(t_int >= -1e-12 * dt, float(trigger_step), 0.0)
+            step = float(trigger_step)
+        elif flow is None:
             q = flow_perturbation(t_int, rig)
             step = float(flow_perturbation(np.array([0.0]), rig)[0])
         else:

@@ -43,7 +43,7 @@ from typing import Iterator
 import h5py
 import numpy as np
 
-from velab import __version__
+from velab.version import __version__
 from velab.config import Material, Rig, material_from_dict, rig_from_dict
 from velab.errors import ConfigError, DataError
 
@@ -53,7 +53,7 @@ CHUNK_SAMPLES = 16384
 STATUS_LEN = 32  # fixed-size status / time strings, overwritable in SWMR mode
 REASON_LEN = 256
 
-STATUSES = ("recording", "completed", "stopped", "aborted", "failed", "synthetic", "imported")
+STATUSES = ("recording", "completed", "completed-with-faults", "stopped", "aborted", "failed", "synthetic", "imported")
 
 
 def now_iso() -> str:

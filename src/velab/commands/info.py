@@ -53,6 +53,7 @@ def describe(r: Run) -> str:
     p = rig.pipe
     lines.append(f"  rig          {rig.name}: L {p.length_m:g} m, D {p.inner_diameter_m * 1e3:g} mm, "
                  f"e {p.wall_thickness_m * 1e3:g} mm, alpha {p.constraint_alpha:g}, Q0 {rig.steady_flow_m3_s * 1e3:g} l/s")
+    lines.append(f"  friction     {rig.friction_description}")
     lines.append(f"  manoeuvre    beta {rig.manoeuvre.beta_per_s:g} 1/s, gamma {rig.manoeuvre.gamma:g} "
                  f"(closure 90->10 % in {rig.manoeuvre.closure_time_s:.3f} s)")
     if r.material is not None:

@@ -2,14 +2,16 @@
 
 Exit codes (docs/recording.md): 0 completed; 2 bad arguments or configuration;
 3 refused by the interlock or the readiness checks (nothing moved); 4 aborted
-(pressure ceiling, valve fault, operator); 5 device or storage failure;
-130 stopped by Ctrl-C / SIGTERM. For a campaign the worst run decides.
+(pressure ceiling, valve fault, armed timeout, operator); 5 device or storage failure;
+6 completed with faults (data flagged); 130 stopped by Ctrl-C / SIGTERM. For a campaign
+the worst run decides. Progress goes to stderr; the summary to stdout (JSON with --json).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import signal
 import sys
@@ -17,10 +19,69 @@ import threading
 import time
 from pathlib import Path
 
-from velab.commands.common import non_negative_float, positive_float
 from velab.errors import VelabError
 
-_SEVERITY = {0: 0, 3: 1, 130: 2, 4: 3, 5: 4, 2: 5}
+
+# argparse types with domains (finite: "inf" and "nan" are refused); the shared helpers of
+# commands/common.py may replace these
+def _number(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number: {text!r}")
+    return v
+
+
+def finite_float(text: str) -> float:
+    return _number(text)
+
+
+def positive_float(text: str) -> float:
+    v = _number(text)
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"must be positive: {text!r}")
+    return v
+
+
+def non_negative_float(text: str) -> float:
+    v = _number(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must not be negative: {text!r}")
+    return v
+
+
+def positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1: {text!r}")
+    return v
+
+
+def strict_json(obj):
+    """NaN and infinities become null (strict JSON)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): strict_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [strict_json(v) for v in obj]
+    if obj is None or isinstance(obj, (str, int, bool)):
+        return obj
+    try:
+        import numpy as np
+
+        if isinstance(obj, np.generic):
+            return strict_json(obj.item())
+        if isinstance(obj, np.ndarray):
+            return strict_json(obj.tolist())
+    except ImportError:
+        pass
+    return str(obj)
 
 
 def register(subparsers) -> None:
@@ -31,7 +92,7 @@ def register(subparsers) -> None:
                     "record a baseline, trigger the valve manoeuvre, stream everything into an HDF5 run file "
                     "and calibrate EL..S6 by AIC as soon as the fit window is in.",
         epilog="exit codes: 0 completed, 2 bad arguments/config, 3 refused (interlock/readiness), 4 aborted, "
-               "5 device or storage failure, 130 stopped (Ctrl-C/SIGTERM)",
+               "5 device or storage failure, 6 completed with faults (data flagged), 130 stopped (Ctrl-C/SIGTERM)",
     )
     src = p.add_mutually_exclusive_group()
     src.add_argument("--config", metavar="BENCH", help="bench config (configs/benches/<name>.toml or a path)")
@@ -47,26 +108,32 @@ def register(subparsers) -> None:
     p.add_argument("--rig", default=None, help="rig config (default: the simulator's rig, or perugia)")
     p.add_argument("--duration", type=positive_float, default=30.0, help="seconds recorded after the trigger (30)")
     p.add_argument("--pretrigger", type=positive_float, default=2.0, help="baseline before the trigger, s (2)")
-    p.add_argument("--rate", type=positive_float, default=1000.0, help="pressure sample rate, Hz (1000)")
+    p.add_argument("--rate", type=positive_float, default=1000.0, help="pressure sample rate, Hz (1000; within the pressure source's range)")
     p.add_argument("--beta", type=positive_float, default=None, help="manoeuvre beta, 1/s (default: the rig's)")
-    p.add_argument("--gamma", type=float, default=None, help="manoeuvre gamma (default: the rig's)")
+    p.add_argument("--gamma", type=finite_float, default=None, help="manoeuvre gamma (default: the rig's)")
     p.add_argument("--end-position", type=non_negative_float, default=0.0, help="final valve opening, %% (0)")
     p.add_argument("--surge-margin", type=non_negative_float, default=0.1, help="interlock margin on the surge (0.1)")
     p.add_argument("--ceiling", type=positive_float, default=None, metavar="M",
-                   help="pressure ceiling, m of head (default: 95%% of the limiting pressure)")
+                   help="pressure ceiling, m of head (default: 95%% of the limiting pressure; never above it)")
+    p.add_argument("--armed-timeout", type=positive_float, default=None, metavar="S",
+                   help="disarm an armed rig left without a trigger after S s (default: the bench's "
+                        "[recorder] armed_timeout_s, else 300)")
+    p.add_argument("--reopen-valve", action="store_true",
+                   help="reopen the valve (actuator reset) before the first run, e.g. after a previous run closed it")
     p.add_argument("--out-dir", default=None, help="output directory (default ./runs, created if missing)")
     p.add_argument("--title", default="")
     p.add_argument("--operator", default="")
     p.add_argument("--specimen", default="")
     p.add_argument("--notes", default="")
-    p.add_argument("--repeat", type=int, default=1, metavar="N", help="campaign: N runs (1)")
-    p.add_argument("--interval", type=non_negative_float, default=0.0, metavar="S", help="pause between runs, s")
+    p.add_argument("--repeat", type=positive_int, default=1, metavar="N",
+                   help="campaign: N runs, the valve reopened and the steady state re-checked between runs (1)")
+    p.add_argument("--interval", type=non_negative_float, default=0.0, metavar="S", help="pause between runs, s (0)")
     p.add_argument("--json", action="store_true", help="print a machine-readable summary (JSON) on stdout")
     p.add_argument("--no-fit", action="store_true", help="record only")
     p.add_argument("--models", default="0-6", help="models to fit, e.g. 0-6 or 1,3,5 (0 = EL)")
     p.add_argument("--window", type=positive_float, default=20.0, help="fit window after the trigger, s (20)")
     p.add_argument("--method", default="auto", help="fit method (auto, least-squares, nelder-mead, evolution)")
-    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--quiet", action="store_true", help="no progress output (stderr)")
     p.set_defaults(func=run_command)
 
 
@@ -75,29 +142,28 @@ class _Terminate(BaseException):
 
 
 class _Progress:
-    """Prints the recorder's events from its own thread.
+    """Prints the recorder's events (stderr) from its own thread.
 
-    Phases, messages, faults and fits are plain lines (stdout, or stderr with --json). On a
-    terminal a one-line live status (phase, elapsed, t, samples, lost, peak head) is kept under
-    them, cut to the terminal's width and erased before anything else is printed; ``pause()``
-    drains the pending events and erases it so the run summary is printed cleanly.
+    Phases (with their countdowns), messages, faults and fits are plain lines. On a terminal a
+    one-line live status (phase, countdown, t, samples, lost, peak head) is kept under them, cut
+    to the terminal's width and erased before anything else is printed; ``pause()`` drains the
+    pending events and erases it so the run summary is printed cleanly.
     """
 
-    def __init__(self, rec, json_mode: bool, quiet: bool):
+    def __init__(self, rec, quiet: bool):
         self.rec = rec
-        self.stream = sys.stderr if json_mode else sys.stdout
+        self.stream = sys.stderr
         self.quiet = quiet
         self.tty = (not quiet) and self.stream.isatty()
         self.lock = threading.Lock()
         self.stop_ev = threading.Event()
         self.paused = False
         self.status_shown = False
-        self.state = {"phase": "idle", "samples": 0, "lost": 0, "peak": float("-inf"),
-                      "t0": time.monotonic(), "t": 0.0}
+        self.state = {"phase": "disconnected", "samples": 0, "lost": 0, "peak": float("-inf"),
+                      "t0": time.monotonic(), "t": 0.0, "countdown": ""}
         self.thread = threading.Thread(target=self._loop, daemon=True, name="velab-record-progress")
         self.thread.start()
 
-    # -- output (under self.lock)
     def _erase(self) -> None:
         if self.status_shown:
             self.stream.write("\r\x1b[2K")
@@ -112,11 +178,8 @@ class _Progress:
 
     def _status(self) -> None:
         st = self.state
-        phase = st["phase"]
-        if phase in ("connected", "connecting") and st["samples"]:
-            phase = "arming"
         peak = f"{st['peak']:.2f} m" if st["peak"] > -1e300 else "-"
-        text = (f"{phase:<10} {time.monotonic() - st['t0']:6.1f} s | t {st['t']:8.3f} s | "
+        text = (f"{st['phase']:<12} {st['countdown']:<22} | t {st['t']:8.3f} s | "
                 f"{st['samples']} samples, {st['lost']} lost | peak head {peak}")
         width = shutil.get_terminal_size((80, 24)).columns - 1
         with self.lock:
@@ -124,49 +187,57 @@ class _Progress:
             self.stream.flush()
             self.status_shown = True
 
-    # -- events
     def handle(self, ev) -> None:
-        k = ev.kind
-        st = self.state
+        k, d, st = ev.kind, ev.data, self.state
         if k == "samples":
-            d = ev.data
             st["samples"] += d["time_s"].size
             st["lost"] += d["lost"]
             if d["time_s"].size:
                 st["t"] = float(d["time_s"][-1])
-            if d["head_m"].size:
+            q = d.get("quality")
+            h = d["head_m"] if q is None else d["head_m"][q == 0]
+            if h.size:
                 import numpy as np
 
                 with np.errstate(invalid="ignore"):
-                    m = np.nanmax(d["head_m"]) if np.isfinite(d["head_m"]).any() else float("nan")
+                    m = np.nanmax(h) if np.isfinite(h).any() else float("nan")
                 if m == m:
                     st["peak"] = max(st["peak"], float(m))
+        elif k == "progress":
+            st["countdown"] = f"{d['what']} {d['remaining_s']:.1f} s"
         elif k == "phase":
-            st["phase"] = ev.data["phase"]
-            if ev.data["phase"] == "connecting":
+            phase = d["phase"]
+            if phase == st["phase"] and not d.get("trigger_queued"):
+                return
+            st["phase"], st["countdown"] = phase, ""
+            if phase == "connecting":
                 st.update(samples=0, lost=0, peak=float("-inf"), t=0.0, t0=time.monotonic())
-            phase = ev.data["phase"]
-            extra = ev.data.get("reason") or ""
-            if phase in ("armed", "done") and ev.data.get("path"):
-                extra = ev.data["path"]
-            elif phase == "transient" and ev.data.get("trigger_time_s") is not None:
-                extra = f"trigger commanded at t = {ev.data['trigger_time_s']:.3f} s"
+            extra = d.get("reason") or ""
+            if phase == "armed":
+                extra = (f"{d.get('path')}; recording the {d.get('baseline_s', 0):g} s baseline "
+                         f"(disarms after {d.get('armed_timeout_s', 0):g} s without a trigger)")
+                if d.get("trigger_queued"):
+                    extra = "trigger queued: it goes out as soon as the baseline is in"
+            elif phase == "triggerable":
+                extra = f"baseline in; disarms in {d.get('disarm_in_s', 0):.0f} s without a trigger"
+            elif phase == "recording":
+                extra = (f"trigger commanded at t = {d['trigger_time_s']:.3f} s; fit window "
+                         f"{d.get('fit_window_s', 0):g} s")
             elif phase == "fitting":
-                extra = "final fit" + (f" ({extra})" if extra else "")
-            if phase == "pretrigger":
-                extra = f"recording the {self.rec.settings.pretrigger_s:g} s baseline"
-            self.line(f"[{time.monotonic() - st['t0']:7.2f} s] {ev.data['phase']}" + (f": {extra}" if extra else ""))
-        elif k == "trigger" and ev.data.get("measured"):
-            self.line(f"trigger measured from the valve position: t = {ev.data['trigger_time_s']:.4f} s")
+                extra = f"final fit (run {d.get('status')})"
+            elif phase in ("completed", "completed-with-faults") and not extra:
+                extra = d.get("path") or ""
+            self.line(f"[{time.monotonic() - st['t0']:7.2f} s] {phase}" + (f": {extra}" if extra else ""))
+        elif k == "trigger" and d.get("measured"):
+            self.line(f"trigger measured from the valve position: t = {d['trigger_time_s']:.4f} s")
         elif k == "message":
-            self.line(str(ev.data))
+            self.line(str(d))
         elif k == "fault":
-            self.line(f"warning: {ev.data}")
+            self.line(f"warning: {d}")
         elif k == "fit":
-            r = ev.data["result"]
-            tag = "final" if ev.data["final"] else "intermediate"
-            self.line(f"fit ({tag}, {ev.data['window_s']:g} s window): best {r.best.name}, "
-                      f"a = {r.best.wave_speed_m_s:.2f} m/s")
+            r = d["result"]
+            tag = "final" if d["final"] else "intermediate"
+            self.line(f"fit ({tag}, {d['window_s']:g} s window): best {r.best.name}, a = {r.best.wave_speed_m_s:.2f} m/s")
 
     def _loop(self) -> None:
         import queue as _q
@@ -206,29 +277,38 @@ class _Progress:
             self._erase()
 
 
+def _out_dir(args) -> Path:
+    out = Path(args.out_dir) if args.out_dir else Path("runs")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise VelabError(f"--out-dir {out}: cannot create the output directory ({exc.strerror or exc})") from None
+    if not out.is_dir():
+        raise VelabError(f"--out-dir {out}: not a directory")
+    return out
+
+
 def _settings_from_args(args, run_number: int):
     from velab.fitting import parse_models
-    from velab.recorder import RecordSettings
+    from velab.recording import RecordSettings
 
-    out = Path(args.out_dir) if args.out_dir else Path("runs")
-    if args.out_dir is None:
-        out.mkdir(exist_ok=True)
-    models = tuple(parse_models(args.models))
     return RecordSettings(
         duration_s=args.duration, pretrigger_s=args.pretrigger, sample_rate_hz=args.rate,
-        beta_per_s=args.beta, gamma=args.gamma, end_position_pct=args.end_position, out_dir=out,
+        beta_per_s=args.beta, gamma=args.gamma, end_position_pct=args.end_position, out_dir=_out_dir(args),
         title=args.title, operator=args.operator, specimen=args.specimen, notes=args.notes,
-        fit=not args.no_fit, fit_models=models, fit_window_s=args.window, fit_method=args.method,
-        surge_margin=args.surge_margin, ceiling_head_m=args.ceiling, run_number=run_number,
+        fit=not args.no_fit, fit_models=tuple(parse_models(args.models)), fit_window_s=args.window,
+        fit_method=args.method, surge_margin=args.surge_margin, ceiling_head_m=args.ceiling, run_number=run_number,
+        armed_timeout_s=args.armed_timeout,
     )
 
 
-def _make_recorder(args, settings):
+def make_recorder(args, settings):
+    """The Recorder for ``--simulate`` (in-process rig) or ``--config BENCH`` (shared with ``velab valve``)."""
     from velab.config import load_rig
-    from velab.recorder import Recorder
+    from velab.recording import Recorder
 
-    if args.simulate or not args.config:
-        if not args.simulate and not args.config:
+    if getattr(args, "simulate", False) or not args.config:
+        if not getattr(args, "simulate", False):
             raise VelabError("give --config BENCH.toml or --simulate")
         rig = load_rig(args.rig) if args.rig else None
         return Recorder.simulated(settings, sim_config=args.sim_config, material=args.material,
@@ -240,36 +320,42 @@ def _make_recorder(args, settings):
         bench = load_bench(args.config)
     except ProfileError as exc:
         raise VelabError(str(exc)) from None
-    if bench.simulate and args.clock:
-        raise VelabError("--realtime/--fast only apply to --simulate")
+    if getattr(args, "clock", None):
+        raise VelabError("--realtime/--fast/--clock only apply to --simulate")
     rig = load_rig(args.rig or "perugia")
     return Recorder(bench, rig, settings)
 
 
 def _print_summary(summary, out) -> None:
-    import math
-
     print("", file=out)
     print(f"run: {summary.path}", file=out)
     print(f"status: {summary.status}" + (f" ({summary.reason})" if summary.reason else ""), file=out)
     peak = f"{summary.peak_head_m:.2f} m" if math.isfinite(summary.peak_head_m) else "-"
     trig = f", trigger at t = {summary.trigger_time_s:.4f} s" if summary.trigger_time_s is not None else ""
     print(f"samples: {summary.n_samples}, lost {summary.lost_samples} in {summary.gaps} gaps, "
-          f"peak head {peak}{trig}", file=out)
+          f"{summary.flagged_samples} flagged, peak head {peak}{trig}", file=out)
     if summary.fit is not None:
         print(summary.fit.report(elements=False).rstrip(), file=out)
         print(f"best model: {summary.best_model}, a = {summary.wave_speed_m_s:.2f} m/s"
               + (f" (final fit {summary.fit_latency_s:.2f} s after the window closed)" if summary.fit_latency_s else ""),
               file=out)
-    elif summary.fit_error:
+    if summary.fit_error:
         print(summary.fit_error, file=out)
 
 
-def run_command(args) -> int:
-    from velab.recorder import RunSummary
+def _campaign_table(summaries, requested: int, out) -> None:
+    print(f"\ncampaign: {len(summaries)} of {requested} runs", file=out)
+    print(f"{'#':>3}  {'run file':<28} {'status':<22} {'best':<5} {'a (m/s)':>8} {'peak (m)':>9}", file=out)
+    for i, s in enumerate(summaries, 1):
+        a = f"{s.wave_speed_m_s:.2f}" if s.wave_speed_m_s else "-"
+        pk = f"{s.peak_head_m:.2f}" if math.isfinite(s.peak_head_m) else "-"
+        print(f"{i:>3}  {(s.path.name if s.path else '-'):<28} {s.status:<22} {s.best_model or '-':<5} {a:>8} "
+              f"{pk:>9}", file=out)
 
-    if args.repeat < 1:
-        raise VelabError("--repeat must be at least 1")
+
+def run_command(args) -> int:
+    from velab.recording.phases import worst_exit_code
+
     if args.method not in ("auto", "least-squares", "nelder-mead", "evolution"):
         raise VelabError(f"unknown fit method {args.method!r}")
     settings = _settings_from_args(args, 1)
@@ -279,13 +365,11 @@ def run_command(args) -> int:
         raise _Terminate()
 
     old = signal.signal(signal.SIGTERM, on_term)
-    summaries: list[RunSummary] = []
-    codes: list[int] = []
-    rec = None
-    progress = None
+    summaries, codes = [], []
+    rec = progress = None
     try:
-        rec = _make_recorder(args, settings)
-        progress = _Progress(rec, args.json, args.quiet)
+        rec = make_recorder(args, settings)
+        progress = _Progress(rec, args.quiet)
         for i in range(args.repeat):
             progress.resume()
             if i:
@@ -294,7 +378,7 @@ def run_command(args) -> int:
                     time.sleep(args.interval)
             try:
                 try:
-                    s = rec.run(reset_valve=i > 0)
+                    s = rec.run(reset_valve=i > 0 or args.reopen_valve)
                 except (KeyboardInterrupt, _Terminate):
                     s = _interrupt(rec)
             except VelabError as exc:  # RunRefused (3), DeviceFailure (5), bad settings (2)
@@ -307,7 +391,7 @@ def run_command(args) -> int:
             progress.pause()
             if not args.quiet:
                 _print_summary(s, out)
-            if s.exit_code == 130:
+            if s.exit_code in (130, 5):
                 break
     except (KeyboardInterrupt, _Terminate):
         codes.append(130)
@@ -320,21 +404,18 @@ def run_command(args) -> int:
             except (KeyboardInterrupt, _Terminate):
                 pass
         signal.signal(signal.SIGTERM, old)
-    code = max(codes, key=lambda c: _SEVERITY.get(c, 4)) if codes else 0
+    code = worst_exit_code(codes)
     if args.repeat > 1 and not args.quiet:
-        print(f"campaign: {len(summaries)} of {args.repeat} runs, "
-              + ", ".join(f"{s.path.name if s.path else '-'}: {s.status} {s.best_model or ''}".rstrip() for s in summaries),
-              file=out)
+        _campaign_table(summaries, args.repeat, out)
     if args.json:
         doc = {"exit_code": code, "runs": [s.to_dict() for s in summaries]}
         if args.repeat > 1:
-            best = [s.best_model for s in summaries if s.best_model]
             a = [s.wave_speed_m_s for s in summaries if s.wave_speed_m_s]
             doc["campaign"] = {"runs": len(summaries), "requested": args.repeat,
                                "statuses": [s.status for s in summaries],
-                               "best_models": best,
+                               "best_models": [s.best_model for s in summaries],
                                "wave_speed_mean_m_s": (sum(a) / len(a)) if a else None}
-        json.dump(doc, sys.stdout, indent=1, default=str)
+        json.dump(strict_json(doc), sys.stdout, indent=1, allow_nan=False)
         print()
     return code
 
@@ -344,10 +425,9 @@ def _interrupt(rec):
     print("velab: stopping (Ctrl-C/SIGTERM): actuator to its safe state, closing the run file", file=sys.stderr)
     while True:
         try:
-            rec.stop().result(timeout=30)
+            rec.stop().result(timeout=60)
             summary = rec.wait(120)
             break
         except (KeyboardInterrupt, _Terminate):
             continue  # a second Ctrl-C does not leave the file open
-    summary.status = "stopped" if summary.status in ("completed", "stopped") else summary.status
     return summary

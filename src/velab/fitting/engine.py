@@ -30,7 +30,7 @@ from collections import OrderedDict
 import numpy as np
 
 from velab.config import GRAVITY_M_S2, Rig
-from velab.model import ValveHeadModel
+from velab.model import ValveHeadModel, series_impedance
 
 
 class HeadEvaluator:
@@ -61,7 +61,7 @@ class HeadEvaluator:
         self.s = vm.s_band.copy()
         self.gA = GRAVITY_M_S2 * p.area_m2
         # series impedance per unit length (inertance and friction): the one place it enters
-        self.W = self.s / self.gA + rig.linear_resistance  # s Li + R
+        self.W = series_impedance(self.s, rig)  # s Li + R (+ unsteady R_u(s)), velab.model
         self.L = p.length_m
         self._sgA = self.s * self.gA
         self._sigma = float(vm.sigma)

@@ -28,25 +28,21 @@ import time
 
 import numpy as np
 
-from velab import moc as _moc
-from velab.config import Material, KelvinVoigt, Rig
+from velab.config import Rig
 from velab.errors import DataError
-from velab.model import creep_scale
+from velab.friction import STEADY_LAWS, UNSTEADY_LAWS
+from velab.moc import moc_head
 
-STEADY_LAWS = ("quadratic", "linear", "none")
-UNSTEADY_LAWS = ("none", "vardy-brown", "brunone")
 # unsteady laws the frequency model carries exactly (linear in q, through the series impedance)
 FD_EXACT_UNSTEADY = ("none", "vardy-brown")
-# the MOC resolves the pipe with at least this many reaches for the correction
-MIN_REACHES = 16
 
 
 def steady_law(rig: Rig, override: str | None = None) -> str:
-    """The steady friction law of a rig: "quadratic", "linear" or "none".
+    """The steady friction law of the calibration model: "quadratic", "linear" or "none".
 
-    The rig schema's old value "blasius" (the linearised Blasius friction) means "linear".
+    "blasius", the old name of the linearised Blasius friction, means "linear".
     """
-    law = override if override is not None else getattr(rig, "friction", "linear")
+    law = override if override is not None else rig.friction
     law = {"blasius": "linear"}.get(law, law)
     if law not in STEADY_LAWS:
         raise DataError(f"friction law {law!r} unknown (choose from {', '.join(STEADY_LAWS)})")
@@ -54,7 +50,7 @@ def steady_law(rig: Rig, override: str | None = None) -> str:
 
 
 def unsteady_law(rig: Rig, override: str | None = None) -> str:
-    law = override if override is not None else (getattr(rig, "friction_unsteady", None) or "none")
+    law = override if override is not None else (rig.friction_unsteady or "none")
     if law not in UNSTEADY_LAWS:
         raise DataError(f"unsteady friction law {law!r} unknown (choose from {', '.join(UNSTEADY_LAWS)})")
     return law
@@ -63,37 +59,11 @@ def unsteady_law(rig: Rig, override: str | None = None) -> str:
 def fit_rig(rig: Rig, friction: str | None = None, friction_unsteady: str | None = None) -> Rig:
     """The rig with the fit's friction overrides applied (the rig itself if there are none)."""
     changes = {}
-    if friction is not None:
-        law = steady_law(rig, friction)
-        if law != steady_law(rig):
-            changes["friction"] = law
-    if friction_unsteady is not None:
-        law = unsteady_law(rig, friction_unsteady)
-        if law != unsteady_law(rig):
-            if not hasattr(rig, "friction_unsteady"):
-                raise DataError(f"unsteady friction {law!r}: this velab's rig model has no unsteady friction")
-            changes["friction_unsteady"] = law
+    if friction is not None and steady_law(rig, friction) != rig.friction:
+        changes["friction"] = steady_law(rig, friction)
+    if friction_unsteady is not None and unsteady_law(rig, friction_unsteady) != rig.friction_unsteady:
+        changes["friction_unsteady"] = unsteady_law(rig, friction_unsteady)
     return rig.with_changes(**changes) if changes else rig
-
-
-def _moc_head_fallback(rig: Rig, wave_speed_m_s: float, J_rel, tau_s, t_s, *, friction: str,
-                       unsteady: str | None = None, dt_s: float | None = None) -> np.ndarray:
-    """Thin adapter over ``velab.moc.moc_solve`` with the signature of ``velab.moc.moc_head``."""
-    if unsteady not in (None, "none"):
-        raise DataError(f"unsteady friction {unsteady!r} needs velab.moc.moc_head")
-    t = np.asarray(t_s, dtype=float)
-    dt = float(dt_s if dt_s is not None else t[1] - t[0])
-    c = creep_scale(rig, wave_speed_m_s)
-    els = tuple(KelvinVoigt.from_creep(float(j) / c, float(tk)) for j, tk in zip(J_rel, tau_s))
-    mat = Material(wave_speed_m_s=float(wave_speed_m_s), elements=els)
-    r = _moc.moc_solve(rig, mat, max(float(t[-1]), 0.0) + 2 * dt, dt, friction=friction)
-    return np.interp(t, r.t_s, r.head_m, left=0.0)
-
-
-moc_head = getattr(_moc, "moc_head", None) or _moc_head_fallback
-# the compiled velab.moc.moc_head picks its own (second-order) step; the fallback's first-order
-# solver runs at the sample step, at least MIN_REACHES reaches per pipe
-_OWN_STEP = moc_head is not _moc_head_fallback
 
 
 class FrictionCorrection:
@@ -111,8 +81,6 @@ class FrictionCorrection:
         self.active = self.steady == "quadratic" or self.unsteady not in FD_EXACT_UNSTEADY
         # the linear counterpart carries what the frequency model carries
         self.linear_unsteady = self.unsteady if self.unsteady in FD_EXACT_UNSTEADY else "none"
-        dt = float(self.t[1] - self.t[0])
-        self.dt_moc = None if _OWN_STEP else min(dt, rig.pipe.length_m / (MIN_REACHES * rig.nominal_wave_speed_m_s))
         self.runs = 0
         self.seconds = 0.0
 
@@ -125,11 +93,9 @@ class FrictionCorrection:
         t0 = time.perf_counter()
         J_rel = np.asarray(J_rel, dtype=float)
         tau = np.asarray(tau, dtype=float)
-        kw = {"dt_s": self.dt_moc}
-        h_rig = moc_head(self.rig, a, J_rel, tau, self.t, friction=self.steady,
-                         unsteady=None if self.unsteady == "none" else self.unsteady, **kw)
-        h_lin = moc_head(self.rig, a, J_rel, tau, self.t, friction="linear",
-                         unsteady=None if self.linear_unsteady == "none" else self.linear_unsteady, **kw)
+        # the MOC picks its own step (velab.moc.default_dt_s: second order, 1e-4 of the Joukowsky head)
+        h_rig = moc_head(self.rig, a, J_rel, tau, self.t, friction=self.steady, unsteady=self.unsteady)
+        h_lin = moc_head(self.rig, a, J_rel, tau, self.t, friction="linear", unsteady=self.linear_unsteady)
         self.runs += 2
         self.seconds += time.perf_counter() - t0
         out = np.asarray(h_rig, dtype=float) - np.asarray(h_lin, dtype=float)

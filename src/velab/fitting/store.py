@@ -14,7 +14,7 @@ import re
 import h5py
 import numpy as np
 
-from velab import __version__
+from velab.version import __version__
 from velab.fitting.results import ModelFit, SweepResult
 
 _UNITS = {"E_pa": "Pa", "eta_pa_s": "Pa s", "tau_s": "s", "J_per_pa": "1/Pa"}

@@ -7,6 +7,7 @@ import traceback
 from pathlib import Path
 
 from velab.errors import VelabError
+from velab.recording.settings import RecordSettings
 
 
 def ensure_app():
@@ -25,19 +26,14 @@ def ensure_app():
 
 def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "default", material=None, rig=None,
                      clock: str = "realtime"):
-    """``(factory, rig)``: ``factory(**record_settings) -> velab.recorder.Recorder`` and the rig it records;
+    """``(factory, rig)``: ``factory(**record_settings) -> velab.recording.Recorder`` and the rig it records;
     ``factory.make_settings(**record_settings) -> RecordSettings`` for the next arm on the same Recorder.
 
     The factory runs on the controller's worker thread (it starts the simulated rig or
     loads the bench); it creates the run folder if needed. Raises VelabError for a bad
     configuration or a missing recorder engine.
     """
-    try:
-        from velab import recorder as rec
-    except ModuleNotFoundError as exc:
-        if exc.name and exc.name.startswith("velab.recorder"):
-            raise VelabError("the recorder engine (velab.recorder) is not installed; only the archive browser works")
-        raise
+    from velab import recording as rec
     from velab.config import load_rig
 
     if simulate:
@@ -71,8 +67,6 @@ def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "
 
 def _record_settings(**settings):
     """The form's values as RecordSettings for a connected Recorder's next arm (creates the run folder)."""
-    from velab.recorder import RecordSettings
-
     return RecordSettings(**_coerce(settings))
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from velab.commands.info import describe
 from velab.errors import DataError
 
 
@@ -26,7 +27,6 @@ class LoadedRun:
 
 
 def load_run(path) -> LoadedRun:
-    from velab.commands.info import describe
     from velab.fitting.store import read_fit_group
     from velab.runfile import open_run_file, read_run
 

@@ -1,4 +1,4 @@
-"""The bridge between the recorder engine (velab.recorder, Qt-free) and the window.
+"""The bridge between the recorder engine (velab.recording, Qt-free) and the window.
 
 ScopeFoundry's split: the engine does all device I/O and file writing on its own
 threads and publishes :class:`RecorderEvent`s on a queue; the GUI drains that queue
@@ -28,7 +28,7 @@ from PySide6.QtCore import QObject, QTimer, Signal
 
 from velab.gui.messages import describe_error
 
-ACTIVE_PHASES = ("connecting", "armed", "pretrigger", "transient", "fitting")
+from velab.recording.phases import ACTIVE_PHASES
 
 
 class RecorderController(QObject):
@@ -52,7 +52,7 @@ class RecorderController(QObject):
         super().__init__(parent)
         self.factory = factory
         self.recorder = None
-        self.phase = "idle"
+        self.phase = "disconnected"
         self.budget_s = budget_s
         self._pending: list[tuple[str, object, Callable | None]] = []
         self._settings: dict | None = None
@@ -221,7 +221,7 @@ class RecorderController(QObject):
             self._settings = None  # not applied: the next Arm converts the form again
         if name == "setup":
             self._making = False
-            self._set_phase("idle" if self.recorder is None else getattr(self.recorder, "phase", "idle"))
+            self._set_phase("disconnected" if self.recorder is None else getattr(self.recorder, "phase", "disconnected"))
         level, text = describe_error(exc)
         self.command_failed.emit(name, exc)
         self.message.emit(text, level)

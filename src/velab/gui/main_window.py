@@ -16,6 +16,8 @@ from PySide6.QtWidgets import (QDockWidget, QGroupBox, QLabel, QMainWindow, QScr
 from velab.gui import tasks
 from velab.gui.archive import ArchiveBrowser
 from velab.gui.controller import RecorderController
+from velab.recording.safety import predict_surge
+from velab.recording.settings import RecordSettings
 from velab.gui.devices import DevicePanel
 from velab.gui.fit_panel import FitPanel
 from velab.gui.live_plot import LivePlot
@@ -259,10 +261,6 @@ class MainWindow(QMainWindow):
             return None
         s = self.run_panel.settings()
         rec = self.controller.recorder
-        try:
-            from velab.recorder import RecordSettings, predict_surge
-        except ImportError:
-            return self.controller.predict_surge(s["beta_per_s"], s["gamma"])
         rig = self.rig or getattr(rec, "rig", None)
         if rig is None:
             return None
@@ -319,12 +317,13 @@ class MainWindow(QMainWindow):
 
     def _phase(self, phase: str) -> None:
         self.phase_label.setText(phase)
-        colors = {"armed": "#fff0c2", "pretrigger": "#fff0c2", "transient": "#ffd9a8", "fitting": "#dbe9ff",
-                  "done": "#d8f0d2", "aborted": "#f9d0cd", "failed": "#f9d0cd", "stopped": "#eeeeee"}
+        colors = {"armed": "#fff0c2", "triggerable": "#fff0c2", "recording": "#ffd9a8", "fitting": "#dbe9ff",
+                  "completed": "#d8f0d2", "completed-with-faults": "#fbe7c6", "aborted": "#f9d0cd",
+                  "failed": "#f9d0cd", "stopped": "#eeeeee"}
         self.phase_label.setStyleSheet(f"background:{colors.get(phase, 'transparent')}; padding:2px;")
         self.run_panel.set_phase(phase)
         self.reset_valve_action.setEnabled(self.run_panel.reset_valve_button.isEnabled())
-        if phase == "transient" and self.live.trigger_time_s is None:
+        if phase == "recording" and self.live.trigger_time_s is None:
             self.live.set_trigger(0.0)
 
     def _samples(self, t, h, v, lost) -> None:
@@ -332,7 +331,7 @@ class MainWindow(QMainWindow):
 
     def _phase_info(self, phase: str, data) -> None:
         t = data.get("trigger_time_s") if isinstance(data, dict) else None
-        if phase == "transient" and isinstance(t, (int, float)):
+        if phase == "recording" and isinstance(t, (int, float)):
             self.live.set_trigger(float(t))
         if phase in ("stopped", "aborted", "failed") and isinstance(data, dict) and data.get("reason"):
             self.show_message(f"Run {phase}: {data['reason']}", "warning" if phase == "stopped" else "error")
@@ -349,7 +348,7 @@ class MainWindow(QMainWindow):
                     f"head {head[-1]:.2f} m (max {np.nanmax(head):.2f} m), lost {self.live.lost_samples}")
 
     def _fault(self, data) -> None:
-        """A ``fault`` event: {"device", "message", "kind", "role"...} (velab.recorder.Fault)."""
+        """A ``fault`` event: {"device", "message", "kind", "role"...} (velab.recording.Fault)."""
         if isinstance(data, dict):
             dev = str(data.get("device") or "device")
             msg = str(data.get("message", ""))

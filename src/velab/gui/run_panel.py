@@ -198,17 +198,18 @@ class RunPanel(QWidget):
         self._update_reset()
 
     def _update_reset(self) -> None:
-        active = self._phase in ("connecting", "armed", "pretrigger", "transient")
+        active = self._phase in ("connecting", "armed", "triggerable", "recording")
         self.reset_valve_button.setEnabled(self._valve_closed and not active)
 
     def set_phase(self, phase: str) -> None:
         self._phase = phase
         self._update_reset()
-        active = phase in ("connecting", "armed", "pretrigger", "transient", "fitting")
+        # the engine's phases (velab.recording.phases); a trigger pressed while armed is queued
+        active = phase in ("connecting", "armed", "triggerable", "recording", "fitting")
         self.arm_button.setEnabled(not active)
-        self.trigger_button.setEnabled(phase in ("armed", "pretrigger"))
-        self.stop_button.setEnabled(phase in ("armed", "pretrigger", "transient"))
-        self.abort_button.setEnabled(phase in ("armed", "pretrigger", "transient", "fitting"))
+        self.trigger_button.setEnabled(phase in ("armed", "triggerable"))
+        self.stop_button.setEnabled(phase in ("armed", "triggerable", "recording"))
+        self.abort_button.setEnabled(phase in ("armed", "triggerable", "recording", "fitting"))
         for w in (self.beta_spin, self.gamma_spin, self.end_spin, self.margin_spin, self.duration_spin, self.pre_spin,
                   self.rate_combo, self.out_edit, self.fit_check, self.fit_window_spin, self.models_edit):
             w.setEnabled(not active)

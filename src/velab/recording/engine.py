@@ -1,0 +1,388 @@
+"""The engine: sequences connect / arm / trigger / record / conclude and owns the threads.
+
+Threads (none of them Qt): the *control* thread runs every command (queued, each returns a
+``concurrent.futures.Future``) and the phase timers (baseline countdown, queued trigger,
+armed timeout); the pressure source's *acquisition* thread feeds the time line; the slow
+channels poll the valve and the flowmeter; the *writer* is the only one touching the file;
+the online fit runs on its own; a *conclude* thread waits for the final fit and publishes the
+summary. Stages report through ``Hooks`` (emit, log, fault, request_end). docs/recording.md.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import queue
+import threading
+import time
+from typing import Any, Callable
+
+from velab.config import Rig
+from velab.drivers.bench import open_device
+from velab.drivers.valve import ValveState
+from velab.errors import VelabError
+from velab.recording import phases as P
+from velab.recording.devices import (
+    bench_armed_timeout, check_valve_open, identity, profile_contents, reopen_valve, resolve_roles)
+from velab.recording.run import DEFER, RunControl
+from velab.recording.safety import predict_surge
+from velab.recording.settings import RecordSettings
+from velab.recording.slow import valve_event
+from velab.recording.types import DEVICE_ERRORS, DeviceFailure, DeviceStatus, Fault, Hooks, RecorderEvent, RunSummary
+
+log = logging.getLogger(__name__)
+_LIVE = ("samples", "progress", "device")  # live data: dropped first when nobody drains the events
+
+
+class Recorder(RunControl):
+    """One engine for ``velab record`` and the GUI. See the module docstring and docs/recording.md."""
+
+    def __init__(self, bench, rig: Rig, settings: RecordSettings, *, sim=None, owns_sim: bool = False):
+        self.bench, self.rig, self.settings = bench, rig, settings
+        self.sim, self._owns_sim = sim, owns_sim
+        self.clock = getattr(sim, "clock", None)
+        self.bench_armed_timeout_s = bench_armed_timeout(bench)
+        self.events: queue.Queue = queue.Queue(maxsize=1000)  # bounded: memory stays flat without a consumer
+        self.events_dropped = 0
+        self._listeners: list[Callable[[RecorderEvent], None]] = []
+        self.phase = P.DISCONNECTED
+        self.phase_data: dict = {}
+        self.devices: dict[str, Any] = {}
+        self.roles: dict[str, str] = {}
+        self.identities: dict[str, dict] = {}
+        self.profiles: dict[str, dict] = {}
+        self._valve_state: ValveState | None = None
+        self._valve_position: float | None = None
+        self._cmds: queue.Queue = queue.Queue()
+        self._closing = threading.Event()
+        self._current_fut: cf.Future | None = None
+        self.hooks = Hooks(emit=self._emit, log=self._log, fault=self._fault, request_end=self._request_end)
+        self._init_run_state()
+        self._control = threading.Thread(target=self._control_loop, name="velab-recorder-control", daemon=True)
+        self._control.start()
+
+    @classmethod
+    def simulated(cls, settings: RecordSettings, sim_config: str = "default", material: str | None = None,
+                  clock="realtime", rig: Rig | None = None) -> "Recorder":
+        """Start the simulated rig in-process (ephemeral endpoints) and record from it; the Recorder owns it.
+
+        ``clock``: "realtime", "fast" (12 x real time), "scaled:K", or a clock object.
+        """
+        from velab.simulators.bench import SimulatedBench, load_sim_config
+        from velab.simulators.clock import make_clock
+
+        path, doc = load_sim_config(sim_config)
+        doc = dict(doc)
+        if material:
+            doc["material"] = material
+        if isinstance(clock, str):
+            try:
+                clock = make_clock(clock)
+            except ValueError as exc:
+                raise VelabError(str(exc)) from None
+        sim = SimulatedBench(doc, ephemeral=True, clock=clock, path=str(path)).start()
+        try:
+            return cls(sim.bench(), rig or sim.rig.rig, settings, sim=sim, owns_sim=True)
+        except BaseException:
+            sim.stop()
+            raise
+
+    # ------------------------------------------------------------------ events
+    def add_listener(self, fn: Callable[[RecorderEvent], None]) -> None:
+        """fn(RecorderEvent), called from engine threads (keep it short, thread-safe)."""
+        self._listeners.append(fn)
+
+    def _emit(self, kind: str, data: Any) -> None:
+        ev = RecorderEvent(kind, time.time(), data)
+        try:
+            self.events.put_nowait(ev)
+        except queue.Full:
+            if kind in _LIVE:
+                self.events_dropped += 1
+            else:  # make room by dropping the oldest live event: a phase, fault or fit is never lost
+                q = self.events
+                with q.mutex:
+                    for i, old in enumerate(q.queue):
+                        if old.kind in _LIVE:
+                            del q.queue[i]
+                            break
+                    else:
+                        q.queue.popleft()
+                    q.queue.append(ev)
+                    q.unfinished_tasks += 1
+                    q.not_empty.notify()
+                self.events_dropped += 1
+        for fn in list(self._listeners):
+            try:
+                fn(ev)
+            except Exception:  # noqa: BLE001 - a listener's bug never stops a recording
+                log.exception("recorder event listener")
+
+    def allowed_commands(self) -> tuple[str, ...]:
+        """The commands that can succeed now (the GUI enables exactly these)."""
+        return P.allowed_commands(self.phase, valve_open=self.valve_open, trigger_queued=self._trigger_fut is not None)
+
+    def _set_phase(self, phase: str, **data) -> None:
+        self.phase = phase
+        self.phase_data = data
+        self._emit("phase", {"phase": phase, **data, "allowed": list(self.allowed_commands())})
+        if self._writer is not None and not self._writer.closed.is_set():
+            extra = ", ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in data.items()
+                              if k in ("baseline_s", "armed_timeout_s", "trigger_time_s", "fit_window_s"))
+            self._log("phase", phase + (f" ({extra})" if extra else ""))
+
+    def _message(self, text: str) -> None:
+        self._emit("message", text)
+        self._log("message", text)
+
+    def _fault(self, who: str, message: str, kind: str = "error", **extra) -> None:
+        """A ``fault`` event (Fault), a line in the run file's event log, and a mark on the run."""
+        role = who if who in self.roles else ""
+        device = self.roles.get(who, who)
+        if message.startswith(f"{device}: "):  # driver errors name their device: once is enough
+            message = message[len(device) + 2:]
+        f = Fault(device, message, kind, role, **extra)
+        self._emit("fault", f)
+        self._log("fault", str(f))
+        if self._writer is not None:
+            self._marks.setdefault(f"{device}:{kind}", str(f))
+
+    def _emit_valve(self, st) -> None:
+        self._valve_state, self._valve_position = st.state, float(st.position.value)
+        self._emit("valve", valve_event(self.roles.get("valve", "valve"), st))
+
+    @property
+    def valve_open(self) -> bool | None:
+        """From the last actuator status the engine read: open and idle/armed (None: not read yet)."""
+        if self._valve_state is None:
+            return None
+        return self._valve_state in (ValveState.IDLE, ValveState.ARMED) and (self._valve_position or 0.0) >= 99.0
+
+    def _log(self, kind: str, text: str) -> None:
+        """An event into the run file's event log, if one is open."""
+        w = self._writer
+        if w is not None:
+            w.put(("event", self._timeline.now_axis if self._timeline else 0.0, kind, text))
+
+    # ------------------------------------------------------------------ control thread
+    def _submit(self, fn: Callable[[], Any]) -> cf.Future:
+        fut: cf.Future = cf.Future()
+        if self._closing.is_set():
+            fut.set_exception(VelabError("recorder is closed"))
+            return fut
+        self._cmds.put((fn, fut))
+        return fut
+
+    def _control_loop(self) -> None:
+        while not self._closing.is_set():
+            try:
+                fn, fut = self._cmds.get(timeout=0.05)
+            except queue.Empty:
+                fn = fut = None
+            if fn is not None and fut.set_running_or_notify_cancel():
+                self._current_fut = fut
+                try:
+                    res = fn()
+                    if res is not DEFER:
+                        fut.set_result(res)
+                except BaseException as exc:  # noqa: BLE001 - delivered through the future
+                    fut.set_exception(exc)
+                finally:
+                    self._current_fut = None
+            try:
+                self._tick()
+            except Exception as exc:  # noqa: BLE001 - a bug in a timer: end the run, say why
+                log.exception("control tick")
+                self._request_end("failed", f"recorder error: {type(exc).__name__}: {exc}")
+
+    def _sleep(self, dt: float) -> None:
+        """Wait dt seconds of device time (the simulation clock if there is one)."""
+        if self.clock is not None and hasattr(self.clock, "sleep"):
+            self.clock.sleep(dt)
+        else:
+            time.sleep(dt)
+
+    # ------------------------------------------------------------------ commands
+    def connect(self) -> cf.Future:
+        """(Re)connect every device of the bench: phase connecting -> ready."""
+        return self._submit(self._do_connect)
+
+    def arm(self, settings: "RecordSettings | dict | None" = None) -> cf.Future:
+        """Arm a run (connects first if needed); ``settings`` replace the current ones for this and the
+        next runs. The valve must be open and idle: after a run, ``reset_valve()`` first."""
+        if settings is None:
+            return self._submit(self._do_arm)
+
+        def arm_with():
+            self._set_settings(settings)
+            return self._do_arm()
+        return self._submit(arm_with)
+
+    def trigger(self) -> cf.Future:
+        """Trigger the manoeuvre. While the baseline is still filling the trigger is queued (a
+        ``trigger`` event with queued=True) and carried out as soon as it can be; the Future then
+        settles with the estimated trigger time, or with an error if the run ends first."""
+        return self._submit(self._do_trigger)
+
+    def stop(self) -> cf.Future:
+        """End cleanly, keep the data (status stopped); the fit is kept if its window is in."""
+        return self._submit(lambda: self._do_end(P.STOPPED, "stopped by the operator"))
+
+    def abort(self, reason: str = "") -> cf.Future:
+        """Valve to its safe state, end and mark the run (status aborted)."""
+        return self._submit(lambda: self._do_end(P.ABORTED, reason or "aborted by the operator"))
+
+    def halt(self) -> None:
+        """Stop now: valve safe, file closed "aborted" (reason "halted"), no fit; returns within ~5 s."""
+        self._halted = True
+        if self._fit is not None:
+            self._fit.cancel()
+        fut = self._submit(lambda: self._do_end(P.ABORTED, "halted"))
+        try:
+            fut.result(timeout=5.0)
+        except Exception:  # noqa: BLE001 - halting never raises
+            pass
+
+    def reset_valve(self) -> cf.Future:
+        """Reset the actuator (reopens the valve; clears a FAULT) and give the flow 1 s to settle.
+        Refused while a run records; the Future's result is the valve's ValveStatus."""
+        return self._submit(self._do_reset_valve)
+
+    def predict_surge(self, beta_per_s=None, gamma=None):
+        """Pure, no I/O: the interlock's prediction for the current settings."""
+        s = self.settings
+        if beta_per_s is not None or gamma is not None:
+            s = s.with_changes(beta_per_s=beta_per_s if beta_per_s is not None else s.beta_per_s,
+                               gamma=gamma if gamma is not None else s.gamma)
+        return predict_surge(self.rig, s, self._steady)
+
+    def _set_settings(self, settings) -> None:
+        if self._run_active():
+            raise VelabError(f"cannot change the settings while {self.phase}")
+        if isinstance(settings, dict):
+            settings = RecordSettings.from_dict(settings)
+        self.settings = settings
+
+    # ------------------------------------------------------------------ connect
+    def _devices_ready(self) -> bool:
+        return bool(self.roles) and all(n in self.devices for n in self.roles.values())
+
+    def _do_connect(self) -> list[DeviceStatus]:
+        if self._run_active():
+            raise VelabError(f"cannot reconnect while {self.phase}")
+        self._set_phase(P.CONNECTING)
+        out = []
+        try:
+            self.roles = resolve_roles(self.bench)
+            for role, name in self.roles.items():
+                dev = self.bench.devices[name]
+                if name not in self.devices:
+                    try:
+                        self.devices[name] = open_device(dev)
+                    except (OSError,) + DEVICE_ERRORS as exc:
+                        raise DeviceFailure(f"{name}: cannot connect: {exc}") from None
+                drv = self.devices[name]
+                try:
+                    if role == "valve":
+                        st = drv.read_status()
+                        msg = f"{st.state.name}, {st.position.value:.1f} % open"
+                        self._emit_valve(st)
+                    elif role == "flowmeter":
+                        r = drv.read_flow()
+                        msg = f"{r.value * 1e3:.3f} l/s ({r.quality.value})"
+                    elif dev.kind == "streaming_adc":
+                        msg = drv.identify()
+                    else:
+                        msg = ", ".join(f"{k} {v.value:.4g} {v.units}" for k, v in drv.read_channels().items())
+                except DEVICE_ERRORS as exc:
+                    raise DeviceFailure(f"{name} ({role}): does not answer: {exc}") from None
+                self.identities[name] = identity(drv)
+                self.profiles[name] = profile_contents(drv)
+                out.append(DeviceStatus(name, dev.kind, role, True, msg, self.identities[name]))
+        except BaseException as exc:
+            self._set_phase(P.DISCONNECTED, reason=str(exc))
+            raise
+        self._set_phase(P.READY, devices=[{"name": d.name, "kind": d.kind, "role": d.role, "ok": d.ok,
+                                           "message": d.message, "identity": d.identity} for d in out])
+        return out
+
+    # ------------------------------------------------------------------ valve reset
+    def _do_reset_valve(self):
+        if self._run_active() or self.phase in P.RUN_PHASES:
+            raise VelabError(f"cannot reset the valve while {self.phase}: stop or abort the run first")
+        if not self._devices_ready():
+            self._do_connect()
+        valve = self.devices[self.roles["valve"]]
+        try:
+            st = reopen_valve(valve, self._sleep)
+            self._emit_valve(st)
+        except DEVICE_ERRORS as exc:
+            raise DeviceFailure(f"{self.roles.get('valve', 'valve')}: reset failed: {exc}") from None
+        self._message(f"valve reopened: actuator {st.state.name}, {st.position.value:.1f} % open")
+        if self.phase in P.END_PHASES:
+            self._set_phase(self.phase, **self.phase_data)  # arm is possible again: say so
+        return st
+
+    def _check_valve_ready(self) -> None:
+        try:
+            st = self.devices[self.roles["valve"]].read_status()
+        except DEVICE_ERRORS as exc:
+            raise DeviceFailure(f"{self.roles['valve']}: actuator does not answer: {exc}") from None
+        self._emit_valve(st)
+        check_valve_open(st)
+
+    # ------------------------------------------------------------------ closing
+    def wait(self, timeout: float | None = None) -> RunSummary:
+        if not self._done.wait(timeout):
+            raise TimeoutError(f"run not finished within {timeout} s")
+        return self._summary
+
+    def _deadline(self, device_seconds: float) -> float:
+        scale = getattr(self.clock, "scale", 1.0) if self.clock is not None else 1.0
+        return device_seconds / max(1e-9, min(scale, 1e6)) + 30.0
+
+    def run(self, *, reset_valve: bool = False) -> RunSummary:
+        """Blocking: connect, (reset the valve), arm, trigger (queued until the baseline is in), wait.
+
+        A refusal raises RunRefused/SafetyError (exit 3); a device failure DeviceFailure (exit 5).
+        """
+        s = self.settings
+        if not self._devices_ready():
+            self.connect().result(timeout=120)
+        if reset_valve:
+            self.reset_valve().result(timeout=60)
+        self.arm().result(timeout=120)
+        try:
+            self.trigger().result(timeout=self._deadline(s.armed_timeout(self.bench_armed_timeout_s)) + 30)
+        except VelabError:
+            if not self._done.is_set() and not self._finished.is_set():
+                raise
+        return self.wait(self._deadline(s.duration_s + s.pretrigger_s) + 600.0)
+
+    def close(self) -> None:
+        """Stop anything running (status "stopped"), disconnect, stop an owned simulator."""
+        if self._run_active():
+            try:
+                self.stop().result(timeout=60)
+            except Exception:  # noqa: BLE001
+                pass
+        if self._writer is not None:
+            self._done.wait(60)
+        self._closing.set()
+        self._control.join(10.0)
+        for d in self.devices.values():
+            try:
+                d.close()
+            except Exception:  # noqa: BLE001 - closing must not raise
+                log.debug("device close", exc_info=True)
+        self.devices.clear()
+        self.phase = P.DISCONNECTED
+        if self._owns_sim and self.sim is not None:
+            self.sim.stop()
+            self.sim = None
+
+    def __enter__(self) -> "Recorder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

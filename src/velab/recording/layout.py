@@ -1,0 +1,91 @@
+"""What a recorded run file holds: its channels and the snapshot that makes it self-describing.
+
+The commanded manoeuvre is THE manoeuvre: the rig written into the file carries it, so
+``/entry/manoeuvre/beta`` and ``/entry/sample@rig_json`` say the same, and an offline
+``velab fit`` uses what the valve was told to do.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from importlib import metadata
+from pathlib import Path
+
+from velab.config import Manoeuvre, Rig
+from velab.runfile import HEAD, Channel, RunWriter
+
+VERSIONED = ("velab", "numpy", "scipy", "h5py", "pymodbus", "pyserial")
+INST = "instrument/pressure_transducer"
+FAST_CHANNELS = (
+    HEAD,
+    Channel("valve_position", "%", "f8", "measured valve opening (position feedback)", "instrument/valve"),
+    Channel("pressure", "Pa", "f8", "gauge pressure at the transducer", INST),
+    Channel("pressure_raw", "counts", "i4", "ADC counts of the pressure channel", INST),
+    Channel("pressure_quality", "", "u1", "per-sample quality code (velab.drivers.blocks.QUALITY_CODES; 0 = ok)", INST),
+    Channel("valve_position_raw", "counts", "i4", "ADC counts of the position channel", "instrument/valve"),
+    Channel("valve_position_quality", "", "u1", "per-sample quality code of the position feedback (0 = ok)",
+            "instrument/valve"),
+    Channel("sample_index", "samples", "i8", "device sample counter (gaps included)", "instrument/adc"),
+    Channel("host_time", "s", "f8", "host epoch time of the sample (from the block's arrival)", "instrument/adc"),
+)
+SLOW_CHANNELS = (Channel("flow", "m^3/s"), Channel("valve_state", "", "i4"), Channel("valve_opening", "%"))
+
+
+def versions() -> dict:
+    out = {}
+    for name in VERSIONED:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def commanded_rig(rig: Rig, beta: float, gamma: float) -> Rig:
+    """The rig with the manoeuvre the valve is commanded to run (the one the fit must use)."""
+    return rig.with_changes(manoeuvre=Manoeuvre(beta_per_s=beta, gamma=gamma))
+
+
+def run_file_name(out_dir: Path, run_number: int) -> Path:
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    n = max(1, int(run_number))
+    while True:
+        p = Path(out_dir) / f"{stamp}_run{n:03d}.h5"
+        if not p.exists():
+            return p
+        n += 1
+
+
+def bench_snapshot(bench, roles: dict, profiles: dict, identities: dict, sim=None) -> dict:
+    """The bench config's contents (and its file's text), the roles, each device's profile
+    contents and identity, the library versions, and the simulator's config if simulated."""
+    d = {"bench": bench.to_dict(), "roles": roles, "profiles": profiles, "identities": identities,
+         "versions": versions()}
+    if bench.path and Path(bench.path).is_file():
+        try:
+            d["bench_toml"] = Path(bench.path).read_text()
+        except OSError:
+            pass
+    if sim is not None:
+        d["simulator"] = {k: v for k, v in sim.config.items() if k != "devices"}
+        d["simulator"]["clock"] = type(sim.clock).__name__
+        d["simulator"]["clock_scale"] = getattr(sim.clock, "scale", 1.0)
+    return d
+
+
+def create_run_file(path: Path, rig: Rig, settings, *, fs: float, manoeuvre: tuple[float, float, float],
+                    steady_head: float, steady_flow: float, predicted_peak: float, ceiling: float,
+                    device_setup: dict, calibration: dict, source: dict, armed_timeout_s: float) -> RunWriter:
+    beta, gamma, end = manoeuvre
+    man = {"end_position": (end, "%"), "beta": (beta, "1/s"), "gamma": (gamma, ""),
+           "planned_trigger_time": (0.0, "s"), "trigger_host_time": (float("nan"), "s"),
+           "steady_head": (steady_head, "m"), "measured_steady_flow": (steady_flow, "m^3/s"),
+           "predicted_peak_head": (predicted_peak, "m"), "ceiling_head": (ceiling, "m")}
+    snapshot = settings.to_dict() | {"rig": rig.name, "armed_timeout_in_force_s": armed_timeout_s}
+    s = settings
+    return RunWriter(
+        path, commanded_rig(rig, beta, gamma), sample_rate_hz=fs, title=s.title or f"water-hammer run {path.stem}",
+        channels=FAST_CHANNELS, slow_channels=SLOW_CHANNELS, material=None, trigger_time_s=0.0, manoeuvre=man,
+        device_setup=device_setup, settings=snapshot, source=source | {"versions": device_setup.get("versions")},
+        calibration=calibration, swmr=True, expected_samples=int((s.pretrigger_s + s.duration_s) * fs),
+    )

@@ -1,0 +1,298 @@
+"""The run's time line: pressure blocks -> time axis, gaps, quality, baseline, trigger, fit window.
+
+Fed by the pressure source's thread (``process(block, p_codes, v_codes)``); hands writes to the
+writer stage and reports through the hooks. Every boundary is counted in samples of the
+pressure source's clock, so a fast simulated clock makes a whole run fast, and one rule decides
+each boundary: a span [a, b) on the run's axis is in when the next sample's time reaches
+``b - 0.5/fs`` (the fit window and the record's end use the same test, so a fit window equal to
+the duration always closes before the run ends).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import replace
+
+import numpy as np
+
+from velab.drivers.blocks import QUALITY_CODE, QUALITY_CODES
+from velab.drivers.base import Quality
+from velab.recording.online_fit import MIN_FIT_WINDOW_S
+from velab.recording.safety import OK, ceiling_crossing, describe_codes, finite_max
+
+
+def trigger_from_position(t: np.ndarray, pos_pct: np.ndarray, beta: float, gamma: float, end_pct: float) -> float | None:
+    """The trigger instant from the measured valve opening (the commanded sigmoid, only t0 unknown).
+
+    opening = end + (100 - end) / (1 + exp(beta (t - t0) + gamma)): from every sample
+    between 10 % and 90 % of the stroke, t0 = t - (ln(100/p - 1) - gamma) / beta; median.
+    """
+    p = (np.asarray(pos_pct, dtype=float) - end_pct) / (100.0 - end_pct) * 100.0
+    sel = np.isfinite(p) & (p > 10.0) & (p < 90.0)
+    if sel.sum() < 3:
+        return None
+    y = np.log(100.0 / p[sel] - 1.0)
+    return float(np.median(np.asarray(t, dtype=float)[sel] - (y - gamma) / beta))
+
+
+def slice_block(b, k: int):
+    sq = None if b.sample_quality is None else b.sample_quality[:k]
+    return replace(b, raw=b.raw[:k], signal=b.signal[:k], values=b.values[:k], sample_quality=sq,
+                   host_time_s=b.host_time_s - (b.n - k) / b.rate_hz)
+
+
+class Timeline:
+    """State of one run's samples. Only the acquisition thread calls ``process``; the control
+    thread reads the counters (plain ints/floats) and calls ``mark_trigger``."""
+
+    def __init__(self, settings, fs: float, manoeuvre: tuple[float, float, float], ceiling_m: float,
+                 pressure_channel: str, valve_channel: str | None, hooks, write, on_window_closed,
+                 on_baseline=lambda: None):
+        self.s = settings
+        self.fs = fs
+        self.beta, self.gamma, self.end_pct = manoeuvre
+        self.ceiling = ceiling_m
+        self.pch, self.vch = pressure_channel, valve_channel
+        self.hooks = hooks
+        self.write = write  # write(op tuple) -> the writer stage
+        self.on_window_closed = on_window_closed
+        self.on_baseline = on_baseline  # wakes the control thread: a queued trigger goes out at once
+        self.n_pre = int(round(settings.pretrigger_s * fs))
+        self.gidx = 0  # global index of the next sample (gaps included)
+        self.n_written = 0
+        self.lost = 0
+        self.gaps = 0
+        self.flagged = 0
+        self.peak = -math.inf
+        self._pre_sum = 0.0
+        self._pre_n = 0
+        self.trigger_idx: int | None = None
+        self.trigger_time: float | None = None
+        self.trigger_measured = False
+        self._pos_t: list = []
+        self._pos_v: list = []
+        self._fit_t = self._fit_h = None
+        self._fit_n = 0
+        self.clean_until: float | None = None  # first flagged / lost instant after the trigger
+        self.window_closed = False
+        self.ended = False  # no more samples are taken (end requested)
+        self._quick_next = 0
+        self._seen_quality: set = set()
+        self._last_host: float | None = None  # host arrival time of the last processed sample
+        self._last_idx = 0
+        self._lock = threading.Lock()
+
+    # ---------------------------------------------------------------- counters (any thread)
+    @property
+    def now_axis(self) -> float:
+        return (self.gidx - self.n_pre) / self.fs
+
+    @property
+    def baseline_s(self) -> float:
+        return self.gidx / self.fs
+
+    @property
+    def baseline_complete(self) -> bool:
+        return self.gidx >= self.n_pre
+
+    def steady_head(self, fallback: float | None) -> float | None:
+        return self._pre_sum / self._pre_n if self._pre_n else fallback
+
+    # ---------------------------------------------------------------- the trigger (control thread)
+    def mark_trigger(self, now_host: float, clock_scale: float = 1.0) -> float:
+        """The trigger command is being sent now: estimate its instant on the sample clock.
+
+        The samples processed so far lag the device by whatever is still queued: the estimate
+        extrapolates from the last block's host arrival time (device seconds = scale x host seconds)."""
+        with self._lock:
+            idx = self.gidx
+            if self._last_host is not None:
+                idx = max(idx, int(round(self._last_idx + (now_host - self._last_host) * self.fs * clock_scale)))
+            cap = int((self.s.fit_window_s + 2.0) * self.fs + (idx - self.gidx)) + 1
+            self._fit_t, self._fit_h = np.empty(cap), np.empty(cap)
+            self._fit_n = 0
+            self.trigger_idx = idx
+            self.trigger_time = (idx - self.n_pre) / self.fs
+        return self.trigger_time
+
+    def _measure_trigger(self) -> None:
+        self.trigger_measured = True
+        if not self._pos_t:
+            t0 = None
+        else:
+            t0 = trigger_from_position(np.concatenate(self._pos_t), np.concatenate(self._pos_v), self.beta,
+                                       self.gamma, self.end_pct)
+        if t0 is None:
+            self.hooks.fault("valve", "valve-position feedback: no stroke seen (stuck or disconnected feedback); "
+                             "the trigger instant is the command's estimate", "quality", channel=self.vch)
+            return
+        estimate = self.trigger_time
+        self.trigger_time = t0
+        self.write(("trigger", t0))
+        self.hooks.log("trigger", f"trigger instant measured from the valve position: t = {t0:.5f} s")
+        self.hooks.emit("trigger", {"trigger_time_s": t0, "measured": True, "estimate_s": estimate})
+
+    def finish(self) -> None:
+        """At the end of the run: measure the trigger if the stroke was seen but not yet used."""
+        with self._lock:
+            self.ended = True
+            if self.trigger_time is not None and not self.trigger_measured and self.vch:
+                self._measure_trigger()
+
+    # ---------------------------------------------------------------- blocks (acquisition thread)
+    def process(self, b, p_codes: np.ndarray, v_codes: np.ndarray | None) -> None:
+        with self._lock:
+            if not self.ended:
+                self._process(b, p_codes, v_codes)
+
+    def _process(self, b, p_codes, v_codes) -> None:
+        s, fs = self.s, self.fs
+        if b.lost_before:
+            self._gap(int(b.lost_before), bool(b.restarted))
+        n = b.n
+        g = self.gidx + np.arange(n)
+        t = (g - self.n_pre) / fs
+        if self.trigger_time is not None:
+            keep = t < self.trigger_time + s.duration_s - 0.5 / fs
+            if not keep.all():
+                n = int(keep.sum())
+                b, g, t = slice_block(b, n), g[:n], t[:n]
+                p_codes = p_codes[:n]
+                v_codes = None if v_codes is None else v_codes[:n]
+        if n == 0:
+            self._check_boundaries()
+            return
+        head = b.head_m(self.pch)
+        pi = b.channels.index(self.pch)
+        has_v = bool(self.vch) and self.vch in b.channels
+        pos = b.column(self.vch) if has_v else np.full(n, np.nan)
+        pos_raw = b.raw_column(self.vch).astype(np.int32) if has_v else np.zeros(n, np.int32)
+        vq = v_codes if v_codes is not None else np.zeros(n, np.uint8)
+        self.write(("append", t, {
+            "head": head, "valve_position": pos, "pressure": b.values[:, pi], "pressure_raw": b.raw[:, pi].astype(np.int32),
+            "valve_position_raw": pos_raw, "sample_index": g, "host_time": b.host_times_s,
+            "pressure_quality": p_codes, "valve_position_quality": vq,
+        }))
+        self.n_written += n
+        before = self.gidx
+        self.gidx += n
+        self._last_host, self._last_idx = float(b.host_time_s), self.gidx - 1
+        if before < self.n_pre <= self.gidx:
+            self.on_baseline()
+        ok = p_codes == OK
+        self.flagged += int(n - ok.sum())
+        self.peak = max(self.peak, finite_max(np.where(ok, head, np.nan)))
+        self._quality(p_codes, "pressure", self.pch, t)
+        if has_v:
+            self._quality(vq, "valve", self.vch, t)
+        if self.trigger_idx is None or self.trigger_idx >= self.gidx:
+            sel = ok & np.isfinite(head) & (g < (self.trigger_idx if self.trigger_idx is not None else g[-1] + 1))
+            okh = head[sel]
+            self._pre_sum += float(okh.sum())
+            self._pre_n += int(okh.size)
+        if self.trigger_idx is not None:
+            self._after_trigger(t, head, pos, p_codes)
+        self.hooks.emit("samples", {"time_s": t, "head_m": head, "valve_position": pos, "lost": int(b.lost_before),
+                                    "quality": p_codes})
+        i = ceiling_crossing(head, p_codes, self.ceiling)
+        if i is not None:
+            self.hooks.request_end("aborted", f"pressure ceiling: head {head[i]:.2f} m > {self.ceiling:.2f} m "
+                                              f"at t = {t[i]:.3f} s")
+        self._check_boundaries()
+
+    def _gap(self, lost: int, restarted: bool) -> None:
+        self.write(("gap", self.n_written, lost))
+        self.lost += lost
+        self.gaps += 1
+        self.gidx += lost
+        what = "estimated (reconnection)" if restarted else "exact"
+        note = f"{lost} samples lost before sample {self.gidx} ({what})"
+        if restarted:
+            note = "pressure ADC reconnected; " + note
+        self.hooks.fault("pressure", note, "samples_lost", lost=lost, restarted=restarted)
+        if self.trigger_idx is not None and not self.window_closed and self.clean_until is None:
+            self.clean_until = (self.gidx - lost - self.n_pre) / self.fs
+
+    def _quality(self, codes, role: str, channel: str, t) -> None:
+        bad = codes != OK
+        if not bad.any():
+            return
+        first = int(np.flatnonzero(bad)[0])
+        if role == "pressure" and self.trigger_idx is not None and not self.window_closed and self.clean_until is None:
+            self.clean_until = float(t[first])
+        fresh = [int(c) for c in np.unique(codes[bad]) if (role, int(c)) not in self._seen_quality]
+        if fresh:
+            for c in fresh:
+                self._seen_quality.add((role, c))
+            what = {QUALITY_CODE[Quality.STALE]: "stuck channel"}.get(fresh[0], QUALITY_CODES[fresh[0]].value)
+            self.hooks.fault(role, f"{channel} samples flagged from t = {t[first]:.3f} s: {what} "
+                                   f"({describe_codes(codes)} in this block)", "stuck" if what == "stuck channel"
+                             else "quality", channel=channel, quality=QUALITY_CODES[fresh[0]].value)
+            if role == "pressure" and self.trigger_idx is None:
+                # blind before the trigger: never start a manoeuvre on a transducer that is not plausible
+                self.hooks.request_end("aborted", f"pressure transducer fault before the trigger ({what}): "
+                                                  "manoeuvre cancelled")
+
+    def _after_trigger(self, t, head, pos, p_codes) -> None:
+        s = self.s
+        if not self.trigger_measured and self.vch:
+            pn = (pos - self.end_pct) / (100.0 - self.end_pct) * 100.0
+            with np.errstate(invalid="ignore"):
+                sel = (pn > 10) & (pn < 90)
+                passed = (pn < 10).any()
+            if sel.any():
+                self._pos_t.append(t[sel])
+                self._pos_v.append(pos[sel])
+            if passed and self._pos_t:
+                self._measure_trigger()
+        k = min(t.size, self._fit_t.size - self._fit_n)
+        self._fit_t[self._fit_n:self._fit_n + k] = t[:k]
+        self._fit_h[self._fit_n:self._fit_n + k] = head[:k]
+        self._fit_n += k
+        if s.fit and s.online_fit and s.intermediate_fits and not self.window_closed and self.trigger_measured \
+                and self.clean_until is None:
+            fractions = (0.25, 0.5, 0.75)
+            after = float(t[-1]) - self.trigger_time
+            if self._quick_next < len(fractions) and after >= fractions[self._quick_next] * s.fit_window_s:
+                self._quick_next += 1
+                self.on_window_closed(fractions[self._quick_next - 1] * s.fit_window_s, final=False)
+
+    def _reached(self, t_axis: float) -> bool:
+        return self.now_axis >= t_axis - 0.5 / self.fs
+
+    def _check_boundaries(self) -> None:
+        if self.trigger_time is None:
+            return
+        if not self.window_closed and self._reached(self.trigger_time + self.s.fit_window_s):
+            if not self.trigger_measured and self.vch:
+                self._measure_trigger()
+            self.window_closed = True
+            self.hooks.emit("message", f"fit window closed ({self.s.fit_window_s:g} s after the trigger)")
+            if self.s.fit and self.s.online_fit:
+                self.on_window_closed(self.s.fit_window_s, final=True)
+        if self._reached(self.trigger_time + self.s.duration_s):
+            self.hooks.request_end("completed", "")
+
+    # ---------------------------------------------------------------- the fit's data
+    def fit_window(self, window_s: float, steady: float | None) -> tuple[np.ndarray, np.ndarray, float, str]:
+        """(t from the trigger, head perturbation, window used, note) of the clean part of the window.
+
+        Flagged or lost samples inside the window shorten it to the clean part before them (if at
+        least 2 s); otherwise ValueError says why there is no fit.
+        """
+        note = ""
+        if self.clean_until is not None:
+            avail = self.clean_until - self.trigger_time
+            if avail < window_s:
+                if avail < MIN_FIT_WINDOW_S:
+                    raise ValueError(f"no fit: flagged or lost samples {max(avail, 0):.2f} s after the trigger, "
+                                     f"inside the fit window (a clean window of at least {MIN_FIT_WINDOW_S:g} s is needed)")
+                window_s = math.floor(avail * self.fs) / self.fs
+                note = f"fit window shortened to {window_s:.2f} s: flagged or lost samples after it"
+        n = self._fit_n
+        t = self._fit_t[:n] - self.trigger_time
+        h = self._fit_h[:n] - (steady or 0.0)
+        dt = 1.0 / self.fs
+        sel = (t >= -0.5 * dt) & (t < window_s - 0.5 * dt)
+        return t[sel], h[sel], window_s, note
