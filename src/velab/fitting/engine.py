@@ -52,7 +52,8 @@ class HeadEvaluator:
 
     _WORK_SLOTS = 4
 
-    def __init__(self, rig: Rig, t_s=None, *, band_hz="auto", _model: ValveHeadModel | None = None):
+    def __init__(self, rig: Rig, t_s=None, *, band_hz="auto", extra_resistance: float = 0.0,
+                 _model: ValveHeadModel | None = None):
         vm = _model if _model is not None else ValveHeadModel(rig, t_s, band_hz=band_hz)
         p = rig.pipe
         self.rig = rig
@@ -60,8 +61,10 @@ class HeadEvaluator:
         self.n_t = vm.t.size
         self.s = vm.s_band.copy()
         self.gA = GRAVITY_M_S2 * p.area_m2
-        # series impedance per unit length (inertance and friction): the one place it enters
-        self.W = series_impedance(self.s, rig)  # s Li + R (+ unsteady R_u(s)), velab.model
+        # series impedance per unit length (inertance and friction): the one place it enters;
+        # extra_resistance shifts the linearised steady friction (velab.fitting.friction)
+        self.extra_resistance = float(extra_resistance)
+        self.W = series_impedance(self.s, rig) + self.extra_resistance  # s Li + R (+ R_u(s)), velab.model
         self.L = p.length_m
         self._sgA = self.s * self.gA
         self._sigma = float(vm.sigma)
@@ -74,9 +77,11 @@ class HeadEvaluator:
         self.evaluations = 0
         self.jacobians = 0
 
-    def fork(self) -> "HeadEvaluator":
-        """Same model and grid, own counters and buffers (for a worker thread)."""
-        return HeadEvaluator(self.rig, _model=self.model)
+    def fork(self, extra_resistance: float | None = None) -> "HeadEvaluator":
+        """Same model and grid, own counters and buffers (for a worker thread); optionally
+        another linearised friction (``extra_resistance`` added to the rig's tangent R)."""
+        dR = self.extra_resistance if extra_resistance is None else extra_resistance
+        return HeadEvaluator(self.rig, extra_resistance=dR, _model=self.model)
 
     # ---------------------------------------------------------------- core
     def _buffers(self, m: int, rows: int) -> dict:

@@ -1,24 +1,26 @@
-"""The rig's friction law in the calibration model: a defect correction of the frequency model.
+"""The rig's friction law in the calibration model: the time-domain model through the fast one.
 
 The frequency-domain model (velab.model, the fitter's fast inner loop) is linear: it carries
-the steady friction as its tangent R = f Q0 / (g D A^2) and any friction term linear in q
-(Vardy-Brown unsteady friction) exactly through the series impedance. A real pipe's steady
-friction is quadratic, J = f Q|Q| / (2 g D A^2): after the closure the flow swings about zero,
-where its slope vanishes, and the tangent over-damps the oscillation (physics.md section 9;
-on the reference rig 0.9 m rms over 20 s, nine times a 0.1 m noise).
+the steady friction as a linear resistance and any friction term linear in q (Vardy-Brown
+unsteady friction) exactly through the series impedance. A real pipe's steady friction is
+quadratic, J = f Q|Q| / (2 g D A^2): after the closure the flow swings about zero, where its
+slope vanishes, and the tangent R = f Q0/(g D A^2) over-damps the oscillation (physics.md
+section 9; on the reference rig 0.9 m rms over 20 s, nine times a 0.1 m noise; on the
+imperial rig 6 m).
 
-With ``rig.friction == "quadratic"`` (or an unsteady law the frequency model cannot carry)
-the fitted head of a model at parameters p is
+With ``rig.friction == "quadratic"`` (or Brunone's unsteady friction, which has no frequency
+form) the head of a model at parameters p is the time-domain model's, h_MOC(p) (velab.moc,
+with the rig's laws). The sweep fits it by defect correction (velab.fitting.sweep):
 
-    h(p) = h_FD(p) + c(p),     c(p) = h_MOC,rig(p) - h_MOC,linear(p),
+    h(p) = h_FD(p) + c,     c = h_MOC(p_j) - h_FD(p_j),
 
-the difference of two method-of-characteristics runs at the same parameters, one with the
-rig's friction and one with the linear friction the frequency model assumes. c is smooth
-and depends weakly on p, so the sweep keeps the frequency model as the inner loop, fits it
-to d - c(p_j) and refreshes c at the new optimum until it stops moving
-(:class:`FrictionCorrection`, used by velab.fitting.sweep). h_FD + c equals the MOC with the
-rig's friction up to the MOC's own discretisation error of the linear part (1-6 mm on the
-reference rig), which the frequency model does not have.
+the frequency model plus the difference of the two models at the current parameters p_j,
+refreshed at each new optimum until it stops moving (Anderson-mixed fixed point). At the end
+c is evaluated at the final p itself, so the reported F is exactly that of h_MOC(p). The
+frequency model's linear resistance is first moved to the value that brings it closest to
+the time-domain model (:func:`equivalent_resistance`): with the tangent R the correction was
+as sensitive to the parameters as the head itself (|dc/dp| about 0.4 |dh/dp| on the reference
+rig) and the refresh converged slowly or not at all on the imperial rig.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import math
 import time
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 
 from velab.config import Rig
 from velab.errors import DataError
@@ -66,11 +69,11 @@ def fit_rig(rig: Rig, friction: str | None = None, friction_unsteady: str | None
     return rig.with_changes(**changes) if changes else rig
 
 
-class FrictionCorrection:
-    """c(p) = h_MOC,rig(p) - h_MOC,linear(p) on the window's time grid ``t_s``.
+class TimeDomainModel:
+    """The head on the window's grid from the time-domain model with the rig's friction laws.
 
     ``active`` is False when the frequency model already is the rig's model (linear or no
-    steady friction, an unsteady law it carries exactly); then c = 0 and nothing is run.
+    steady friction, an unsteady law it carries exactly); then nothing is ever run.
     """
 
     def __init__(self, rig: Rig, t_s):
@@ -79,39 +82,71 @@ class FrictionCorrection:
         self.steady = steady_law(rig)
         self.unsteady = unsteady_law(rig)
         self.active = self.steady == "quadratic" or self.unsteady not in FD_EXACT_UNSTEADY
-        # the linear counterpart carries what the frequency model carries
-        self.linear_unsteady = self.unsteady if self.unsteady in FD_EXACT_UNSTEADY else "none"
         self.runs = 0
         self.seconds = 0.0
 
-    def zero(self) -> np.ndarray:
-        return np.zeros_like(self.t)
-
-    def at(self, a: float, J_rel, tau) -> np.ndarray:
-        if not self.active:
-            return self.zero()
+    def head(self, a: float, J_rel, tau) -> np.ndarray:
+        """h_MOC(p) on the window's grid (the MOC picks its own second-order step, velab.moc)."""
         t0 = time.perf_counter()
-        J_rel = np.asarray(J_rel, dtype=float)
-        tau = np.asarray(tau, dtype=float)
-        # the MOC picks its own step (velab.moc.default_dt_s: second order, 1e-4 of the Joukowsky head)
-        h_rig = moc_head(self.rig, a, J_rel, tau, self.t, friction=self.steady, unsteady=self.unsteady)
-        h_lin = moc_head(self.rig, a, J_rel, tau, self.t, friction="linear", unsteady=self.linear_unsteady)
-        self.runs += 2
+        h = np.asarray(moc_head(self.rig, a, np.asarray(J_rel, dtype=float), np.asarray(tau, dtype=float), self.t,
+                                friction=self.steady, unsteady=self.unsteady), dtype=float)
+        self.runs += 1
         self.seconds += time.perf_counter() - t0
-        out = np.asarray(h_rig, dtype=float) - np.asarray(h_lin, dtype=float)
-        if not np.all(np.isfinite(out)):
-            raise DataError(f"friction correction: the time-domain model diverged at a = {a:.4g} m/s")
-        return out
+        if not np.all(np.isfinite(h)):
+            raise DataError(f"friction: the time-domain model diverged at a = {a:.4g} m/s")
+        return h
 
-    def describe(self) -> str:
+    def describe(self, resistances=()) -> str:
+        uns = "" if self.unsteady == "none" else f", {self.unsteady} unsteady friction"
         if not self.active:
             if self.steady == "linear":
-                return ("linearised steady friction (tangent R = f Q0/(g D A^2)) in the frequency model"
-                        + (f", {self.unsteady} unsteady friction" if self.unsteady != "none" else ""))
-            return "no steady friction" + (f", {self.unsteady} unsteady friction" if self.unsteady != "none" else "")
-        return (f"{self.steady} steady friction{'' if self.unsteady == 'none' else ' + ' + self.unsteady + ' unsteady'}"
-                f": frequency model + [MOC({self.steady}) - MOC(linear)] at each model's parameters, refreshed "
-                f"until it stops moving ({self.runs} MOC runs, {self.seconds:.2f} s)")
+                return "linearised steady friction (tangent R = f Q0/(g D A^2)) in the frequency model" + uns
+            return "no steady friction" + uns
+        R = self.rig.linear_resistance
+        rs = [R + d for d in resistances]
+        eq = (f"; equivalent linear resistance {min(rs) / R:.2f}-{max(rs) / R:.2f} x the tangent R" if rs and R > 0
+              else "")
+        return (f"{self.steady} steady friction{uns}: each model's head is the time-domain model (MOC) at its "
+                f"parameters, fitted through the frequency model plus the correction h_MOC - h_FD, refreshed until "
+                f"it stops moving{eq} ({self.runs} MOC runs, {self.seconds:.2f} s)")
+
+
+def equivalent_resistance(ev, params, h_time: np.ndarray) -> float:
+    """The change dR of the frequency model's linear resistance that brings it closest to ``h_time``.
+
+    The tangent R = f Q0/(g D A^2) is the quadratic law's slope at Q0; after the closure the
+    flow swings about zero where that slope vanishes, so the best linear stand-in has a smaller
+    R (about 0.4-0.7 R on the reference rigs). The correction h_MOC - h_FD is then small and
+    depends little on the parameters, which is what makes the refresh converge in a few steps.
+    ``ev`` is a full-band HeadEvaluator on the window's grid, ``params`` = (a, J', tau).
+    """
+    R = ev.rig.linear_resistance
+    if not R > 0:
+        return 0.0
+
+    def cost(dR):
+        return float(np.mean(np.square(ev.fork(dR).head(*params) - h_time)))
+
+    r = minimize_scalar(cost, bounds=(-R, R), method="bounded", options={"xatol": 1e-3 * R})
+    return float(r.x) if r.fun < cost(0.0) else 0.0
+
+
+def anderson(xs: list[np.ndarray], gs: list[np.ndarray]) -> np.ndarray:
+    """Anderson mixing for the fixed point x = G(x) from the last iterates x_j and G(x_j).
+
+    The friction refresh's plain iteration x <- G(x) converges like an alternating series
+    (ratio about -0.5 on the reference rig): mixing the last two or three iterates removes
+    that in one or two steps.
+    """
+    g = gs[-1]
+    if len(xs) < 2:
+        return g
+    f = [gj - xj for xj, gj in zip(xs, gs)]
+    dF = np.array([f[i + 1] - f[i] for i in range(len(f) - 1)]).T
+    dG = np.array([gs[i + 1] - gs[i] for i in range(len(gs) - 1)]).T
+    gamma, *_ = np.linalg.lstsq(dF, f[-1], rcond=1e-10)
+    out = g - dG @ gamma
+    return out if np.all(np.isfinite(out)) else g
 
 
 def rms(x: np.ndarray) -> float:

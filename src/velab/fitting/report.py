@@ -12,7 +12,7 @@ _SELECTION_TEXT = {
 
 def _pm(value: float, se: float, fmt: str) -> str:
     if math.isfinite(se):
-        return f"{value:{fmt}} +- {se:{fmt}}"
+        return f"{value:{fmt}} +- {se:.2g}"
     return f"{value:{fmt}}"
 
 

@@ -106,3 +106,27 @@ def distinct(xs: list[np.ndarray], k: int, tol: float = 0.05) -> list[np.ndarray
         if len(out) >= k:
             break
     return out
+
+
+def reduce_starts(big: Sol, pm: ParamMap) -> list[np.ndarray]:
+    """Starts of the smaller model ``pm`` (one element fewer) from a larger model's solution:
+    each element dropped, and the two elements closest in retardation time merged into one
+    (compliances added, tau their compliance-weighted geometric mean). When a larger model
+    found a better optimum along a structure the smaller one can express (a vanished or a
+    split element), this hands it back to the smaller model."""
+    a, J, tau = big.pm.unpack(big.x)
+    if J.size != pm.m + 1:
+        return []
+    if pm.fixed_tau:
+        return [pm.project(pm.pack(a, J[:-1]))]  # reduced models nest by their last element only
+    out = [pm.project(pm.pack(a, np.delete(J, k), np.delete(tau, k))) for k in range(J.size)]
+    if J.size >= 2:
+        lt = np.log(tau)
+        order = np.argsort(lt)
+        i = int(np.argmin(np.diff(lt[order])))
+        k1, k2 = order[i], order[i + 1]
+        Jm = J[k1] + J[k2]
+        tm = math.exp((J[k1] * lt[k1] + J[k2] * lt[k2]) / Jm)
+        keep = [k for k in range(J.size) if k not in (k1, k2)]
+        out.append(pm.project(pm.pack(a, np.append(J[keep], Jm), np.append(tau[keep], tm))))
+    return out

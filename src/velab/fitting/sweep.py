@@ -39,11 +39,12 @@ from velab.config import REDUCED_RETARDATION_TIMES_S, Rig
 from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate, prepare_window
 from velab.fitting.engine import HeadEvaluator
-from velab.fitting.friction import FrictionCorrection, fit_rig, rms
+from velab.fitting.friction import TimeDomainModel, anderson, equivalent_resistance, fit_rig, rms
 from velab.fitting.params import FitBounds, ParamMap, creep_const, derive_bounds
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
 from velab.fitting.solvers import Sol, Stage
 from velab.fitting.starts import nested_starts, reduced_then_full, scan_wave_speed, split_all, tau_grids
+from velab.fitting.nesting import hand_back
 from velab.fitting.summary import summarise
 from velab.model import manoeuvre_band_hz
 
@@ -83,10 +84,13 @@ def parse_models(spec) -> list[int]:
 
 @dataclass
 class _Final:
-    """A calibrated model on the final stage: F includes its own friction correction ``corr``."""
+    """A calibrated model on the final stage. With a time-domain friction model, ``h_time`` is
+    the MOC head at ``sol.x`` and ``corr`` = h_time - h_FD(sol.x) under the current linear
+    resistance, so that ``sol.F`` is that of the MOC head itself."""
 
     sol: Sol
     corr: np.ndarray
+    h_time: np.ndarray | None = None
     refreshes: int = 0
     moved: float = 0.0
 
@@ -98,30 +102,81 @@ class _Sweep:
                  threads: int, initial: SweepResult | None):
         self.t, self.d, self.rig, self.bounds = t, d, rig, bounds
         self.method, self.polish, self.seed, self.initial = method, polish, seed, initial
+        self.threads = threads
         self.max_starts = 1 if method == "least-squares" else starts
         dt = float(t[1] - t[0])
         self.band = manoeuvre_band_hz(rig)
         self.q = q = max(1, int((1.0 / dt) // (3.0 * self.band)))
         self.stage_c = Stage(HeadEvaluator(rig, t[::q], band_hz="auto"), lowpass_decimate(d, q))
-        self.stage_f = Stage(HeadEvaluator(rig, t, band_hz=None), d) if polish else None
+        self.time_model = TimeDomainModel(rig, t)
+        full = HeadEvaluator(rig, t, band_hz=None) if polish or self.time_model.active else None
+        self.stage_f = Stage(full, d) if polish else None
+        self.ev_full = full  # the full-band model the friction correction is taken against
         # a second full-band evaluator (same model, own buffers) polishes a second candidate in a
         # worker thread: full-band evaluations are large numpy/FFT operations that release the GIL
-        self.ev_f2 = self.stage_f.ev.fork() if polish and threads > 1 else None
-        self.friction = FrictionCorrection(rig, t)
+        self.ev_f2 = full.fork() if polish and threads > 1 else None
+        self._counted = (0, 0)
+        self.resistances: list[float] = []
         window = d.size * dt
         self.tau_lo = max(2 * dt * q, bounds.tau_min_s)
         self.tau_hi = min(max(window / 2.0, 4 * self.tau_lo), bounds.tau_max_s)
         self.final: dict[tuple[int, bool], _Final] = {}
         self.pm0 = ParamMap(0, bounds)
-        self.a0 = scan_wave_speed(self.stage_c, self.pm0, rig.nominal_wave_speed_m_s)
-        self.corr0 = self.friction.at(self.a0, [], [])
+        a_nom = rig.nominal_wave_speed_m_s
+        corr = np.zeros_like(d)
+        if self.time_model.active:
+            h0 = self.time_model.head(a_nom, [], [])
+            self.set_resistance(equivalent_resistance(full, (a_nom, [], []), h0))
+            corr = h0 - full.head(a_nom, [], [])
+        self.a0 = scan_wave_speed(self.stage_c.with_data(lowpass_decimate(d - corr, q)), self.pm0, a_nom)
+        x0 = self.pm0.pack(self.a0, [])
+        self.start0 = _Final(Sol(x0, math.nan, self.pm0), corr, None)
+        if self.time_model.active:
+            self.start0 = self.with_time_head(self.pm0, x0, self.time_model.head(self.a0, [], []))
+
+    def set_resistance(self, dR: float) -> None:
+        """Move the frequency model's linear friction by dR (all stages; counters carried over)."""
+        self._counted = self.counts()
+        self.stage_c = Stage(self.stage_c.ev.fork(dR), self.stage_c.d)
+        self.ev_full = self.ev_full.fork(dR)
+        if self.stage_f is not None:
+            self.stage_f = Stage(self.ev_full, self.stage_f.d)
+        if self.ev_f2 is not None:
+            self.ev_f2 = self.ev_full.fork()
+        self.resistances.append(dR)
+
+    def with_time_head(self, pm: ParamMap, x, h_time) -> _Final:
+        """The model at x whose head is ``h_time`` (the MOC's): F on the final stage, exactly."""
+        corr = h_time - self.ev_full.head(*pm.unpack(x))
+        return _Final(self.final_stage(corr).sol(pm, x), corr, h_time)
+
+    def current_corr(self, fin: _Final) -> np.ndarray:
+        """The friction correction of a calibrated model under the current linear resistance."""
+        if fin.h_time is None:
+            return fin.corr
+        return fin.h_time - self.ev_full.head(*fin.sol.pm.unpack(fin.sol.x))
+
+    def current(self, fin: _Final) -> _Final:
+        """``fin`` with its correction under the current linear resistance (same F)."""
+        return fin if fin.h_time is None else _Final(fin.sol, self.current_corr(fin), fin.h_time, fin.refreshes,
+                                                      fin.moved)
+
+    def friction_info(self, fin: _Final) -> dict:
+        """What the friction treatment did for one model (ModelFit.friction)."""
+        if not self.time_model.active:
+            return {}
+        R = self.rig.linear_resistance
+        return {"refreshes": fin.refreshes, "last_change_m": fin.moved, "correction_rms_m": rms(fin.corr),
+                "linear_resistance_factor": (R + self.ev_full.extra_resistance) / R if R > 0 else math.nan}
 
     @property
     def evaluators(self):
-        return [e for e in (self.stage_c.ev, self.stage_f.ev if self.stage_f else None, self.ev_f2) if e is not None]
+        evs = (self.stage_c.ev, self.ev_full, self.ev_f2)
+        return [e for e in evs if e is not None]
 
     def counts(self):
-        return sum(e.evaluations for e in self.evaluators), sum(e.jacobians for e in self.evaluators)
+        c = self._counted
+        return (c[0] + sum(e.evaluations for e in self.evaluators), c[1] + sum(e.jacobians for e in self.evaluators))
 
     def final_stage(self, corr: np.ndarray) -> Stage:
         if self.stage_f is not None:
@@ -156,21 +211,23 @@ class _Sweep:
         fixed = tuple(REDUCED_RETARDATION_TIMES_S[:m]) if red and m else None
         pm = ParamMap(m, self.bounds, fixed)
         ref = self.reference(m, red)
-        if ref is None:
-            base = Sol(self.pm0.pack(self.a0, []), math.nan, self.pm0)
-            corr = self.corr0
-        else:
-            base, corr = ref.sol, ref.corr
-        best, n_starts = self.calibrate(pm, red, base, corr, model_name(m, red))
-        fin = self.refresh(pm, best, corr)
-        if ref is not None and fin.sol.F > ref.sol.F:
-            fin = self.guard(pm, ref, fin)
+        start = ref if ref is not None else self.start0
+        if self.time_model.active:
+            # the linear friction closest to the time-domain model at the reference parameters
+            px = start.sol.pm.unpack(start.sol.x)
+            self.set_resistance(equivalent_resistance(self.ev_full, px, start.h_time))
+            start = self.with_time_head(start.sol.pm, start.sol.x, start.h_time)
+        base = start.sol if ref is not None else Sol(start.sol.x, math.nan, start.sol.pm)
+        best, n_starts = self.calibrate(pm, red, base, start.corr, model_name(m, red))
+        fin = self.refresh(pm, best, start.corr)
+        if ref is not None and fin.sol.F > start.sol.F:
+            fin = self.guard(pm, start, fin)
         return fin, n_starts
 
     def calibrate(self, pm: ParamMap, red: bool, base: Sol, corr: np.ndarray, name: str) -> tuple[Sol, int]:
         """Multi-start coarse search and full-band polish with the friction correction held fixed."""
         m = pm.m
-        dc = lowpass_decimate(self.d - corr, self.q) if self.friction.active else self.stage_c.d
+        dc = lowpass_decimate(self.d - corr, self.q) if self.time_model.active else self.stage_c.d
         if self.stage_f is not None:
             # defect correction: the coarse (band-limited, decimated) model's error w.r.t. the
             # full-band model, at the base solution, is taken off the coarse data so that the
@@ -248,7 +305,7 @@ class _Sweep:
 
     def refresh(self, pm: ParamMap, best: Sol, corr: np.ndarray) -> _Final:
         """Refresh the friction correction at the optimum and re-polish until it stops moving."""
-        if not self.friction.active:
+        if not self.time_model.active:
             return _Final(best, corr)
         kept: _Final | None = None
         n = self.d.size
@@ -256,26 +313,24 @@ class _Sweep:
         x = best.x
         fails = 0
         for it in range(1, MAX_REFRESH + 1):
-            new = self.friction.at(*pm.unpack(x))
-            moved = rms(new - corr)
-            corr = new
-            stage = self.final_stage(corr)
-            cur = _Final(stage.sol(pm, x), corr, it, moved)
-            # F here is the model's own (its correction at its parameters): keep the best such pair
+            cur = self.with_time_head(pm, x, self.time_model.head(*pm.unpack(x)))
+            cur.moved = moved = rms(cur.corr - corr)
+            corr = cur.corr
+            # F here is the model's own (the MOC head at its parameters): keep the best such model
             gain = n * math.log(kept.sol.F / cur.sol.F) if kept is not None else math.inf
             if gain > 0:
                 kept, fails = cur, 0
             else:
                 fails += 1
-            kept.refreshes, kept.moved = it, moved
+            kept.refreshes = it
             if (moved <= REFRESH_TOL * math.sqrt(cur.sol.F) or 0 <= gain < REFRESH_MIN_GAIN or fails >= 2
                     or it == MAX_REFRESH):
                 return kept
             if gain <= 0:
-                # the mixed step went uphill: restart the plain iteration from the best pair
+                # the mixed step went uphill: restart the plain iteration from the best model
                 xs, gs = [], []
-                stage, cur = self.final_stage(kept.corr), kept
-            g = self.polish_final(stage, pm, cur.sol.x).x
+                cur = kept
+            g = self.polish_final(self.final_stage(cur.corr), pm, cur.sol.x).x
             xs.append(cur.sol.x)
             gs.append(g)
             x = pm.project(anderson(xs[-3:], gs[-3:]))
@@ -283,19 +338,21 @@ class _Sweep:
 
     def guard(self, pm: ParamMap, ref: _Final, fin: _Final) -> _Final:
         """F(S(m)) ended above the model it contains (after the friction refresh): start S(m) from
-        that model plus a vanished element, and if it still ends above, take that embedding."""
+        that model plus a vanished element, and if it still ends above, take that embedding.
+        ``ref`` carries its correction under the current linear resistance."""
         x_emb = pm.embed(ref.sol.pm, ref.sol.x)
         stage = self.final_stage(ref.corr)
         cand = self.polish_final(stage, pm, x_emb)
-        if self.friction.active:
-            c = self.friction.at(*pm.unpack(cand.x))
-            cand_fin = _Final(self.final_stage(c).sol(pm, cand.x), c, fin.refreshes + 1, rms(c - ref.corr))
+        if self.time_model.active:
+            cand_fin = self.with_time_head(pm, cand.x, self.time_model.head(*pm.unpack(cand.x)))
+            cand_fin.refreshes, cand_fin.moved = fin.refreshes + 1, rms(cand_fin.corr - ref.corr)
         else:
             cand_fin = _Final(cand, ref.corr)
         if cand_fin.sol.F <= ref.sol.F and cand_fin.sol.F < fin.sol.F:
             return cand_fin
+        # S(m-1) plus a vanished element: its head (and its MOC head) are S(m-1)'s
         emb = stage.sol(pm, x_emb)
-        return _Final(emb, ref.corr, fin.refreshes, 0.0) if emb.F < fin.sol.F else fin
+        return _Final(emb, ref.corr, ref.h_time, fin.refreshes, 0.0) if emb.F < fin.sol.F else fin
 
 
 def _pack_fit(pm: ParamMap, old: ModelFit, rig: Rig) -> np.ndarray:
@@ -361,18 +418,27 @@ def fit_sweep(
     jobs = [(m, False) for m in ms]
     if reduced:
         jobs += [(m, True) for m in ms if 1 <= m <= len(REDUCED_RETARDATION_TIMES_S)]
-    fits: list[ModelFit] = []
-    for done, (m, red) in enumerate(sorted(jobs, key=lambda j: (j[1], j[0])), 1):
+    order = sorted(jobs, key=lambda j: (j[1], j[0]))
+    spent: dict = {}
+    for done, job in enumerate(order, 1):
         before = sw.counts()
-        fin, n_starts = sw.fit_model(m, red)
-        sw.final[(m, red)] = fin
+        fin, n_starts = sw.fit_model(*job)
+        sw.final[job] = fin
         after = sw.counts()
-        fits.append(summarise(sw.final_stage(fin.corr), fin.sol, model_name(m, red), sw.rig, bounds,
-                              evaluations=after[0] - before[0], jacobians=after[1] - before[1], starts=n_starts,
-                              friction={"refreshes": fin.refreshes, "last_change_m": fin.moved,
-                                        "correction_rms_m": rms(fin.corr)} if sw.friction.active else {}))
+        spent[job] = [after[0] - before[0], after[1] - before[1], n_starts]
         if progress is not None:
-            progress(done, len(jobs), fits[-1].name)
+            progress(done, len(jobs), model_name(*job))
+    # a larger model that found a better optimum along a structure a smaller one can express
+    # hands it back (velab.fitting.nesting); then the order F(EL) >= F(S1) >= ... is restored
+    head = [(0, False)] if 0 in ms else []
+    for family in ([(m, False) for m in ms], head + [j for j in order if j[1]]):
+        hand_back(sw, family, spent)
+    fits: list[ModelFit] = []
+    for job in order:
+        fin = sw.final[job]
+        ev, jac, n_starts = spent[job]
+        fits.append(summarise(sw.final_stage(sw.current_corr(fin)), fin.sol, model_name(*job), sw.rig, bounds,
+                              evaluations=ev, jacobians=jac, starts=n_starts, friction=sw.friction_info(fin)))
 
     apply_criteria(fits, selection)
     settings = {
@@ -380,9 +446,9 @@ def fit_sweep(
         "decimation": sw.q, "coarse_band_hz": sw.band, "tau_start_range_s": [sw.tau_lo, sw.tau_hi],
         "tau_min_s": tau_min_s, "tau_max_s": tau_max_s, "bounds": bounds.to_dict(), "selection": selection,
         "warm_start": initial is not None,
-        "friction": {"steady": sw.friction.steady, "unsteady": sw.friction.unsteady,
-                     "corrected": sw.friction.active, "moc_runs": sw.friction.runs,
-                     "moc_seconds": sw.friction.seconds, "text": sw.friction.describe()},
+        "friction": {"steady": sw.time_model.steady, "unsteady": sw.time_model.unsteady,
+                     "time_domain": sw.time_model.active, "moc_runs": sw.time_model.runs,
+                     "moc_seconds": sw.time_model.seconds, "text": sw.time_model.describe(sw.resistances[1:])},
     }
     result = SweepResult(
         n=fits[0].n if fits else n, window_s=window, sample_rate_hz=1.0 / dt, method=method, settings=settings,
@@ -392,20 +458,3 @@ def fit_sweep(
         result.notes.append(f"no full-band polish: F on the low-passed data decimated by {sw.q}")
     return result
 
-
-def anderson(xs: list[np.ndarray], gs: list[np.ndarray]) -> np.ndarray:
-    """Anderson mixing for the fixed point x = G(x) from the last iterates x_j and G(x_j).
-
-    The friction refresh's plain iteration x <- G(x) converges like an alternating series
-    (ratio about -0.5 on the reference rig): mixing the last two or three iterates removes
-    that in one or two steps.
-    """
-    g = gs[-1]
-    if len(xs) < 2:
-        return g
-    f = [gj - xj for xj, gj in zip(xs, gs)]
-    dF = np.array([f[i + 1] - f[i] for i in range(len(f) - 1)]).T
-    dG = np.array([gs[i + 1] - gs[i] for i in range(len(gs) - 1)]).T
-    gamma, *_ = np.linalg.lstsq(dF, f[-1], rcond=1e-10)
-    out = g - dG @ gamma
-    return out if np.all(np.isfinite(out)) else g
