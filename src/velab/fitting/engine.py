@@ -52,7 +52,7 @@ class HeadEvaluator:
 
     _WORK_SLOTS = 4
 
-    def __init__(self, rig: Rig, t_s=None, *, band_hz="auto", extra_resistance: float = 0.0,
+    def __init__(self, rig: Rig, t_s=None, *, band_hz="auto", extra_impedance=None,
                  _model: ValveHeadModel | None = None):
         vm = _model if _model is not None else ValveHeadModel(rig, t_s, band_hz=band_hz)
         p = rig.pipe
@@ -62,9 +62,11 @@ class HeadEvaluator:
         self.s = vm.s_band.copy()
         self.gA = GRAVITY_M_S2 * p.area_m2
         # series impedance per unit length (inertance and friction): the one place it enters;
-        # extra_resistance shifts the linearised steady friction (velab.fitting.friction)
-        self.extra_resistance = float(extra_resistance)
-        self.W = series_impedance(self.s, rig) + self.extra_resistance  # s Li + R (+ R_u(s)), velab.model
+        # extra_impedance(s, rig) moves the linearised friction (velab.fitting.friction)
+        self.extra_impedance = extra_impedance
+        self.W = series_impedance(self.s, rig)  # s Li + R (+ unsteady R_u(s)), velab.model
+        if extra_impedance is not None:
+            self.W = self.W + extra_impedance(self.s, rig)
         self.L = p.length_m
         self._sgA = self.s * self.gA
         self._sigma = float(vm.sigma)
@@ -77,11 +79,11 @@ class HeadEvaluator:
         self.evaluations = 0
         self.jacobians = 0
 
-    def fork(self, extra_resistance: float | None = None) -> "HeadEvaluator":
-        """Same model and grid, own counters and buffers (for a worker thread); optionally
-        another linearised friction (``extra_resistance`` added to the rig's tangent R)."""
-        dR = self.extra_resistance if extra_resistance is None else extra_resistance
-        return HeadEvaluator(self.rig, extra_resistance=dR, _model=self.model)
+    def fork(self, extra_impedance=False) -> "HeadEvaluator":
+        """Same model and grid, own counters and buffers (for a worker thread); optionally another
+        linearised friction (``extra_impedance(s, rig)`` added to the series impedance; None: none)."""
+        extra = self.extra_impedance if extra_impedance is False else extra_impedance
+        return HeadEvaluator(self.rig, extra_impedance=extra, _model=self.model)
 
     # ---------------------------------------------------------------- core
     def _buffers(self, m: int, rows: int) -> dict:
@@ -89,8 +91,7 @@ class HeadEvaluator:
         ws = self._work.get(key)
         if ws is None:
             nb = self._nb
-            ws = {"im": np.empty((m, nb)), "den": np.empty((m, nb)), "u": np.empty((m, nb), dtype=complex),
-                  "Ju": np.empty((m, nb), dtype=complex),
+            ws = {"im": np.empty((m, nb)), "den": np.empty((m, nb)), "Ju": np.empty((m, nb), dtype=complex),
                   "buf": np.zeros((rows, self._nspec), dtype=complex), "w": np.empty((rows, self.model.n_fft))}
             for name in ("phi", "Y", "mu", "g", "th", "zc", "v"):
                 ws[name] = np.empty(nb, dtype=complex)
@@ -110,18 +111,17 @@ class HeadEvaluator:
         Y = ws["Y"]
         c0 = 1.0 / a**2
         if m:
-            # u_k = 1/(1 + s tau_k), s = sigma + i omega, in real arithmetic into kept buffers
+            # J'_k u_k = J'_k / (1 + s tau_k), s = sigma + i omega, in real arithmetic into kept buffers
             # (no complex temporaries); phi = sum_k J'_k u_k; Y = (s gA / a^2)(1 + phi)
             re = 1.0 + self._sigma * tau
-            im, den, u = ws["im"], ws["den"], ws["u"]
+            im, den, Ju = ws["im"], ws["den"], ws["Ju"]
             np.multiply(self._omega[None, :], tau[:, None], out=im)
             np.multiply(im, im, out=den)
             den += (re * re)[:, None]
-            np.divide(re[:, None], den, out=u.real)
-            np.divide(im, den, out=u.imag)
-            np.negative(u.imag, out=u.imag)
-            Ju, phi = ws["Ju"], ws["phi"]
-            np.multiply(u, J_rel[:, None], out=Ju)
+            np.divide((re * J_rel)[:, None], den, out=Ju.real)
+            im *= -J_rel[:, None]
+            np.divide(im, den, out=Ju.imag)
+            phi = ws["phi"]
             if m == 1:
                 np.copyto(phi, Ju[0])
             else:
@@ -130,7 +130,6 @@ class HeadEvaluator:
             np.multiply(phi, self._sgA, out=Y)
             Y *= c0
         else:
-            u = None
             np.multiply(self._sgA, c0, out=Y)
         mu, g, th, zc = ws["mu"], ws["g"], ws["th"], ws["zc"]
         np.multiply(Y, self.W, out=mu)
@@ -142,7 +141,7 @@ class HeadEvaluator:
         np.multiply(zc, th, out=b[0])
         b[0] *= self._mq  # Z = -Zc tanh(mu L), times the summed flow spectrum
         if jac:
-            # P = dZ/dY q = (Zc / 2Y)(tanh g - g sech^2 g) q
+            # P = dZ/dY Y q = (Zc / 2)(tanh g - g sech^2 g) q
             v = ws["v"]
             np.multiply(th, th, out=v)
             np.subtract(1.0, v, out=v)
@@ -150,20 +149,19 @@ class HeadEvaluator:
             np.subtract(th, v, out=v)
             P = zc
             P *= v
-            P *= self._q2  # Zc (tanh g - g sech^2 g) q / 2 = P Y
+            P *= self._q2
             np.multiply(P, -2.0, out=b[1])  # dY/d ln a = -2 Y
             if m:
-                P /= Y
-                P *= self._sgA
-                P *= c0  # P s gA / a^2
+                # dY/d ln J'_k = Y J'_k u_k / (1 + phi);  dY/d ln tau_k = -(dY/d ln J'_k) s tau_k u_k,
+                # and s tau_k u_k = 1 - u_k
+                P /= phi
                 cJ = b[2 : 2 + m]
                 np.multiply(Ju, P, out=cJ)
                 if tau_free:
                     ct = b[2 + m :]
-                    np.multiply(self.s[None, :], tau[:, None], out=ct)
-                    ct *= u
+                    np.divide(Ju, J_rel[:, None], out=ct)
+                    ct -= 1.0
                     ct *= cJ
-                    np.negative(ct, out=ct)
         self.evaluations += 1
         if jac:
             self.jacobians += 1

@@ -27,13 +27,14 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
+from scipy.optimize import minimize, minimize_scalar
 
-from velab.config import Rig
+from velab.config import GRAVITY_M_S2, Rig
 from velab.errors import DataError
-from velab.friction import STEADY_LAWS, UNSTEADY_LAWS
+from velab.friction import STEADY_LAWS, UNSTEADY_LAWS, unsteady_resistance
 from velab.moc import moc_head
 
 # unsteady laws the frequency model carries exactly (linear in q, through the series impedance)
@@ -96,39 +97,75 @@ class TimeDomainModel:
             raise DataError(f"friction: the time-domain model diverged at a = {a:.4g} m/s")
         return h
 
-    def describe(self, resistances=()) -> str:
+    def describe(self, frictions=()) -> str:
         uns = "" if self.unsteady == "none" else f", {self.unsteady} unsteady friction"
         if not self.active:
             if self.steady == "linear":
                 return "linearised steady friction (tangent R = f Q0/(g D A^2)) in the frequency model" + uns
             return "no steady friction" + uns
-        R = self.rig.linear_resistance
-        rs = [R + d for d in resistances]
-        eq = (f"; equivalent linear resistance {min(rs) / R:.2f}-{max(rs) / R:.2f} x the tangent R" if rs and R > 0
-              else "")
+        fs = [f.factor(self.rig) for f in frictions if math.isfinite(f.factor(self.rig))]
+        eq = f"; frequency model's linear resistance {min(fs):.2f}-{max(fs):.2f} x the tangent R" if fs else ""
+        ks = [f.kappa for f in frictions if f.kappa]
+        if ks:
+            eq += f" + {min(ks):.2f}-{max(ks):.2f} x the Vardy-Brown unsteady resistance"
         return (f"{self.steady} steady friction{uns}: each model's head is the time-domain model (MOC) at its "
                 f"parameters, fitted through the frequency model plus the correction h_MOC - h_FD, refreshed until "
                 f"it stops moving{eq} ({self.runs} MOC runs, {self.seconds:.2f} s)")
 
 
-def equivalent_resistance(ev, params, h_time: np.ndarray) -> float:
-    """The change dR of the frequency model's linear resistance that brings it closest to ``h_time``.
+@dataclass(frozen=True)
+class EquivalentFriction:
+    """What the frequency model adds to its series impedance to stand in for a nonlinear friction:
+    a change dR of the linear resistance and kappa times the Vardy-Brown unsteady resistance."""
+
+    dR: float = 0.0
+    kappa: float = 0.0
+
+    def __call__(self, s, rig: Rig):
+        out = np.full(np.shape(s), self.dR, dtype=complex)
+        if self.kappa:
+            p = rig.pipe
+            out += self.kappa * unsteady_resistance(
+                s, gravity_area=GRAVITY_M_S2 * p.area_m2, diameter_m=p.inner_diameter_m,
+                kinematic_viscosity_m2_s=rig.fluid.kinematic_viscosity_m2_s, reynolds=rig.reynolds)
+        return out
+
+    def factor(self, rig: Rig) -> float:
+        R = rig.linear_resistance
+        return (R + self.dR) / R if R > 0 else math.nan
+
+
+def equivalent_friction(ev, params, h_time: np.ndarray, unsteady: bool = False) -> EquivalentFriction:
+    """The linear friction that brings the frequency model closest to ``h_time`` (least squares).
 
     The tangent R = f Q0/(g D A^2) is the quadratic law's slope at Q0; after the closure the
     flow swings about zero where that slope vanishes, so the best linear stand-in has a smaller
-    R (about 0.4-0.7 R on the reference rigs). The correction h_MOC - h_FD is then small and
+    R (about 0.3 R on the reference rigs). With ``unsteady`` (Brunone's friction, which has no
+    frequency form) a multiple of the Vardy-Brown unsteady resistance is fitted too: both damp
+    in proportion to the flow's acceleration. The correction h_MOC - h_FD is then small and
     depends little on the parameters, which is what makes the refresh converge in a few steps.
     ``ev`` is a full-band HeadEvaluator on the window's grid, ``params`` = (a, J', tau).
     """
     R = ev.rig.linear_resistance
-    if not R > 0:
-        return 0.0
+    scale = R if R > 0 else 1.0
 
-    def cost(dR):
-        return float(np.mean(np.square(ev.fork(dR).head(*params) - h_time)))
+    def cost(eq):
+        return float(np.mean(np.square(ev.fork(eq).head(*params) - h_time)))
 
-    r = minimize_scalar(cost, bounds=(-R, R), method="bounded", options={"xatol": 1e-3 * R})
-    return float(r.x) if r.fun < cost(0.0) else 0.0
+    best = EquivalentFriction()
+    best_cost = cost(best)
+    if R > 0:
+        r = minimize_scalar(lambda v: cost(EquivalentFriction(v * R)), bounds=(-1.0, 1.0), method="bounded",
+                            options={"xatol": 1e-3})
+        if r.fun < best_cost:
+            best, best_cost = EquivalentFriction(float(r.x) * R), float(r.fun)
+    if unsteady:
+        x0 = np.array([best.dR / scale, 1.0])
+        r = minimize(lambda v: cost(EquivalentFriction(v[0] * scale, max(v[1], 0.0))), x0, method="Nelder-Mead",
+                     options={"xatol": 1e-3, "fatol": 1e-6 * best_cost, "maxfev": 60})
+        if r.fun < best_cost:
+            best = EquivalentFriction(float(r.x[0]) * scale, max(float(r.x[1]), 0.0))
+    return best
 
 
 def anderson(xs: list[np.ndarray], gs: list[np.ndarray]) -> np.ndarray:

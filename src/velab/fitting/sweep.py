@@ -39,7 +39,7 @@ from velab.config import REDUCED_RETARDATION_TIMES_S, Rig
 from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate, prepare_window
 from velab.fitting.engine import HeadEvaluator
-from velab.fitting.friction import TimeDomainModel, anderson, equivalent_resistance, fit_rig, rms
+from velab.fitting.friction import EquivalentFriction, TimeDomainModel, anderson, equivalent_friction, fit_rig, rms
 from velab.fitting.params import FitBounds, ParamMap, creep_const, derive_bounds
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
 from velab.fitting.solvers import Sol, Stage
@@ -116,7 +116,8 @@ class _Sweep:
         # worker thread: full-band evaluations are large numpy/FFT operations that release the GIL
         self.ev_f2 = full.fork() if polish and threads > 1 else None
         self._counted = (0, 0)
-        self.resistances: list[float] = []
+        self.frictions: list[EquivalentFriction] = []
+        self.brunone = self.time_model.unsteady == "brunone"
         window = d.size * dt
         self.tau_lo = max(2 * dt * q, bounds.tau_min_s)
         self.tau_hi = min(max(window / 2.0, 4 * self.tau_lo), bounds.tau_max_s)
@@ -126,7 +127,7 @@ class _Sweep:
         corr = np.zeros_like(d)
         if self.time_model.active:
             h0 = self.time_model.head(a_nom, [], [])
-            self.set_resistance(equivalent_resistance(full, (a_nom, [], []), h0))
+            self.set_friction(equivalent_friction(full, (a_nom, [], []), h0, self.brunone))
             corr = h0 - full.head(a_nom, [], [])
         self.a0 = scan_wave_speed(self.stage_c.with_data(lowpass_decimate(d - corr, q)), self.pm0, a_nom)
         x0 = self.pm0.pack(self.a0, [])
@@ -134,16 +135,16 @@ class _Sweep:
         if self.time_model.active:
             self.start0 = self.with_time_head(self.pm0, x0, self.time_model.head(self.a0, [], []))
 
-    def set_resistance(self, dR: float) -> None:
-        """Move the frequency model's linear friction by dR (all stages; counters carried over)."""
+    def set_friction(self, eq: EquivalentFriction) -> None:
+        """The frequency model's linear friction for the next model (all stages; counters carried over)."""
         self._counted = self.counts()
-        self.stage_c = Stage(self.stage_c.ev.fork(dR), self.stage_c.d)
-        self.ev_full = self.ev_full.fork(dR)
+        self.stage_c = Stage(self.stage_c.ev.fork(eq), self.stage_c.d)
+        self.ev_full = self.ev_full.fork(eq)
         if self.stage_f is not None:
             self.stage_f = Stage(self.ev_full, self.stage_f.d)
         if self.ev_f2 is not None:
             self.ev_f2 = self.ev_full.fork()
-        self.resistances.append(dR)
+        self.frictions.append(eq)
 
     def with_time_head(self, pm: ParamMap, x, h_time) -> _Final:
         """The model at x whose head is ``h_time`` (the MOC's): F on the final stage, exactly."""
@@ -165,9 +166,9 @@ class _Sweep:
         """What the friction treatment did for one model (ModelFit.friction)."""
         if not self.time_model.active:
             return {}
-        R = self.rig.linear_resistance
+        eq = self.ev_full.extra_impedance
         return {"refreshes": fin.refreshes, "last_change_m": fin.moved, "correction_rms_m": rms(fin.corr),
-                "linear_resistance_factor": (R + self.ev_full.extra_resistance) / R if R > 0 else math.nan}
+                "linear_resistance_factor": eq.factor(self.rig), "vardy_brown_factor": eq.kappa}
 
     @property
     def evaluators(self):
@@ -215,7 +216,7 @@ class _Sweep:
         if self.time_model.active:
             # the linear friction closest to the time-domain model at the reference parameters
             px = start.sol.pm.unpack(start.sol.x)
-            self.set_resistance(equivalent_resistance(self.ev_full, px, start.h_time))
+            self.set_friction(equivalent_friction(self.ev_full, px, start.h_time, self.brunone))
             start = self.with_time_head(start.sol.pm, start.sol.x, start.h_time)
         base = start.sol if ref is not None else Sol(start.sol.x, math.nan, start.sol.pm)
         best, n_starts = self.calibrate(pm, red, base, start.corr, model_name(m, red))
@@ -448,7 +449,7 @@ def fit_sweep(
         "warm_start": initial is not None,
         "friction": {"steady": sw.time_model.steady, "unsteady": sw.time_model.unsteady,
                      "time_domain": sw.time_model.active, "moc_runs": sw.time_model.runs,
-                     "moc_seconds": sw.time_model.seconds, "text": sw.time_model.describe(sw.resistances[1:])},
+                     "moc_seconds": sw.time_model.seconds, "text": sw.time_model.describe(sw.frictions[1:])},
     }
     result = SweepResult(
         n=fits[0].n if fits else n, window_s=window, sample_rate_hz=1.0 / dt, method=method, settings=settings,
