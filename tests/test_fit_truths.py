@@ -23,6 +23,7 @@ import pytest
 from velab.cli import main
 from velab.config import KelvinVoigt, Material, load_rig
 from velab.fitting import fit_sweep
+from velab.fitting.friction import fitted_head
 from velab.moc import moc_head
 from velab.model import creep_scale
 
@@ -60,6 +61,8 @@ def test_default_fit_names_the_truth(rig_name, truth):
     assert not best.at_bounds
     # the friction was carried by the time-domain model, not by the Kelvin-Voigt elements
     assert r.settings["friction"]["time_domain"] and best.friction["refreshes"] >= 1
+    # the reported F is the time-domain model's own at the reported parameters
+    assert np.mean((fitted_head(t, rig, best) - h) ** 2) == pytest.approx(best.F, rel=1e-9)
     # F never increases with m
     Fs = [f.F for f in r.models]
     assert all(b <= a * (1 + 1e-9) for a, b in zip(Fs, Fs[1:]))

@@ -35,6 +35,7 @@ from scipy.optimize import minimize, minimize_scalar
 from velab.config import GRAVITY_M_S2, Rig
 from velab.errors import DataError
 from velab.friction import STEADY_LAWS, UNSTEADY_LAWS, unsteady_resistance
+from velab.model import creep_scale, valve_head
 from velab.moc import moc_head
 
 # unsteady laws the frequency model carries exactly (linear in q, through the series impedance)
@@ -188,3 +189,14 @@ def anderson(xs: list[np.ndarray], gs: list[np.ndarray]) -> np.ndarray:
 
 def rms(x: np.ndarray) -> float:
     return math.sqrt(float(np.mean(np.square(x)))) if np.size(x) else 0.0
+
+
+def fitted_head(t_s, rig: Rig, fit) -> np.ndarray:
+    """The head of a calibrated model (a ModelFit) on the grid t_s, with the model the fit used:
+    the time-domain model for a nonlinear friction law, the full-band frequency model otherwise."""
+    tm = TimeDomainModel(rig, t_s)
+    if tm.active:
+        a = fit.wave_speed_m_s
+        J_rel = np.array([1.0 / e for e in fit.E_pa]) * creep_scale(rig, a)
+        return tm.head(a, J_rel, np.array(fit.tau_s))
+    return valve_head(t_s, rig, fit.material())
