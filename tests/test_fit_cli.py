@@ -149,9 +149,13 @@ def test_bound_options_and_rig_fit_table(run_a, tmp_path, capsys):
     for bad, msg in ((["--tau-min", "-1"], "--tau-min"), (["--tau-max", "0"], "--tau-max"),
                      (["--tau-min", "0.5", "--tau-max", "0.1"], "--tau-min")):
         capsys.readouterr()
-        assert main(["fit", str(run_a), "--models", "0-1", "--no-save", *bad]) != 0
+        try:
+            code = main(["fit", str(run_a), "--models", "0-1", "--no-save", *bad])
+        except SystemExit as exc:  # argparse's own checks
+            code = exc.code
+        assert code != 0
         err = capsys.readouterr().err.strip()
-        assert err.startswith("velab: ") and msg in err and "\n" not in err
+        assert err.startswith("velab") and msg in err and "\n" not in err and "Traceback" not in err
     capsys.readouterr()
     assert main(["fit", str(run_a), "--models", "0-2", "--window", "5", "--tau-min", "0.005", "--tau-max", "50",
                  "--name", "bounded", "--json"]) == 0
@@ -162,9 +166,17 @@ def test_bound_options_and_rig_fit_table(run_a, tmp_path, capsys):
         assert isinstance(m["at_bounds"], list) and "wave_speed_se" in m and "aic_ar1" in m
         for el in m["elements"]:
             assert 0.005 * (1 - 1e-9) <= el["tau"] <= 50.0 * (1 + 1e-9)
+    from velab.runfiles import read_fit_group
+
     with h5py.File(run_a) as fh:
-        settings = json.loads(fh["entry/fits/bounded"].attrs["settings"])
-    assert settings["bounds"]["tau_min_s"] == 0.005 and settings["selection"] == "ar1"
+        stored = read_fit_group(fh["entry/fits/bounded"])
+    assert stored.settings["bounds"]["tau_min_s"] == 0.005 and stored.settings["selection"] == "ar1"
+    assert stored.selection == "ar1" and stored.best.name == doc["best"]
+    by = {m["name"]: m for m in doc["models"]}
+    for f in stored.models:  # the new per-model fields survive the run file
+        assert f.at_bounds == by[f.name]["at_bounds"] and f.negligible == tuple(
+            el["negligible"] for el in by[f.name]["elements"])
+        assert f.wave_speed_se_m_s == pytest.approx(by[f.name]["wave_speed_se"])
     # the rig's [fit] table: validated, carried by the rig (run files store it)
     src = (load_rig("perugia").source)
     text = open(src).read()
