@@ -1,13 +1,20 @@
-"""Time the whole EL..S6 sweep on the material A run (1 kHz, 20 s) against a plain baseline.
+"""Time the whole EL..S6 sweep on the material A run (1 kHz, 20 s) against a plain baseline,
+and the same sweep on data with quadratic friction against the linear one.
 
 Baseline: scipy.optimize.least_squares (TRF) with a finite-difference Jacobian on the
 full-band model (the impedance at every FFT bin), from the same kind of starting point
 a user would write (nominal wave speed, log-spaced retardation times), same bounds.
 
+Quadratic friction: material A on the reference rig made by the time-domain model
+(velab.moc.moc_head, quadratic friction, same noise), fitted with the rig's quadratic law
+(the sweep's time-domain friction correction); the ratio to the linear sweep's median is
+printed (issue 10: at most 3).
+
     python benchmarks/fit_sweep.py                # synthesises the run in memory (seed 2018)
     python benchmarks/fit_sweep.py RUN.h5         # or uses a run file
     python benchmarks/fit_sweep.py --repeat 5     # sweep timings to take the median of (default 3)
     python benchmarks/fit_sweep.py --no-baseline  # sweep only (the baseline takes minutes)
+    python benchmarks/fit_sweep.py --no-quadratic # skip the quadratic-friction sweep
 
 Prints the sweep time (median of the repeats, and each repeat), the baseline time, the
 speed-up, the model evaluations of both, and F per model for both. Exit code 1 if the
@@ -29,8 +36,10 @@ from scipy.optimize import least_squares
 
 from velab.config import load_material, load_rig
 from velab.fitting import fit_sweep
-from velab.fitting.engine import HeadEvaluator, ParamMap
-from velab.model import valve_head
+from velab.fitting.engine import HeadEvaluator
+from velab.fitting.params import ParamMap, derive_bounds
+from velab.model import creep_scale, valve_head
+from velab.moc import moc_head
 
 
 def load(path):
@@ -40,19 +49,29 @@ def load(path):
         run = read_run(path)
         t, h = run.fit_window(20.0)
         return t, h, run.rig
-    rig = load_rig("perugia")
+    rig = load_rig("perugia").with_changes(friction="linear")
     t = np.arange(20000) / 1000.0
     h = valve_head(t, rig, load_material("A")) + np.random.default_rng(2018).normal(0, 0.1, t.size)
     return t, h, rig
 
 
+def quadratic_record():
+    """Material A on the reference rig from the time-domain model with quadratic friction."""
+    rig = load_rig("perugia").with_changes(friction="quadratic")
+    t = np.arange(20000) / 1000.0
+    A = load_material("A")
+    J = np.array([e.J_per_pa for e in A.elements]) * creep_scale(rig, A.wave_speed_m_s)
+    tau = np.array([e.tau_s for e in A.elements])
+    h = moc_head(rig, A.wave_speed_m_s, J, tau, t) + np.random.default_rng(2018).normal(0, 0.1, t.size)
+    return t, h, rig
+
+
 def baseline(t, h, rig, m: int):
     ev = HeadEvaluator(rig, t, band_hz=None)
-    pm = ParamMap(m)
+    pm = ParamMap(m, derive_bounds(rig, float(t[1] - t[0]), t.size * float(t[1] - t[0])))
     a0 = rig.nominal_wave_speed_m_s
     taus = np.geomspace(0.02, 10.0, m) if m > 1 else np.array([0.5] * m)
-    E = np.full(m, 1e10)
-    x0 = pm.clip(pm.pack(a0, E, E * taus))
+    x0 = pm.clip(pm.pack(a0, np.full(m, 0.18), taus))  # J' = 0.18: E = 1e10 Pa on the reference rig
     lo, hi = pm.bounds()
 
     def fun(x):
@@ -73,6 +92,7 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=3, help="sweep timings (median reported; default 3)")
     ap.add_argument("--no-baseline", action="store_true", help="skip the baseline (about 3 minutes)")
     ap.add_argument("--threads", type=int, default=None, help="fit_sweep(threads=...) (default: auto)")
+    ap.add_argument("--no-quadratic", action="store_true", help="skip the quadratic-friction sweep")
     args = ap.parse_args(argv)
 
     t, h, rig = load(args.run)
@@ -96,6 +116,23 @@ def main(argv=None):
     print(f"  model evaluations: {r.evaluations} ({n_jac} with the analytic Jacobian)")
     print(f"  repeated sweeps identical: {'yes' if len(sigs) == 1 else 'NO'}")
     ok = len(sigs) == 1
+
+    if not args.no_quadratic:
+        tq, hq, rq = quadratic_record()
+        fit_sweep(tq[:2000], hq[:2000], rq, models="1", window_s=None)  # warm-up (MOC kernel)
+        qtimes = []
+        for _ in range(max(1, args.repeat)):
+            t0 = time.perf_counter()
+            rqr = fit_sweep(tq, hq, rq, models=range(7), window_s=20.0, threads=args.threads)
+            qtimes.append(time.perf_counter() - t0)
+        t_q = statistics.median(qtimes)
+        fr = rqr.settings["friction"]
+        print(f"quadratic friction sweep EL..S6: {t_q:7.2f} s  median of {len(qtimes)} "
+              f"({', '.join(f'{v:.2f}' for v in qtimes)} s); {fr['moc_runs']} MOC runs, {fr['moc_seconds']:.2f} s")
+        print(f"  ratio to the linear sweep: {t_q / t_sweep:.2f} (issue 10: <= 3)")
+        print(f"  best {rqr.best.name}, a = {rqr.best.wave_speed_m_s:.2f} +- {rqr.best.wave_speed_se_m_s:.2f} m/s, "
+              f"F/(N sigma^2) = {rqr.best.F / 0.01:.3f}; dAIC " +
+              ", ".join(f"{f.name} {f.delta_aic:.1f}" for f in rqr.models))
 
     base = {}
     if not args.no_baseline:

@@ -75,7 +75,8 @@ def test_fit_table_and_plot(run_a, tmp_path, capsys):
     code, out = _json(capsys, ["fit", str(run_a), "--models", "0-2", "--window", "5", "--no-save",
                                "--plot", str(png)])
     assert code == 0
-    assert "best model (minimum AIC)" in out.out and "lag-1" in out.out and "n = 5000" in out.out
+    assert "best model (minimum AIC AR1)" in out.out and "lag-1" in out.out and "n = 5000" in out.out
+    assert "bounds: tau in [" in out.out and "+-" in out.out
     assert png.read_bytes()[:4] == b"\x89PNG"
 
 
@@ -138,3 +139,75 @@ def test_many_files_one_bad(run_a, tmp_path, capsys):
     assert str(bad) in out.err
     with h5py.File(good) as fh:
         assert "auto_w3s" in fh["entry/fits"]
+
+
+def test_bound_options_and_rig_fit_table(run_a, tmp_path, capsys):
+    """--tau-min/--tau-max, the rig's [fit] table and their errors; the bounds go into the run file."""
+    from velab.config import load_rig, rig_from_dict
+    from velab.errors import ConfigError
+
+    for bad, msg in ((["--tau-min", "-1"], "--tau-min"), (["--tau-max", "0"], "--tau-max"),
+                     (["--tau-min", "0.5", "--tau-max", "0.1"], "--tau-min")):
+        capsys.readouterr()
+        try:
+            code = main(["fit", str(run_a), "--models", "0-1", "--no-save", *bad])
+        except SystemExit as exc:  # argparse's own checks
+            code = exc.code
+        assert code != 0
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("velab") and msg in err and "\n" not in err and "Traceback" not in err
+    capsys.readouterr()
+    assert main(["fit", str(run_a), "--models", "0-2", "--window", "5", "--tau-min", "0.005", "--tau-max", "50",
+                 "--name", "bounded", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    b = doc["settings"]["bounds"]
+    assert (b["tau_min_s"], b["tau_max_s"]) == (0.005, 50.0) and b["sources"]["tau_min_s"] == "option"
+    for m in doc["models"]:
+        assert isinstance(m["at_bounds"], list) and "wave_speed_se" in m and "aic_ar1" in m
+        for el in m["elements"]:
+            assert 0.005 * (1 - 1e-9) <= el["tau"] <= 50.0 * (1 + 1e-9)
+    from velab.runfiles import read_fit_group
+
+    with h5py.File(run_a) as fh:
+        stored = read_fit_group(fh["entry/fits/bounded"])
+    assert stored.settings["bounds"]["tau_min_s"] == 0.005 and stored.settings["selection"] == "ar1"
+    assert stored.selection == "ar1" and stored.best.name == doc["best"]
+    by = {m["name"]: m for m in doc["models"]}
+    for f in stored.models:  # the new per-model fields survive the run file
+        assert f.at_bounds == by[f.name]["at_bounds"] and f.negligible == tuple(
+            el["negligible"] for el in by[f.name]["elements"])
+        assert f.wave_speed_se_m_s == pytest.approx(by[f.name]["wave_speed_se"])
+    # the rig's [fit] table: validated, carried by the rig (run files store it)
+    src = (load_rig("perugia").source)
+    text = open(src).read()
+    good = tmp_path / "rig.toml"
+    good.write_text(text + "\n[fit]\ntau_min_s = 0.004\ntau_max_s = 60.0\n")
+    rig = load_rig(good)
+    assert (rig.fit.tau_min_s, rig.fit.tau_max_s) == (0.004, 60.0)
+    assert rig_from_dict(json.loads(json.dumps(rig.to_dict()))).fit == rig.fit
+    for extra, key in (("[fit]\ntau_min_s = -1\n", "[fit] tau_min_s"), ("[fit]\ntau_min_s = 2.0\ntau_max_s = 1.0\n",
+                                                                        "[fit] tau_max_s"),
+                       ("[fit]\ntau_mn_s = 1.0\n", "[fit] tau_mn_s")):
+        bad = tmp_path / "bad.toml"
+        bad.write_text(text + "\n" + extra)
+        with pytest.raises(ConfigError, match=key.replace("[", r"\[").replace("]", r"\]")):
+            load_rig(bad)
+
+
+def test_result_round_trip_and_old_documents(run_a, capsys):
+    from velab.fitting import SweepResult
+
+    capsys.readouterr()
+    assert main(["fit", str(run_a), "--models", "0-2", "--window", "4", "--no-save", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    r = SweepResult.from_dict(doc)
+    assert r.best.name == doc["best"] and r.selection == "ar1"
+    assert r.to_dict()["models"][1]["elements"] == doc["models"][1]["elements"]
+    # a document written before these fields existed (white-noise AIC only) still reads
+    old = {"n": 10, "window": 1.0, "method": "auto", "models": [
+        {"name": "EL", "m": 0, "k": 1, "F": 2.0, "aic": 8.9, "delta_aic": 1.0, "wave_speed": 350.0, "elements": []},
+        {"name": "S1", "m": 1, "k": 3, "F": 1.0, "aic": 6.0, "delta_aic": 0.0, "wave_speed": 351.0,
+         "elements": [{"E": 1e10, "eta": 1e9, "tau": 0.1, "J": 1e-10}]}]}
+    r = SweepResult.from_dict(old)
+    assert r.best.name == "S1" and r["S1"].tau_s == pytest.approx((0.1,)) and r["S1"].negligible == (False,)
+    assert "S1" in r.report()

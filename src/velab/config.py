@@ -24,6 +24,7 @@ from velab.friction import FACTOR_LAWS, STEADY_LAWS, UNSTEADY_LAWS
 # the rig's data classes live in velab.rig; re-exported here, where they always were
 from velab.rig import (  # noqa: F401
     GRAVITY_M_S2,
+    FitSettings,
     Fluid,
     Manoeuvre,
     Pipe,
@@ -140,6 +141,13 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
         {"full_scale_bar": _Key(float, check=_positive), "accuracy_fs": _Key(float, False, 0.0015, _non_negative)},
     )
     wave = r.read(r.table("wave"), "[wave] ", {"nominal_speed_m_s": _Key(float, check=_positive)})
+    fit = r.read(
+        r.table("fit", required=False) or {},
+        "[fit] ",
+        {"tau_min_s": _Key(float, False, None, _positive), "tau_max_s": _Key(float, False, None, _positive)},
+    )
+    if fit["tau_min_s"] is not None and fit["tau_max_s"] is not None and not fit["tau_min_s"] < fit["tau_max_s"]:
+        raise r.fail("[fit] tau_max_s", f"must be greater than tau_min_s (got {fit['tau_max_s']} <= {fit['tau_min_s']})")
     rig = Rig(
         name=top["name"],
         pipe=Pipe(
@@ -158,6 +166,7 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
         nominal_wave_speed_m_s=wave["nominal_speed_m_s"],
         **friction,
         source=str(path),
+        fit=FitSettings(**fit),
     )
     try:  # derived quantities of absurd (if finite) inputs can overflow: a config error, not a crash
         steady_head_m = rig.steady_head_m

@@ -8,7 +8,7 @@ names of physics.md (Reynolds number, Darcy f, tangent resistance R, Joukowsky h
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 
 from velab.errors import ConfigError
 from velab.friction import FACTOR_LAWS, LAMINAR_RE, STEADY_LAWS, UNSTEADY_LAWS, darcy_factor
@@ -60,6 +60,18 @@ class Transducer:
 
 
 @dataclass(frozen=True)
+class FitSettings:
+    """Optional ``[fit]`` table of a rig file: the calibration's retardation-time bounds (s).
+
+    None: derived from the data (velab.fitting.params.derive_bounds). ``velab fit
+    --tau-min/--tau-max`` and ``fit_sweep(tau_min_s=, tau_max_s=)`` take precedence.
+    """
+
+    tau_min_s: float | None = None
+    tau_max_s: float | None = None
+
+
+@dataclass(frozen=True)
 class Rig:
     """Reservoir - pipe - valve rig (physics.md section 1)."""
 
@@ -82,6 +94,7 @@ class Rig:
     friction_unsteady: str = "none"
     brunone_k3: float = 0.02
     source: str = ""
+    fit: FitSettings = field(default_factory=FitSettings)  # the [fit] table (velab.fitting)
 
     def __post_init__(self):
         for name, value, allowed in (("friction", self.friction, STEADY_LAWS),
@@ -182,6 +195,7 @@ def rig_from_dict(d: dict) -> Rig:
             nominal_wave_speed_m_s=float(d["nominal_wave_speed_m_s"]),
             **_friction_from_dict(d),
             source=d.get("source", ""),
+            fit=FitSettings(**(d.get("fit") or {})),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"rig description: invalid or incomplete ({exc})") from None

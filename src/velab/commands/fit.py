@@ -17,6 +17,10 @@ from velab.errors import DataError, ExitCode, VelabError
 # fitter (scipy); run() checks the option against the fitter's own list.
 METHOD_NAMES = "auto, least-squares, nelder-mead, evolution"
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+# velab.fitting.results.SELECTIONS and velab.friction's laws, named here for the same reason
+SELECTIONS = ("ar1", "white")
+STEADY_LAWS = ("quadratic", "linear", "none")
+UNSTEADY_LAWS = ("none", "vardy-brown", "brunone")
 
 
 def register(sub) -> None:
@@ -37,6 +41,18 @@ def register(sub) -> None:
     p.add_argument("--starts", type=int_range(1, 1000), default=None,
                    help="cap on the number of starts per model (default: all)")
     p.add_argument("--no-polish", action="store_true", help="skip the full-band polish (quick look only)")
+    p.add_argument("--tau-min", type=float_range(0, None, lo_open=True, units="s"), default=None, metavar="S",
+                   help="shortest retardation time calibrated, s (default: the rig's [fit] table, else "
+                   "max(2 sampling steps, closure time / 10))")
+    p.add_argument("--tau-max", type=float_range(0, None, lo_open=True, units="s"), default=None, metavar="S",
+                   help="longest retardation time calibrated, s (default: the rig's [fit] table, else 10 x window)")
+    p.add_argument("--selection", choices=SELECTIONS, default="ar1",
+                   help="model choice: ar1 (default; AIC of an AR(1) likelihood of the residuals, robust to "
+                   "correlated residuals) or white (the paper's AIC)")
+    p.add_argument("--friction", choices=STEADY_LAWS, default=None,
+                   help="steady friction law of the calibration model (default: the rig's)")
+    p.add_argument("--friction-unsteady", choices=UNSTEADY_LAWS, default=None,
+                   help="unsteady friction law of the calibration model (default: the rig's)")
     add_json_option(p)
     p.add_argument("--plot", metavar="FILE", help="write report figures (.png, .pdf or .svg); with several runs, "
                    "one file per run named FILE-stem_RUN-stem.suffix")
@@ -59,10 +75,14 @@ def _options(args) -> dict:
         from velab.runfiles.fits import validate_fit_name
 
         validate_fit_name(args.name)
+    if args.tau_min is not None and args.tau_max is not None and not args.tau_min < args.tau_max:
+        raise DataError(f"--tau-min {args.tau_min:g} must be below --tau-max {args.tau_max:g}")
     return {
         "models": parse_models(args.models), "window_s": args.window, "method": args.method,
         "reduced": args.reduced, "starts": args.starts, "polish": not args.no_polish,
         "save": not args.no_save, "name": args.name, "plot": args.plot,
+        "tau_min_s": args.tau_min, "tau_max_s": args.tau_max, "selection": args.selection,
+        "friction": args.friction, "friction_unsteady": args.friction_unsteady,
     }
 
 
@@ -83,7 +103,9 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
     t, h = run.fit_window(opts["window_s"])
     result = fit_sweep(t, h, run.rig, models=opts["models"], window_s=None, method=opts["method"],
                        reduced=opts["reduced"], starts=opts["starts"], polish=opts["polish"],
-                       progress=progress)
+                       progress=progress, tau_min_s=opts["tau_min_s"], tau_max_s=opts["tau_max_s"],
+                       selection=opts["selection"], friction=opts["friction"],
+                       friction_unsteady=opts["friction_unsteady"])
     result.settings["window_s_requested"] = opts["window_s"]
     name = None
     if opts["save"]:

@@ -10,7 +10,7 @@ Public API (pure computation, no Qt, no I/O, thread-safe)::
 See docs/fitting.md for the method, the JSON schema and the fit-group layout.
 """
 
-from velab.fitting.results import ModelFit, SweepResult, support_category
+from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, support_category
 from velab.fitting.sweep import METHODS, fit_sweep, parse_models
 
-__all__ = ["fit_sweep", "ModelFit", "SweepResult", "METHODS", "parse_models", "support_category"]
+__all__ = ["fit_sweep", "ModelFit", "SweepResult", "METHODS", "SELECTIONS", "parse_models", "support_category"]

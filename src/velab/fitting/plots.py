@@ -6,7 +6,8 @@ import numpy as np
 
 from velab.config import Rig
 from velab.fitting.results import SweepResult
-from velab.model import phi, valve_head
+from velab.fitting.friction import fitted_head
+from velab.model import phi
 
 
 def report_figure(t, h, rig: Rig, result: SweepResult, path) -> None:
@@ -30,7 +31,7 @@ def report_figure(t, h, rig: Rig, result: SweepResult, path) -> None:
     a0.plot(t, h, color="0.6", lw=0.6, label="measured")
     for f in full:
         if f.m in (1, 2, 3) or f is best:
-            a0.plot(t, valve_head(t, rig, f.material()), lw=0.9, label=f"{f.name} (F={f.F:.3g} m²)")
+            a0.plot(t, fitted_head(t, rig, f), lw=0.9, label=f"{f.name} (F={f.F:.3g} m²)")
     a0.set_xlabel("t (s)")
     a0.set_ylabel("h (m)")
     a0.set_title("measured and calibrated head")

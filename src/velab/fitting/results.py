@@ -1,14 +1,25 @@
-"""Result types of a calibration sweep, and the information criteria (physics.md section 7)."""
+"""Result types of a calibration sweep, and the information criteria (physics.md section 7).
+
+``ModelFit.aic`` is the paper's white-noise AIC, n ln F + 2k (with AICc and BIC);
+``ModelFit.aic_ar1`` the AIC of the AR(1) likelihood of the residuals (velab.fitting.stats).
+``delta_aic``, ``weight`` and ``support`` follow the sweep's selection criterion
+(``SweepResult.selection``: ``"ar1"`` by default, ``"white"`` for the paper's rule), and
+``SweepResult.best`` is the model with the minimum of that criterion;
+``delta_aic_white`` is always the paper's.
+"""
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from velab.config import KelvinVoigt, Material
-from velab.fitting.engine import dot
+from velab.fitting.report import format_report
+from velab.fitting.stats import aic_ar1, lag1
+
+SELECTIONS = ("ar1", "white")
 
 
 def support_category(delta_aic: float) -> str:
@@ -34,9 +45,18 @@ def model_name(m: int, reduced: bool = False) -> str:
     return f"S{m}r" if reduced else f"S{m}"
 
 
+def _nan_tuple(v, m):
+    v = tuple(float(x) if x is not None else math.nan for x in (v or ()))
+    return v if len(v) == m else (math.nan,) * m
+
+
 @dataclass
 class ModelFit:
-    """The calibrated parameters and the fit statistics of one model."""
+    """The calibrated parameters and the fit statistics of one model.
+
+    Per-element tuples are sorted by retardation time. Standard errors are NaN where a
+    parameter is fixed (on a bound, vanished element, fixed tau of a reduced model).
+    """
 
     name: str  # "EL", "S1".."S6"; reduced models "S1r".."S5r"
     m: int  # number of Kelvin-Voigt elements
@@ -51,12 +71,28 @@ class ModelFit:
     evaluations: int = 0  # head-model evaluations (Jacobians counted once each)
     jacobians: int = 0
     starts: int = 0
-    aic: float = math.nan
+    aic: float = math.nan  # white-noise AIC (the paper's)
     aicc: float = math.nan
     bic: float = math.nan
-    delta_aic: float = math.nan
+    delta_aic: float = math.nan  # by the sweep's selection criterion
     weight: float = math.nan
     support: str = ""
+    J_rel: tuple[float, ...] = ()  # J'_k = J_k a^2 rho alpha D / e (share of phi(0))
+    innovation_var: float = math.nan  # s_e^2 of the AR(1) likelihood (m^2)
+    aic_ar1: float = math.nan
+    delta_aic_white: float = math.nan
+    n_eff: float = math.nan  # effective sample size n (1 - rho) / (1 + rho)
+    wave_speed_se_m_s: float = math.nan
+    E_se_pa: tuple[float, ...] = ()
+    eta_se_pa_s: tuple[float, ...] = ()
+    tau_se_s: tuple[float, ...] = ()
+    J_rel_se: tuple[float, ...] = ()
+    negligible: tuple[bool, ...] = ()  # element vanished (buys < NEGLIGIBLE_GAIN of n ln F)
+    element_gain: tuple[float, ...] = ()  # n ln(F without the element / F), others fixed
+    at_bounds: list = field(default_factory=list)  # parameters that end on a bound (dicts)
+    equivalent_to: str = ""  # "S1" when S2's extra element vanished (or two share tau), else ""
+    split_elements: int = 0  # live elements whose retardation time another one already has
+    friction: dict = field(default_factory=dict)  # friction correction of this model (see friction.py)
 
     @property
     def rss(self) -> float:
@@ -70,6 +106,20 @@ class ModelFit:
     def J_per_pa(self) -> tuple[float, ...]:
         return tuple(1.0 / e for e in self.E_pa)
 
+    @property
+    def note(self) -> str:
+        """"S2 = S1 + negligible element" where extra elements vanished (or split), else ""."""
+        k = sum(bool(v) for v in self.negligible)
+        parts = []
+        if k:
+            parts.append("negligible element" if k == 1 else f"{k} negligible elements")
+        if self.split_elements:
+            s = self.split_elements
+            parts.append("an element split in two" if s == 1 else f"{s} elements split")
+        if not parts:
+            return ""
+        return (f"{self.name} = {self.equivalent_to} + " if self.equivalent_to else "") + " + ".join(parts)
+
     def material(self) -> Material:
         return Material(
             wave_speed_m_s=self.wave_speed_m_s,
@@ -78,54 +128,105 @@ class ModelFit:
         )
 
     def elements(self) -> list[dict]:
-        return [
-            {"E": e, "eta": h, "tau": h / e, "J": 1.0 / e} for e, h in zip(self.E_pa, self.eta_pa_s)
-        ]
+        m = len(self.E_pa)
+        Jr, neg, gain = _nan_tuple(self.J_rel, m), self.negligible or (False,) * m, _nan_tuple(self.element_gain, m)
+        se = [_nan_tuple(v, m) for v in (self.E_se_pa, self.eta_se_pa_s, self.tau_se_s, self.J_rel_se)]
+        out = []
+        for i, (e, h) in enumerate(zip(self.E_pa, self.eta_pa_s)):
+            out.append({
+                "E": e, "eta": h, "tau": h / e, "J": 1.0 / e, "J_rel": Jr[i], "negligible": bool(neg[i]),
+                "gain": gain[i], "E_se": se[0][i], "eta_se": se[1][i], "tau_se": se[2][i],
+                "J_se": se[0][i] / (e * e) if math.isfinite(se[0][i]) else math.nan, "J_rel_se": se[3][i],
+            })
+        return out
 
     def to_dict(self) -> dict:
         return {
-            "name": self.name,
-            "m": self.m,
-            "k": self.k,
-            "reduced": self.reduced,
-            "F": self.F,
-            "rss": self.rss,
-            "aic": self.aic,
-            "aicc": self.aicc,
-            "bic": self.bic,
-            "delta_aic": self.delta_aic,
-            "weight": self.weight,
-            "support": self.support,
-            "wave_speed": self.wave_speed_m_s,
+            "name": self.name, "m": self.m, "k": self.k, "reduced": self.reduced, "n": self.n,
+            "F": self.F, "rss": self.rss,
+            "aic": self.aic, "aicc": self.aicc, "bic": self.bic, "aic_ar1": self.aic_ar1,
+            "delta_aic": self.delta_aic, "delta_aic_white": self.delta_aic_white,
+            "weight": self.weight, "support": self.support,
+            "wave_speed": self.wave_speed_m_s, "wave_speed_se": self.wave_speed_se_m_s,
             "elements": self.elements(),
-            "lag1_autocorr": self.lag1_autocorr,
-            "evaluations": self.evaluations,
-            "jacobians": self.jacobians,
-            "starts": self.starts,
+            "lag1_autocorr": self.lag1_autocorr, "innovation_var": self.innovation_var, "n_eff": self.n_eff,
+            "at_bounds": [dict(b) for b in self.at_bounds],
+            "equivalent_to": self.equivalent_to or None, "split_elements": self.split_elements,
+            "note": self.note or None,
+            "friction": dict(self.friction),
+            "evaluations": self.evaluations, "jacobians": self.jacobians, "starts": self.starts,
         }
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "ModelFit":
+        """Inverse of :meth:`to_dict`; keys missing in older documents get their defaults."""
+        els = d.get("elements") or []
 
-def apply_criteria(fits: list[ModelFit]) -> None:
-    """Fill AIC, AICc, BIC, delta AIC, Akaike weights and support categories in place."""
+        def col(key):
+            return tuple(math.nan if el.get(key) is None else float(el[key]) for el in els)
+
+        def num(key, default=math.nan):
+            v = d.get(key, default)
+            return default if v is None else float(v)
+
+        m = int(d.get("m", len(els)))
+        return cls(
+            name=str(d["name"]), m=m, k=int(d.get("k", 2 * m + 1)), reduced=bool(d.get("reduced", False)),
+            n=int(d.get("n", 0) or 0), F=num("F"), wave_speed_m_s=num("wave_speed", num("wave_speed_m_s")),
+            E_pa=col("E"), eta_pa_s=col("eta"), lag1_autocorr=num("lag1_autocorr"),
+            evaluations=int(d.get("evaluations", 0) or 0), jacobians=int(d.get("jacobians", 0) or 0),
+            starts=int(d.get("starts", 0) or 0), aic=num("aic"), aicc=num("aicc"), bic=num("bic"),
+            delta_aic=num("delta_aic"), weight=num("weight"), support=str(d.get("support") or ""),
+            J_rel=col("J_rel") if els and "J_rel" in els[0] else (),
+            innovation_var=num("innovation_var"), aic_ar1=num("aic_ar1"), delta_aic_white=num("delta_aic_white"),
+            n_eff=num("n_eff"), wave_speed_se_m_s=num("wave_speed_se"),
+            E_se_pa=col("E_se") if els and "E_se" in els[0] else (),
+            eta_se_pa_s=col("eta_se") if els and "eta_se" in els[0] else (),
+            tau_se_s=col("tau_se") if els and "tau_se" in els[0] else (),
+            J_rel_se=col("J_rel_se") if els and "J_rel_se" in els[0] else (),
+            negligible=tuple(bool(el.get("negligible", False)) for el in els),
+            element_gain=col("gain") if els and "gain" in els[0] else (),
+            at_bounds=[dict(b) for b in d.get("at_bounds") or []],
+            equivalent_to=str(d.get("equivalent_to") or ""), split_elements=int(d.get("split_elements") or 0),
+            friction=dict(d.get("friction") or {}),
+        )
+
+
+def apply_criteria(fits: list[ModelFit], selection: str = "ar1") -> None:
+    """Fill AIC (white and AR(1)), AICc, BIC, delta AIC, Akaike weights and support in place.
+
+    ``selection`` names the criterion behind delta_aic, weight and support (and the best
+    model): "ar1" (default) or "white" (the paper's). A fit without an AR(1) innovation
+    variance gets F (1 - rho^2), its value for the Yule-Walker rho at large n.
+    """
+    if selection not in SELECTIONS:
+        raise ValueError(f"selection must be one of {SELECTIONS}, got {selection!r}")
     for f in fits:
         nlf = f.n * math.log(f.F) if f.F > 0 else -math.inf
         f.aic = nlf + 2 * f.k
         f.aicc = f.aic + (2 * f.k * (f.k + 1) / (f.n - f.k - 1) if f.n - f.k - 1 > 0 else math.inf)
         f.bic = nlf + f.k * math.log(f.n)
+        rho = f.lag1_autocorr if math.isfinite(f.lag1_autocorr) else 0.0
+        if not math.isfinite(f.innovation_var):
+            f.innovation_var = f.F * (1 - min(rho * rho, 0.998))
+        f.aic_ar1 = aic_ar1(f.n, f.k, f.innovation_var, rho)
     if not fits:
         return
-    best = min(f.aic for f in fits)
-    rel = np.array([math.exp(-(f.aic - best) / 2) for f in fits])
+    best_white = min(f.aic for f in fits)
+    crit = [f.aic_ar1 if selection == "ar1" else f.aic for f in fits]
+    best = min(crit)
+    rel = np.array([math.exp(-(c - best) / 2) for c in crit])
     w = rel / rel.sum()
-    for f, wi in zip(fits, w):
-        f.delta_aic = f.aic - best
+    for f, c, wi in zip(fits, crit, w):
+        f.delta_aic = c - best
+        f.delta_aic_white = f.aic - best_white
         f.weight = float(wi)
         f.support = support_category(f.delta_aic)
 
 
 @dataclass
 class SweepResult:
-    """All models calibrated on one record window, ranked by AIC."""
+    """All models calibrated on one record window, ranked by the selection criterion."""
 
     n: int
     window_s: float
@@ -136,10 +237,22 @@ class SweepResult:
     duration_s: float = 0.0
     evaluations: int = 0  # head-model evaluations over the whole sweep
     notes: list[str] = field(default_factory=list)
+    selection: str = "ar1"  # "ar1" (default) or "white" (the paper's AIC)
 
     @property
     def best(self) -> ModelFit:
+        # ties (equal criterion) go to the smaller model: the order of self.models is EL, S1, ...
+        if self.selection == "ar1":
+            if all(math.isfinite(f.aic_ar1) for f in self.models):
+                return min(self.models, key=lambda f: f.aic_ar1)
+            if all(math.isfinite(f.delta_aic) for f in self.models):
+                # read back from a store that kept only delta AIC (by this selection)
+                return min(self.models, key=lambda f: f.delta_aic)
         return min(self.models, key=lambda f: f.aic)
+
+    @property
+    def bounds(self) -> dict:
+        return dict(self.settings.get("bounds") or {})
 
     def __getitem__(self, name: str) -> ModelFit:
         for f in self.models:
@@ -159,6 +272,7 @@ class SweepResult:
             "window": self.window_s,
             "sample_rate_hz": self.sample_rate_hz,
             "method": self.method,
+            "selection": self.selection,
             "settings": self.settings,
             "best": self.best.name,
             "duration_s": self.duration_s,
@@ -167,46 +281,22 @@ class SweepResult:
             "notes": list(self.notes),
         }
 
-    def report(self, elements: bool = True) -> str:
-        """A plain-text table (one line per model), then the parameters per element."""
-        lines = [
-            f"n = {self.n} samples, window = {self.window_s:g} s from the trigger "
-            f"({self.sample_rate_hz:g} Hz), method = {self.method}",
-            f"{'model':<6}{'k':>3}{'F (m^2)':>13}{'AIC':>13}{'AICc':>13}{'BIC':>13}{'dAIC':>10}"
-            f"{'weight':>8}  {'support':<18}{'a (m/s)':>9}{'lag1':>7}",
-        ]
-        best = self.best.name
-        for f in self.models:
-            mark = "*" if f.name == best else " "
-            lines.append(
-                f"{f.name + mark:<6}{f.k:>3}{f.F:>13.6e}{f.aic:>13.2f}{f.aicc:>13.2f}{f.bic:>13.2f}"
-                f"{f.delta_aic:>10.2f}{f.weight:>8.3f}  {f.support:<18}{f.wave_speed_m_s:>9.2f}"
-                f"{f.lag1_autocorr:>7.3f}"
-            )
-        lines.append(f"best model (minimum AIC): {best}")
-        if elements:
-            lines.append("")
-            lines.append(f"{'model':<6}{'#':>2}{'E (Pa)':>12}{'eta (Pa s)':>12}{'tau (s)':>11}{'J (1/Pa)':>12}")
-            for f in self.models:
-                for i, el in enumerate(f.elements(), 1):
-                    lines.append(
-                        f"{f.name:<6}{i:>2}{el['E']:>12.4e}{el['eta']:>12.4e}{el['tau']:>11.4g}{el['J']:>12.4e}"
-                    )
-        lag = self.best.lag1_autocorr
-        lines.append("")
-        lines.append(
-            f"caveat: AIC assumes independent Gaussian residuals (n = {self.n}); lag-1 autocorrelation of the "
-            f"best model's residuals {lag:.2f}"
-            + (" -- correlated: AIC over-rewards extra parameters" if abs(lag) > 0.2 else "")
+    @classmethod
+    def from_dict(cls, d: dict) -> "SweepResult":
+        """Inverse of :meth:`to_dict`, tolerant of documents written before a field existed."""
+        sel = d.get("selection") or "white"  # documents without it were ranked by the white AIC
+        r = cls(
+            n=int(d.get("n", 0) or 0), window_s=float(d.get("window", d.get("window_s", math.nan))),
+            sample_rate_hz=float(d.get("sample_rate_hz") or math.nan), method=str(d.get("method", "")),
+            settings=dict(d.get("settings") or {}), models=[ModelFit.from_dict(m) for m in d.get("models") or []],
+            duration_s=float(d.get("duration_s") or 0.0), evaluations=int(d.get("evaluations") or 0),
+            notes=list(d.get("notes") or []), selection=sel if sel in SELECTIONS else "white",
         )
-        lines.extend(self.notes)
-        return "\n".join(lines)
+        return r
+
+    def report(self, elements: bool = True) -> str:
+        """A plain-text table (one line per model), the parameters per element, bounds, notes."""
+        return format_report(self, elements=elements)
 
 
-def lag1(res: np.ndarray) -> float:
-    r = np.asarray(res, dtype=float) - np.mean(res)
-    d = dot(r, r)
-    return float(dot(r[1:], r[:-1]) / d) if d > 0 else 0.0
-
-
-__all__ = ["ModelFit", "SweepResult", "apply_criteria", "support_category", "model_name", "lag1", "asdict"]
+__all__ = ["ModelFit", "SweepResult", "apply_criteria", "support_category", "model_name", "lag1", "SELECTIONS"]

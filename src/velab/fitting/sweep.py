@@ -2,30 +2,26 @@
 
 Default method ``"auto"`` (see docs/fitting.md):
 
-1. Coarse stage. The window is low-passed (ideal DCT filter) at the Nyquist
-   frequency of a decimated grid that still holds the manoeuvre's band (about
-   100 Hz sampling at the reference rig), and the band-limited model is evaluated on
-   that grid: an evaluation costs 0.1-0.3 ms (full band: 1.5-4 ms). On it, every model is
-   calibrated from several starts by a bounded Levenberg-Marquardt solver on the
-   normal equations (``_Stage.lsq``) with the analytic Jacobian, in log variables:
-
-   * EL: a scan of the wave speed over [0.5, 2] x nominal, then least squares;
-   * Sm: retardation times log-spaced over the window's time scales (from a tenth
-     of the closure time to half the window), several shifted grids, each first
-     solved with tau fixed (the well-conditioned "reduced" problem) and then released;
-   * nested starts from the best S(m-1): each element split in two, and one element
-     added below, between and above the others (so F cannot get worse with m);
-   * the previous result's parameters, if ``initial`` is given (warm start).
-
-2. Fine stage ("polish"): the best distinct coarse solutions, plus the polished
-   S(m-1) with one element split, are refined on the full-band model (every FFT bin)
-   against every sample of the window, with the same solver (two candidates at once
-   in two threads); a guard keeps F(Sm) <= F(S(m-1)).
+1. Coarse stage. The window is low-passed (ideal DCT filter) at the Nyquist frequency of a
+   decimated grid that still holds the manoeuvre's band (about 100 Hz sampling at the
+   reference rig), and the band-limited model is evaluated on that grid. On it, every model
+   is calibrated from several starts (velab.fitting.starts) by a bounded Levenberg-Marquardt
+   solver (velab.fitting.solvers) with the analytic Jacobian, in the variables
+   (ln a, ln J'_k, ln tau_k) of velab.fitting.params.
+2. Fine stage ("polish"): the best distinct coarse solutions are refined on the full-band
+   model against every sample of the window (two candidates at once in two threads).
+3. Friction (velab.fitting.friction): with a quadratic steady friction the fitted head is the
+   frequency model plus a time-domain correction, refreshed at the model's optimum until it
+   stops moving.
+4. Nesting guard: every model contains the smaller ones of its family (an element can
+   vanish), so F(S(m)) <= F(S(m-1)): if the search ends above, S(m) is polished from S(m-1)
+   plus a vanished element, and if that still ends above, it *is* S(m-1) plus a vanished
+   element (reported as "S(m) = S(m-1) + negligible element").
 
 Other methods replace the coarse local solver: ``"least-squares"`` (one start),
-``"nelder-mead"`` (the paper's algorithm, on the coarse objective, from the same
-starts) and ``"evolution"`` (scipy's differential evolution over the whole box). All
-of them end with the same full-band polish unless ``polish=False``.
+``"nelder-mead"`` (the paper's algorithm, on the coarse objective, from the same starts) and
+``"evolution"`` (scipy's differential evolution over the whole box, seeded with the nested
+start). All of them end with the same polish (unless ``polish=False``) and the same guard.
 """
 
 from __future__ import annotations
@@ -38,237 +34,29 @@ from dataclasses import dataclass
 from typing import Callable, Iterable
 
 import numpy as np
-import scipy.fft as sfft
-from scipy.optimize import differential_evolution, minimize
 
 from velab.config import REDUCED_RETARDATION_TIMES_S, Rig
 from velab.errors import DataError
-from velab.fitting.engine import HeadEvaluator, ParamMap, gram, sumsq
-from velab.fitting.results import ModelFit, SweepResult, apply_criteria, lag1, model_name
+from velab.fitting.data import lowpass_decimate, prepare_window
+from velab.fitting.engine import HeadEvaluator
+from velab.fitting.friction import EquivalentFriction, TimeDomainModel, anderson, equivalent_friction, fit_rig, rms
+from velab.fitting.params import FitBounds, ParamMap, creep_const, derive_bounds
+from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
+from velab.fitting.solvers import Sol, Stage
+from velab.fitting.starts import nested_starts, reduced_then_full, scan_wave_speed, split_all, tau_grids
+from velab.fitting.nesting import hand_back
+from velab.fitting.summary import summarise
 from velab.model import manoeuvre_band_hz
 
 METHODS = ("auto", "least-squares", "nelder-mead", "evolution")
 MAX_M = 6
-# Shortest retardation time calibrated, as a fraction of the valve's closure time: an
-# element much faster than anything the manoeuvre excites cannot be told from the
-# spring, and lets the optimiser trade a fast element against a higher wave speed.
-TAU_MIN_FACTOR = 0.1
+# friction correction: refreshed until it moves less than this fraction of the residual rms,
+# or a refresh gains less than this in n ln F (the objective has stopped moving)
+REFRESH_TOL = 0.01
+REFRESH_MIN_GAIN = 0.05
+MAX_REFRESH = 8
 
-
-# --------------------------------------------------------------------------- data
-
-
-def prepare_window(t_s, h_m, window_s: float | None):
-    """Check and cut the record to the calibration window: samples with 0 <= t < window_s.
-
-    Returns (t, h) starting at the trigger. Raises DataError (one line) for a bad record.
-    """
-    t = np.asarray(t_s, dtype=float)
-    h = np.asarray(h_m, dtype=float)
-    if t.ndim != 1 or h.shape != t.shape:
-        raise DataError(f"time and head must be 1-D arrays of equal length (got {t.shape} and {h.shape})")
-    if t.size < 16:
-        raise DataError(f"record too short to calibrate ({t.size} samples)")
-    dt = np.diff(t)
-    step = float(np.median(dt))
-    if not step > 0 or np.max(np.abs(dt - step)) > 1e-3 * step:
-        raise DataError("time axis is not uniformly sampled")
-    i0 = int(np.searchsorted(t, -0.5 * step))
-    if i0 >= t.size:
-        raise DataError("record has no samples after the trigger")
-    if window_s is None:
-        i1 = t.size
-    else:
-        if not window_s > 0:
-            raise DataError(f"window must be positive, got {window_s:g} s")
-        available = t[-1] - t[i0] + step
-        if window_s > available * (1 + 1e-9) + 1e-9:
-            raise DataError(f"window {window_s:g} s is longer than the record ({available:.6g} s after the trigger)")
-        i1 = i0 + int(round(window_s / step))
-        i1 = min(i1, t.size)
-    tw, hw = t[i0:i1], h[i0:i1]
-    bad = ~np.isfinite(hw)
-    if bad.any():
-        j = int(np.argmax(bad))
-        raise DataError(f"head contains {int(bad.sum())} NaN/inf values in the window (first at t = {tw[j]:.6g} s)")
-    if not np.all(np.isfinite(tw)):
-        raise DataError("time axis contains NaN/inf values")
-    return tw, hw
-
-
-def lowpass_decimate(h: np.ndarray, q: int) -> np.ndarray:
-    """Ideal low-pass at the Nyquist frequency of every q-th sample (DCT, even extension), decimated."""
-    if q <= 1:
-        return h.copy()
-    c = sfft.dct(h, type=2, norm="ortho")
-    n = h.size
-    keep = int(math.ceil(n / q))
-    c[keep:] = 0.0
-    return sfft.idct(c, type=2, norm="ortho")[::q]
-
-
-# --------------------------------------------------------------------------- problems
-
-
-@dataclass
-class _Sol:
-    x: np.ndarray
-    F: float
-    pm: ParamMap
-
-
-class _Stage:
-    """One objective: an evaluator on a grid and the data on that grid."""
-
-    def __init__(self, ev: HeadEvaluator, d: np.ndarray):
-        self.ev = ev
-        self.d = d
-        self.sqn = math.sqrt(d.size)
-
-    def F(self, pm: ParamMap, x) -> float:
-        r = self.ev.head(*pm.unpack(x)) - self.d
-        return sumsq(r) / self.d.size
-
-    def residuals(self, pm: ParamMap, x) -> np.ndarray:
-        return self.ev.head(*pm.unpack(x)) - self.d
-
-    def lsq(self, pm: ParamMap, x0, *, max_nfev: int, ftol: float) -> _Sol:
-        """Bounded Levenberg-Marquardt on F with the analytic Jacobian (normal equations).
-
-        The Jacobian has n rows but only k <= 13 columns: working with the k x k
-        matrix J^T J (column-scaled, Marquardt damping) costs far less than a
-        factorisation of J itself. Bounds: variables at a bound whose gradient points
-        outward are frozen; steps are projected on the box. Damping: Nielsen's update
-        from the gain ratio (actual over predicted decrease), which avoids the
-        accept/reject zig-zag of a fixed up/down factor along the J-tau ridge.
-
-        The residual and the Jacobian are kept as 1 + k rows of length n (C order), so
-        one Gram product [r; J] [r; J]^T gives J^T r and J^T J; the current and the
-        trial point live in two buffers that are swapped on acceptance.
-        """
-        x = pm.clip(x0)
-        n = self.d.size
-        ev = self.ev
-        tau_free = not pm.fixed_tau
-        k = pm.size
-        bufs = (np.empty((1 + k, ev.n_t)), np.empty((1 + k, ev.n_t)))
-        cur = 0
-
-        def evaluate(i, xe):
-            b = bufs[i]
-            ev.head_jac_x(*pm.unpack(xe), tau_free, out=b)
-            b[0] -= self.d  # row 0: residual
-            return sumsq(b[0]) / n
-
-        F = evaluate(cur, x)
-        lam = 1e-3
-        nu = 2.0
-        nfev = 1
-        while nfev < max_nfev:
-            M = gram(bufs[cur])
-            g = M[1:, 0]
-            A = M[1:, 1:]
-            lo, hi = pm.bounds_at(x)
-            free = ~(((x <= lo + 1e-12) & (g > 0)) | ((x >= hi - 1e-12) & (g < 0)))
-            if not free.any():
-                break
-            if free.all():
-                Af, gf = A, g
-            else:
-                Af = A[np.ix_(free, free)]
-                gf = g[free]
-            dscale = np.sqrt(np.maximum(np.diag(Af), 1e-300))
-            As = Af / np.outer(dscale, dscale)
-            gs = gf / dscale
-            eye = np.eye(As.shape[0])
-            improved = False
-            while nfev < max_nfev:
-                try:
-                    step = -np.linalg.solve(As + lam * eye, gs) / dscale
-                except np.linalg.LinAlgError:
-                    lam *= 10
-                    continue
-                xt = x.copy()
-                xt[free] += np.clip(step, -2.0, 2.0)
-                xt = pm.project(xt)
-                dx = xt - x
-                if not np.any(dx):
-                    break
-                Ft = evaluate(1 - cur, xt)
-                nfev += 1
-                if Ft < F:
-                    # predicted decrease of the linear model: -(|r + J dx|^2 - |r|^2)/n
-                    pred = -(2 * np.dot(g, dx) + dx @ A @ dx) / n
-                    rel = (F - Ft) / F
-                    rho = min(max((F - Ft) / max(pred, 1e-300), 0.0), 2.0)
-                    lam = max(lam * max(1 / 3, 1 - (2 * rho - 1) ** 3), 1e-12)
-                    nu = 2.0
-                    x, F = xt, Ft
-                    cur = 1 - cur
-                    improved = True
-                    if rel < ftol and pred / max(F, 1e-300) < 10 * ftol:
-                        return _Sol(x, F, pm)
-                    break
-                lam *= nu
-                nu *= 2
-                if lam > 1e12:
-                    break
-            if not improved:
-                break
-        return _Sol(x, F, pm)
-
-    def nelder_mead(self, pm: ParamMap, x0, *, maxfev: int) -> _Sol:
-        x0 = pm.clip(x0)
-
-        def f(x):
-            return self.F(pm, pm.project(x))
-
-        r = minimize(f, x0, method="Nelder-Mead",
-                     options={"xatol": 1e-10, "fatol": 1e-16, "maxfev": maxfev, "adaptive": True})
-        x = pm.project(r.x)
-        return _Sol(x, self.F(pm, x), pm)
-
-    def evolution(self, pm: ParamMap, seed: int, maxiter: int) -> _Sol:
-        lo, hi = pm.bounds()
-        r = differential_evolution(
-            lambda x: self.F(pm, pm.project(x)), list(zip(lo, hi)), seed=seed, maxiter=maxiter,
-            popsize=12, tol=1e-10, polish=False, init="sobol",
-        )
-        x = pm.project(r.x)
-        return _Sol(x, self.F(pm, x), pm)
-
-
-# --------------------------------------------------------------------------- starts
-
-
-def _pm_for(m: int, reduced: bool, ln_a_bounds, tau_bounds=(1e-6, 1e6)) -> ParamMap:
-    if reduced and m > 0:
-        return ParamMap(m, tuple(REDUCED_RETARDATION_TIMES_S[:m]), ln_a_bounds)
-    return ParamMap(m, None, ln_a_bounds, tau_bounds)
-
-
-def _from_creep(pm: ParamMap, a: float, J_rel, tau, c: float) -> np.ndarray:
-    """x for wave speed a and elements given as (J'_k dimensionless, tau_k)."""
-    E = c * a * a / np.asarray(J_rel, dtype=float)
-    eta = E * np.asarray(tau, dtype=float)
-    return pm.clip(pm.pack(a, E, eta))
-
-
-def _creep_of(pm: ParamMap, x, c: float):
-    a, E, eta = pm.unpack(x)
-    return a, c * a * a / E, eta / E
-
-
-def _tau_grids(m: int, lo: float, hi: float) -> list[np.ndarray]:
-    """Log-spaced retardation times over [lo, hi]: the plain grid and shifted variants."""
-    if m == 1:
-        return [np.array([v]) for v in np.geomspace(lo * 3, hi / 3, 3)]
-    base = np.geomspace(lo, hi, m)
-    r = (hi / lo) ** (1.0 / (m - 1))
-    return [base, base * r**0.5 / r**0.25 * 1.0, np.geomspace(lo * 3, hi / 3, m), base * r**-0.25]
-
-
-# --------------------------------------------------------------------------- sweep
+__all__ = ["fit_sweep", "parse_models", "METHODS", "MAX_M", "prepare_window", "lowpass_decimate"]
 
 
 def parse_models(spec) -> list[int]:
@@ -297,6 +85,287 @@ def parse_models(spec) -> list[int]:
     return ms
 
 
+@dataclass
+class _Final:
+    """A calibrated model on the final stage. With a time-domain friction model, ``h_time`` is
+    the MOC head at ``sol.x`` and ``corr`` = h_time - h_FD(sol.x) under the current linear
+    resistance, so that ``sol.F`` is that of the MOC head itself."""
+
+    sol: Sol
+    corr: np.ndarray
+    h_time: np.ndarray | None = None
+    refreshes: int = 0
+    moved: float = 0.0
+
+
+class _Sweep:
+    """State shared by the models of one sweep: stages, bounds, friction, calibrated models."""
+
+    def __init__(self, t, d, rig: Rig, bounds: FitBounds, method: str, polish: bool, starts, seed: int,
+                 threads: int, initial: SweepResult | None):
+        self.t, self.d, self.rig, self.bounds = t, d, rig, bounds
+        self.method, self.polish, self.seed, self.initial = method, polish, seed, initial
+        self.threads = threads
+        self.max_starts = 1 if method == "least-squares" else starts
+        dt = float(t[1] - t[0])
+        self.band = manoeuvre_band_hz(rig)
+        self.q = q = max(1, int((1.0 / dt) // (3.0 * self.band)))
+        self.stage_c = Stage(HeadEvaluator(rig, t[::q], band_hz="auto"), lowpass_decimate(d, q))
+        self.time_model = TimeDomainModel(rig, t)
+        full = HeadEvaluator(rig, t, band_hz=None) if polish or self.time_model.active else None
+        self.stage_f = Stage(full, d) if polish else None
+        self.ev_full = full  # the full-band model the friction correction is taken against
+        # a second full-band evaluator (same model, own buffers) polishes a second candidate in a
+        # worker thread: full-band evaluations are large numpy/FFT operations that release the GIL
+        self.ev_f2 = full.fork() if polish and threads > 1 else None
+        self._counted = (0, 0)
+        self.frictions: list[EquivalentFriction] = []
+        self.brunone = self.time_model.unsteady == "brunone"
+        window = d.size * dt
+        self.tau_lo = max(2 * dt * q, bounds.tau_min_s)
+        self.tau_hi = min(max(window / 2.0, 4 * self.tau_lo), bounds.tau_max_s)
+        self.final: dict[tuple[int, bool], _Final] = {}
+        self.pm0 = ParamMap(0, bounds)
+        a_nom = rig.nominal_wave_speed_m_s
+        corr = np.zeros_like(d)
+        if self.time_model.active:
+            h0 = self.time_model.head(a_nom, [], [])
+            self.set_friction(equivalent_friction(full, (a_nom, [], []), h0, self.brunone))
+            corr = h0 - full.head(a_nom, [], [])
+        self.a0 = scan_wave_speed(self.stage_c.with_data(lowpass_decimate(d - corr, q)), self.pm0, a_nom)
+        x0 = self.pm0.pack(self.a0, [])
+        self.start0 = _Final(Sol(x0, math.nan, self.pm0), corr, None)
+        if self.time_model.active:
+            self.start0 = self.with_time_head(self.pm0, x0, self.time_model.head(self.a0, [], []))
+
+    def set_friction(self, eq: EquivalentFriction) -> None:
+        """The frequency model's linear friction for the next model (all stages; counters carried over)."""
+        self._counted = self.counts()
+        self.stage_c = Stage(self.stage_c.ev.fork(eq), self.stage_c.d)
+        self.ev_full = self.ev_full.fork(eq)
+        if self.stage_f is not None:
+            self.stage_f = Stage(self.ev_full, self.stage_f.d)
+        if self.ev_f2 is not None:
+            self.ev_f2 = self.ev_full.fork()
+        self.frictions.append(eq)
+
+    def with_time_head(self, pm: ParamMap, x, h_time) -> _Final:
+        """The model at x whose head is ``h_time`` (the MOC's): F on the final stage, exactly."""
+        corr = h_time - self.ev_full.head(*pm.unpack(x))
+        return _Final(self.final_stage(corr).sol(pm, x), corr, h_time)
+
+    def current_corr(self, fin: _Final) -> np.ndarray:
+        """The friction correction of a calibrated model under the current linear resistance."""
+        if fin.h_time is None:
+            return fin.corr
+        return fin.h_time - self.ev_full.head(*fin.sol.pm.unpack(fin.sol.x))
+
+    def current(self, fin: _Final) -> _Final:
+        """``fin`` with its correction under the current linear resistance (same F)."""
+        return fin if fin.h_time is None else _Final(fin.sol, self.current_corr(fin), fin.h_time, fin.refreshes,
+                                                      fin.moved)
+
+    def friction_info(self, fin: _Final) -> dict:
+        """What the friction treatment did for one model (ModelFit.friction)."""
+        if not self.time_model.active:
+            return {}
+        eq = self.ev_full.extra_impedance
+        return {"refreshes": fin.refreshes, "last_change_m": fin.moved, "correction_rms_m": rms(fin.corr),
+                "linear_resistance_factor": eq.factor(self.rig), "vardy_brown_factor": eq.kappa}
+
+    @property
+    def evaluators(self):
+        evs = (self.stage_c.ev, self.ev_full, self.ev_f2)
+        return [e for e in evs if e is not None]
+
+    def counts(self):
+        c = self._counted
+        return (c[0] + sum(e.evaluations for e in self.evaluators), c[1] + sum(e.jacobians for e in self.evaluators))
+
+    def final_stage(self, corr: np.ndarray) -> Stage:
+        if self.stage_f is not None:
+            return self.stage_f.with_data(self.d - corr)
+        return self.stage_c.with_data(lowpass_decimate(self.d - corr, self.q))
+
+    def local(self, stage: Stage, pm: ParamMap, x0, fine: bool) -> Sol:
+        if fine:
+            return stage.lsq(pm, x0, max_nfev=40, ftol=1e-10)
+        if self.method == "nelder-mead":
+            return stage.nelder_mead(pm, x0, maxfev=1000)
+        return stage.lsq(pm, x0, max_nfev=80, ftol=1e-10)
+
+    def polish_final(self, stage: Stage, pm: ParamMap, x0) -> Sol:
+        """Refine on the final stage (the full band, or the coarse grid without a polish)."""
+        if self.stage_f is not None:
+            return self.local(stage, pm, x0, fine=True)
+        if self.method == "nelder-mead":
+            return stage.nelder_mead(pm, x0, maxfev=1000)
+        return stage.lsq(pm, x0, max_nfev=80, ftol=1e-10)
+
+    # ------------------------------------------------------------------ one model
+    def reference(self, m: int, red: bool) -> _Final | None:
+        """The largest calibrated model that this one contains (S(m-1), ..., EL), if any."""
+        for j in range(m - 1, -1, -1):
+            f = self.final.get((j, red and j > 0))
+            if f is not None:
+                return f
+        return None
+
+    def fit_model(self, m: int, red: bool) -> tuple[_Final, int]:
+        fixed = tuple(REDUCED_RETARDATION_TIMES_S[:m]) if red and m else None
+        pm = ParamMap(m, self.bounds, fixed)
+        ref = self.reference(m, red)
+        start = ref if ref is not None else self.start0
+        if self.time_model.active:
+            # the linear friction closest to the time-domain model at the reference parameters
+            px = start.sol.pm.unpack(start.sol.x)
+            self.set_friction(equivalent_friction(self.ev_full, px, start.h_time, self.brunone))
+            start = self.with_time_head(start.sol.pm, start.sol.x, start.h_time)
+        base = start.sol if ref is not None else Sol(start.sol.x, math.nan, start.sol.pm)
+        best, n_starts = self.calibrate(pm, red, base, start.corr, model_name(m, red))
+        fin = self.refresh(pm, best, start.corr)
+        if ref is not None and fin.sol.F > start.sol.F:
+            fin = self.guard(pm, start, fin)
+        return fin, n_starts
+
+    def calibrate(self, pm: ParamMap, red: bool, base: Sol, corr: np.ndarray, name: str) -> tuple[Sol, int]:
+        """Multi-start coarse search and full-band polish with the friction correction held fixed."""
+        m = pm.m
+        dc = lowpass_decimate(self.d - corr, self.q) if self.time_model.active else self.stage_c.d
+        if self.stage_f is not None:
+            # defect correction: the coarse (band-limited, decimated) model's error w.r.t. the
+            # full-band model, at the base solution, is taken off the coarse data so that the
+            # coarse minimum lands next to the full-band one.
+            xb = base.pm.unpack(base.x)
+            dc = dc - (lowpass_decimate(self.stage_f.ev.head(*xb), self.q) - self.stage_c.ev.head(*xb))
+        stage = self.stage_c.with_data(dc)
+        cands = self.starts(pm, red, base, stage, name)
+        sols: list[Sol] = []
+        if self.method == "evolution" and pm.size > 1:
+            s = stage.evolution(pm, self.seed + m, maxiter=60, x0=cands[0] if cands else None)
+            sols.append(stage.lsq(pm, s.x, max_nfev=80, ftol=1e-10))
+        for x0 in cands:
+            sols.append(self.local(stage, pm, x0, fine=False))
+        sols.sort(key=lambda s: s.F)
+        if pm.size > 1 and self.method != "nelder-mead":
+            # the winner continues on the cheap objective until it stops moving along the ridge
+            sols[0] = stage.lsq(pm, sols[0].x, max_nfev=400, ftol=1e-13)
+        if self.stage_f is None:
+            best = sols[0]
+        else:
+            fstage = self.final_stage(corr)
+            pol = [sols[0].x] + [s.x for s in sols[1:2] if s.F < sols[0].F * (1 + 1e-5)
+                                 and np.max(np.abs(s.x - sols[0].x)) > 0.05]
+            if len(pol) > 1 and self.ev_f2 is not None:
+                with ThreadPoolExecutor(max_workers=1, thread_name_prefix="velab-polish") as pool:
+                    fut = pool.submit(self.local, Stage(self.ev_f2, fstage.d), pm, pol[1], True)
+                    fsols = [self.local(fstage, pm, pol[0], fine=True), fut.result()]
+            else:
+                fsols = [self.local(fstage, pm, x0, fine=True) for x0 in pol]
+            best = min(fsols, key=lambda s: s.F)
+        if m >= 1 and base.pm.m < m and (base.pm.m == 0 or bool(base.pm.fixed_tau) == red) and math.isfinite(base.F):
+            fstage = self.final_stage(corr)
+            if best.F > base.F:
+                # S(m) must not fit worse than the model it contains: start from S(m-1) with an element
+                # split (tau x/÷ 1.05), then cut into two equal halves (which reproduces S(m-1)), then
+                # from S(m-1) plus a vanished element; the polish only accepts steps that lower F
+                tries = split_all(base, pm, 1.05)[:1] + split_all(base, pm, 1.0)[:1] if pm.m == base.pm.m + 1 and base.pm.m and not red else []
+                tries.append(pm.embed(base.pm, base.x))
+                for x0 in tries:
+                    s2 = self.polish_final(fstage, pm, x0)
+                    if s2.F < best.F:
+                        best = s2
+                    if best.F <= base.F:
+                        break
+        return best, len(sols)
+
+    def starts(self, pm: ParamMap, red: bool, base: Sol, stage: Stage, name: str) -> list[np.ndarray]:
+        m = pm.m
+        cands: list[np.ndarray] = []
+        if self.initial is not None:
+            old = self.initial.get(name)
+            if old is not None and old.m == m and old.reduced == red:
+                cands.append(pm.clip(_pack_fit(pm, old, self.rig)))
+        if m == 0:
+            cands.append(pm.pack(self.a0, []))
+            return cands
+        a_base = base.pm.unpack(base.x)[0]  # EL's optimum seeds S1
+        if red:
+            if base.pm.m:
+                cands.append(pm.clip(pm.embed(base.pm, base.x, J_new=1e-3)))
+            for tot in (0.1, 0.5):
+                cands.append(pm.clip(pm.pack(a_base * (1 + tot) ** 0.5, np.full(m, tot / m))))
+        else:
+            # S(m-1) with an element split or a small element added (the exact embedding, S(m-1)
+            # plus a vanished element, is the guard's start in calibrate: it only matters when
+            # every search ends above S(m-1)), then tau grids solved with tau fixed first
+            if base.pm.m:
+                cands.extend(nested_starts(base, pm, self.bounds, self.tau_lo, self.tau_hi)[:-1])
+            for grid in tau_grids(m, self.tau_lo, self.tau_hi):
+                cands.append(reduced_then_full(stage, pm, grid, a_base, self.method))
+        if self.max_starts is not None:
+            cands = cands[: max(1, self.max_starts)]
+        return cands
+
+    def refresh(self, pm: ParamMap, best: Sol, corr: np.ndarray) -> _Final:
+        """Refresh the friction correction at the optimum and re-polish until it stops moving."""
+        if not self.time_model.active:
+            return _Final(best, corr)
+        kept: _Final | None = None
+        n = self.d.size
+        xs, gs = [], []  # the fixed-point map x -> G(x) = polish under c(x), for Anderson mixing
+        x = best.x
+        fails = 0
+        for it in range(1, MAX_REFRESH + 1):
+            cur = self.with_time_head(pm, x, self.time_model.head(*pm.unpack(x)))
+            cur.moved = moved = rms(cur.corr - corr)
+            corr = cur.corr
+            # F here is the model's own (the MOC head at its parameters): keep the best such model
+            gain = n * math.log(kept.sol.F / cur.sol.F) if kept is not None else math.inf
+            if gain > 0:
+                kept, fails = cur, 0
+            else:
+                fails += 1
+            kept.refreshes = it
+            if (moved <= REFRESH_TOL * math.sqrt(cur.sol.F) or 0 <= gain < REFRESH_MIN_GAIN or fails >= 2
+                    or it == MAX_REFRESH):
+                return kept
+            if gain <= 0:
+                # the mixed step went uphill: restart the plain iteration from the best model
+                xs, gs = [], []
+                cur = kept
+            g = self.polish_final(self.final_stage(cur.corr), pm, cur.sol.x).x
+            xs.append(cur.sol.x)
+            gs.append(g)
+            x = pm.project(anderson(xs[-3:], gs[-3:]))
+        return kept  # pragma: no cover (the loop returns)
+
+    def guard(self, pm: ParamMap, ref: _Final, fin: _Final) -> _Final:
+        """F(S(m)) ended above the model it contains (after the friction refresh): start S(m) from
+        that model plus a vanished element, and if it still ends above, take that embedding.
+        ``ref`` carries its correction under the current linear resistance."""
+        x_emb = pm.embed(ref.sol.pm, ref.sol.x)
+        stage = self.final_stage(ref.corr)
+        cand = self.polish_final(stage, pm, x_emb)
+        if self.time_model.active:
+            cand_fin = self.with_time_head(pm, cand.x, self.time_model.head(*pm.unpack(cand.x)))
+            cand_fin.refreshes, cand_fin.moved = fin.refreshes + 1, rms(cand_fin.corr - ref.corr)
+        else:
+            cand_fin = _Final(cand, ref.corr)
+        if cand_fin.sol.F <= ref.sol.F and cand_fin.sol.F < fin.sol.F:
+            return cand_fin
+        # S(m-1) plus a vanished element: its head (and its MOC head) are S(m-1)'s
+        emb = stage.sol(pm, x_emb)
+        return _Final(emb, ref.corr, ref.h_time, fin.refreshes, 0.0) if emb.F < fin.sol.F else fin
+
+
+def _pack_fit(pm: ParamMap, old: ModelFit, rig: Rig) -> np.ndarray:
+    """x of a previous ModelFit (warm start)."""
+    a = old.wave_speed_m_s
+    J = np.array([creep_const(rig) * a * a / e for e in old.E_pa])
+    return pm.pack(a, J, np.array(old.tau_s) if not pm.fixed_tau else None)
+
+
 def fit_sweep(
     t_s,
     h_m,
@@ -312,9 +381,13 @@ def fit_sweep(
     starts: int | None = None,
     seed: int = 0,
     tau_min_s: float | None = None,
+    tau_max_s: float | None = None,
     threads: int | None = None,
+    selection: str = "ar1",
+    friction: str | None = None,
+    friction_unsteady: str | None = None,
 ) -> SweepResult:
-    """Calibrate EL/Sm models on a head record and rank them by AIC.
+    """Calibrate EL/Sm models on a head record and rank them.
 
     ``t_s`` is time from the trigger (s, may start negative), ``h_m`` the head
     perturbation (m, head minus its steady pre-trigger value). ``models`` lists m
@@ -324,237 +397,68 @@ def fit_sweep(
     ``starts`` caps the number of coarse starts per model (None: all). ``threads``: 2 (the
     default on a machine with two or more cores) polishes two full-band candidates at
     once, 1 keeps everything in the calling thread; the result is the same either way.
+    ``tau_min_s``/``tau_max_s`` override the retardation-time bounds (default: the rig's
+    ``[fit]`` table, else derived from the data, velab.fitting.params.derive_bounds).
+    ``selection``: "ar1" (default; AIC of an AR(1) likelihood of the residuals) or "white"
+    (the paper's AIC). ``friction``/``friction_unsteady`` override the rig's friction laws.
     Pure computation: no I/O, no shared state; safe to call from worker threads.
     """
     if method not in METHODS:
         raise DataError(f"unknown fit method {method!r} (choose from {', '.join(METHODS)})")
+    if selection not in SELECTIONS:
+        raise DataError(f"unknown model selection {selection!r} (choose from {', '.join(SELECTIONS)})")
     t0 = time.perf_counter()
     ms = parse_models(models) if not isinstance(models, range) else parse_models(list(models))
     t, d = prepare_window(t_s, h_m, window_s)
     n = d.size
     dt = float(t[1] - t[0])
     window = n * dt
-    fs = 1.0 / dt
-    band = manoeuvre_band_hz(rig)
-    q = max(1, int(fs // (3.0 * band)))
-    stage_c = _Stage(HeadEvaluator(rig, t[::q], band_hz="auto"), lowpass_decimate(d, q))
-    stage_f = _Stage(HeadEvaluator(rig, t, band_hz=None), d) if polish else None
+    rig = fit_rig(rig, friction, friction_unsteady)
+    bounds = derive_bounds(rig, dt, window, tau_min_s=tau_min_s, tau_max_s=tau_max_s)
     if threads is None:
         threads = min(2, os.cpu_count() or 1)
-    # a second full-band evaluator (same model, own buffers) polishes a second candidate in
-    # a worker thread: full-band evaluations are large numpy/FFT operations that release the GIL
-    stage_f2 = _Stage(stage_f.ev.fork(), d) if polish and threads > 1 else None
-    evaluators = [st.ev for st in (stage_c, stage_f, stage_f2) if st is not None]
-
-    def counts():
-        return sum(e.evaluations for e in evaluators), sum(e.jacobians for e in evaluators)
-    c = creep_scale_const(rig)
-
-    a_nom = rig.nominal_wave_speed_m_s
-    ln_a_bounds = (math.log(a_nom / 3.0), math.log(a_nom * 3.0))
-    closure = rig.manoeuvre.closure_time_s
-    tau_lo = max(2 * dt * q, closure / 10.0)
-    tau_hi = max(window / 2.0, 4 * tau_lo)
-    if tau_min_s is None:
-        tau_min_s = TAU_MIN_FACTOR * closure
-    tau_bounds = (float(tau_min_s), 1e6)
-    single = method == "least-squares"
-    max_starts = 1 if single else starts
+    sw = _Sweep(t, d, rig, bounds, method, polish, starts, seed, threads, initial)
 
     jobs = [(m, False) for m in ms]
     if reduced:
         jobs += [(m, True) for m in ms if 1 <= m <= len(REDUCED_RETARDATION_TIMES_S)]
-    total = len(jobs)
-    done = 0
-    fits: list[ModelFit] = []
-    coarse_best: dict[tuple[int, bool], _Sol] = {}
-    fine_best: dict[tuple[int, bool], _Sol] = {}
-    a0 = None
-
-    def local(stage: _Stage, pm: ParamMap, x0, fine: bool) -> _Sol:
-        if fine:
-            return stage.lsq(pm, x0, max_nfev=40, ftol=1e-10)
-        if method == "nelder-mead":
-            return stage.nelder_mead(pm, x0, maxfev=1000)
-        return stage.lsq(pm, x0, max_nfev=80, ftol=1e-10)
-
-    for m, red in sorted(jobs, key=lambda j: (j[1], j[0])):
-        pm = _pm_for(m, red, ln_a_bounds, tau_bounds)
-        name = model_name(m, red)
-        ev_before, jac_before = counts()
-        if a0 is None:
-            a0 = _scan_wave_speed(stage_c, _pm_for(0, False, ln_a_bounds), a_nom)
-        # reference solution: the calibrated S(m-1) (EL for m = 1), else the EL scan
-        ref = fine_best.get((m - 1, red)) or (fine_best.get((m - 1, False)) if m == 1 else None)
-        if ref is None:
-            pm0 = _pm_for(0, False, ln_a_bounds)
-            ref = _Sol(pm0.pack(a0, [], []), math.nan, pm0)
-        stage = stage_c
-        if stage_f is not None:
-            # defect correction: the coarse (band-limited, decimated) model's error w.r.t. the
-            # full-band model, at the reference solution, is taken off the coarse data so that
-            # the coarse minimum lands next to the full-band one.
-            delta = lowpass_decimate(stage_f.ev.head(*ref.pm.unpack(ref.x)), q) - stage_c.ev.head(*ref.pm.unpack(ref.x))
-            stage = _Stage(stage_c.ev, stage_c.d - delta)
-        cands: list[np.ndarray] = []
-        if initial is not None:
-            old = initial.get(name)
-            if old is not None and old.m == m and old.reduced == red:
-                cands.append(pm.clip(pm.pack(old.wave_speed_m_s, old.E_pa, old.eta_pa_s)))
-        if m == 0:
-            cands.append(pm.pack(a0, [], []))
-        elif red:
-            tau = np.array(REDUCED_RETARDATION_TIMES_S[:m])
-            pa, pJ, _ = _creep_of(ref.pm, ref.x, c)
-            if pJ.size == m - 1:
-                cands.append(_from_creep(pm, pa, list(pJ) + [1e-3], tau, c))
-            for tot in (0.1, 0.5):
-                cands.append(_from_creep(pm, a0 * (1 + tot) ** 0.5, np.full(m, tot / m), tau, c))
-        else:
-            cands.extend(_nested_starts(ref, pm, c, tau_lo, tau_hi))
-            for grid in _tau_grids(m, tau_lo, tau_hi):
-                cands.append(_reduced_then_full(stage, pm, grid, a0, c, ln_a_bounds, method))
-        if max_starts is not None:
-            cands = cands[: max(1, max_starts)]
-        sols: list[_Sol] = []
-        if method == "evolution" and pm.size > 1:
-            s = stage.evolution(pm, seed + m, maxiter=60)
-            sols.append(stage.lsq(pm, s.x, max_nfev=80, ftol=1e-10))
-        for x0 in cands:
-            sols.append(local(stage, pm, x0, fine=False))
-        sols.sort(key=lambda s: s.F)
-        if pm.size > 1 and method != "nelder-mead":
-            # the winner continues on the cheap objective until it stops moving along the ridge
-            sols[0] = stage.lsq(pm, sols[0].x, max_nfev=400, ftol=1e-13)
-        coarse_best[(m, red)] = sols[0]
-        if stage_f is not None:
-            pol = [sols[0].x] + [s.x for s in sols[1:2] if s.F < sols[0].F * (1 + 1e-5)
-                                 and np.max(np.abs(s.x - sols[0].x)) > 0.05]
-            if len(pol) > 1 and stage_f2 is not None:
-                with ThreadPoolExecutor(max_workers=1, thread_name_prefix="velab-polish") as pool:
-                    fut = pool.submit(local, stage_f2, pm, pol[1], True)
-                    fsols = [local(stage_f, pm, pol[0], fine=True), fut.result()]
-            else:
-                fsols = [local(stage_f, pm, x0, fine=True) for x0 in pol]
-            fsols.sort(key=lambda s: s.F)
-            best = fsols[0]
-            if m >= 1 and not red and math.isfinite(ref.F) and ref.pm.m == m - 1 and best.F > ref.F:
-                # guard: S(m) must not fit worse than S(m-1); start from S(m-1) with an element split,
-                # and if that still ends above S(m-1) (the crawl along the flat ridge stops at a
-                # relative 1e-11 or so), from S(m-1) itself: one element cut into two equal halves
-                # reproduces S(m-1)'s head, and the polish only accepts steps that lower F
-                for factor in (1.05, 1.0) if ref.pm.m else ():
-                    s2 = local(stage_f, pm, _split_all(ref, pm, c, factor=factor)[0], fine=True)
-                    if s2.F < best.F:
-                        best = s2
-                    if best.F <= ref.F:
-                        break
-            final_stage = stage_f
-        else:
-            best = sols[0]
-            final_stage = stage_c
-        fine_best[(m, red)] = best
-        a, E, eta = pm.unpack(best.x)
-        order = np.argsort(eta / E) if m else np.array([], dtype=int)
-        res = final_stage.residuals(pm, best.x)
-        ev_after, jac_after = counts()
-        fits.append(ModelFit(
-            name=name, m=m, k=pm.size, reduced=red, n=final_stage.d.size, F=sumsq(res) / res.size,
-            wave_speed_m_s=a, E_pa=tuple(float(v) for v in E[order]), eta_pa_s=tuple(float(v) for v in eta[order]),
-            lag1_autocorr=lag1(res), evaluations=ev_after - ev_before, jacobians=jac_after - jac_before,
-            starts=len(sols),
-        ))
-        done += 1
+    order = sorted(jobs, key=lambda j: (j[1], j[0]))
+    spent: dict = {}
+    for done, job in enumerate(order, 1):
+        before = sw.counts()
+        fin, n_starts = sw.fit_model(*job)
+        sw.final[job] = fin
+        after = sw.counts()
+        spent[job] = [after[0] - before[0], after[1] - before[1], n_starts]
         if progress is not None:
-            progress(done, total, name)
+            progress(done, len(jobs), model_name(*job))
+    # a larger model that found a better optimum along a structure a smaller one can express
+    # hands it back (velab.fitting.nesting); then the order F(EL) >= F(S1) >= ... is restored
+    head = [(0, False)] if 0 in ms else []
+    for family in ([(m, False) for m in ms], head + [j for j in order if j[1]]):
+        hand_back(sw, family, spent)
+    fits: list[ModelFit] = []
+    for job in order:
+        fin = sw.final[job]
+        ev, jac, n_starts = spent[job]
+        fits.append(summarise(sw.final_stage(sw.current_corr(fin)), fin.sol, model_name(*job), sw.rig, bounds,
+                              evaluations=ev, jacobians=jac, starts=n_starts, friction=sw.friction_info(fin)))
 
-    apply_criteria(fits)
-    if stage_f is None:
-        n_used = stage_c.d.size
-    else:
-        n_used = n
+    apply_criteria(fits, selection)
     settings = {
         "models": ms, "reduced": reduced, "polish": polish, "starts": starts, "seed": seed,
-        "decimation": q, "coarse_band_hz": band, "tau_start_range_s": [tau_lo, tau_hi],
-        "modulus_bounds_pa": [1e6, 1e12], "viscosity_bounds_pa_s": [1e6, 1e12],
-        "wave_speed_bounds_m_s": [math.exp(ln_a_bounds[0]), math.exp(ln_a_bounds[1])],
-        "warm_start": initial is not None, "friction": "linearised steady (tangent R = f Q0/(g D A^2))",
+        "decimation": sw.q, "coarse_band_hz": sw.band, "tau_start_range_s": [sw.tau_lo, sw.tau_hi],
+        "tau_min_s": tau_min_s, "tau_max_s": tau_max_s, "bounds": bounds.to_dict(), "selection": selection,
+        "warm_start": initial is not None,
+        "friction": {"steady": sw.time_model.steady, "unsteady": sw.time_model.unsteady,
+                     "time_domain": sw.time_model.active, "moc_runs": sw.time_model.runs,
+                     "moc_seconds": sw.time_model.seconds, "text": sw.time_model.describe(sw.frictions[1:])},
     }
-    evals = counts()[0]
     result = SweepResult(
-        n=n_used, window_s=window, sample_rate_hz=fs, method=method, settings=settings, models=fits,
-        duration_s=time.perf_counter() - t0, evaluations=evals,
+        n=fits[0].n if fits else n, window_s=window, sample_rate_hz=1.0 / dt, method=method, settings=settings,
+        models=fits, duration_s=time.perf_counter() - t0, evaluations=sw.counts()[0], selection=selection,
     )
     if not polish:
-        result.notes.append(f"no full-band polish: F on the low-passed data decimated by {q}")
+        result.notes.append(f"no full-band polish: F on the low-passed data decimated by {sw.q}")
     return result
 
-
-def creep_scale_const(rig: Rig) -> float:
-    """rho alpha D / e: E0 = c a^2."""
-    p = rig.pipe
-    return p.constraint_alpha * rig.fluid.density_kg_m3 * p.inner_diameter_m / p.wall_thickness_m
-
-
-def _scan_wave_speed(stage: _Stage, pm0: ParamMap, a_nom: float) -> float:
-    """EL: grid scan of the wave speed over [0.5, 2] x nominal, then least squares."""
-    grid = np.geomspace(a_nom / 2, a_nom * 2, 241)
-    Fs = [stage.F(pm0, [math.log(a)]) for a in grid]
-    i = int(np.argmin(Fs))
-    # refine locally (the objective has period-aliasing minima every few tenths of a percent)
-    fine = np.geomspace(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)], 21)
-    Fs = [stage.F(pm0, [math.log(a)]) for a in fine]
-    a = float(fine[int(np.argmin(Fs))])
-    s = stage.lsq(pm0, [math.log(a)], max_nfev=30, ftol=1e-12)
-    return math.exp(s.x[0])
-
-
-def _reduced_then_full(stage: _Stage, pm: ParamMap, tau, a: float, c: float, ln_a_bounds, method: str) -> np.ndarray:
-    """Start on a tau grid: solve for (a, J) with tau fixed, then return the full x."""
-    m = len(tau)
-    pr = ParamMap(m, tuple(float(v) for v in tau), ln_a_bounds)
-    best = None
-    for tot in (0.15, 0.6):
-        x0 = _from_creep(pr, a * (1 + tot) ** 0.5, np.full(m, tot / m), tau, c)
-        s = stage.lsq(pr, x0, max_nfev=25, ftol=1e-8) if method != "nelder-mead" else stage.nelder_mead(pr, x0, maxfev=300)
-        if best is None or s.F < best.F:
-            best = s
-    a1, E, eta = pr.unpack(best.x)
-    return pm.clip(pm.pack(a1, E, eta))
-
-
-def _split_all(prev: _Sol, pm: ParamMap, c: float, factor: float = 1.6) -> list[np.ndarray]:
-    """Nested starts: each element of the S(m-1) solution split in two (largest J first)."""
-    a, J, tau = _creep_of(prev.pm, prev.x, c)
-    out = []
-    for k in np.argsort(-J):
-        Jn = list(J) + [J[k] / 2]
-        Jn[k] = J[k] / 2
-        tn = list(tau) + [tau[k] * factor]
-        tn[k] = tau[k] / factor
-        out.append(_from_creep(pm, a, Jn, tn, c))
-    return out
-
-
-def _nested_starts(prev: _Sol, pm: ParamMap, c: float, lo: float, hi: float) -> list[np.ndarray]:
-    a, J, tau = _creep_of(prev.pm, prev.x, c)
-    if J.size == 0:
-        return []
-    out = _split_all(prev, pm, c)
-    ts = np.sort(tau)
-    new_taus = [min(ts[0] / 8, lo), max(ts[-1] * 8, hi)]
-    new_taus += [math.sqrt(x * y) for x, y in zip(ts[:-1], ts[1:])]
-    small = max(1e-3, 0.05 * float(np.min(J)))
-    for tn in new_taus:
-        out.append(_from_creep(pm, a, list(J) + [small], list(tau) + [tn], c))
-    return out
-
-
-def _distinct(xs: list[np.ndarray], k: int) -> list[np.ndarray]:
-    out: list[np.ndarray] = []
-    for x in xs:
-        if all(np.max(np.abs(x - y)) > 0.05 for y in out):
-            out.append(x)
-        if len(out) >= k:
-            break
-    return out

@@ -1,0 +1,90 @@
+"""The plain-text report of a calibration sweep (``SweepResult.report()``, ``velab fit``)."""
+
+from __future__ import annotations
+
+import math
+
+_SELECTION_TEXT = {
+    "ar1": "AIC of an AR(1) likelihood of the residuals (robust to correlated residuals)",
+    "white": "white-noise AIC n ln F + 2k (the paper's)",
+}
+
+
+def _pm(value: float, se: float, fmt: str) -> str:
+    if math.isfinite(se):
+        return f"{value:{fmt}} +- {se:.2g}"
+    return f"{value:{fmt}}"
+
+
+def bounds_line(f) -> str:
+    """One line for the parameters of model ``f`` that ended on a bound, grouped by bound."""
+    groups: dict = {}
+    for b in f.at_bounds:
+        groups.setdefault((b["bound"], b["limit"], b.get("hint") or b.get("option"), b["parameter"].split("_")[0]),
+                          []).append(b)
+    parts = []
+    for (side, limit, option, kind), bs in groups.items():
+        unit = " m/s" if kind == "wave" else (" s" if kind == "tau" else "")
+        names = ", ".join(b["parameter"] for b in bs)
+        text = f"{names} on the {side} bound {limit:.4g}{unit}"
+        parts.append(text + (f" (try {option})" if option else ""))
+    return f"{f.name}: " + "; ".join(parts)
+
+
+def format_report(result, elements: bool = True) -> str:
+    sel = result.selection
+    lines = [
+        f"n = {result.n} samples, window = {result.window_s:g} s from the trigger "
+        f"({result.sample_rate_hz:g} Hz), method = {result.method}",
+        f"model choice: {_SELECTION_TEXT.get(sel, sel)}; dAIC_w: the paper's white-noise AIC",
+        f"{'model':<6}{'k':>3}{'F (m^2)':>13}{'AIC white':>12}{'AIC AR1':>12}{'dAIC':>10}{'dAIC_w':>10}"
+        f"{'weight':>7}  {'support':<17}{'a (m/s)':>17}{'lag1':>7}{'n_eff':>8}  note",
+    ]
+    best = result.best.name
+    for f in result.models:
+        mark = "*" if f.name == best else " "
+        a = _pm(f.wave_speed_m_s, f.wave_speed_se_m_s, ".2f")
+        lines.append(
+            f"{f.name + mark:<6}{f.k:>3}{f.F:>13.6e}{f.aic:>12.2f}{f.aic_ar1:>12.2f}{f.delta_aic:>10.2f}"
+            f"{f.delta_aic_white:>10.2f}{f.weight:>7.3f}  {f.support:<17}{a:>17}{f.lag1_autocorr:>7.3f}"
+            f"{f.n_eff:>8.0f}  {f.note}"
+        )
+    lines.append(f"best model (minimum {'AIC AR1' if sel == 'ar1' else 'AIC'}): {best}")
+    if elements:
+        lines.append("")
+        lines.append(f"{'model':<6}{'#':>2}{'E (Pa)':>12}{'eta (Pa s)':>12}{'tau (s)':>22}{'J (1/Pa)':>12}"
+                     f"{'J_rel':>11}{'gain':>9}")
+        for f in result.models:
+            for i, el in enumerate(f.elements(), 1):
+                if el["negligible"]:
+                    lines.append(f"{f.name:<6}{i:>2}  negligible element (J_rel = {el['J_rel']:.2g}, "
+                                 f"buys {max(el['gain'], 0.0):.2g} of n ln F)")
+                    continue
+                tau = _pm(el["tau"], el["tau_se"], ".4g")
+                lines.append(
+                    f"{f.name:<6}{i:>2}{el['E']:>12.4e}{el['eta']:>12.4e}{tau:>22}{el['J']:>12.4e}"
+                    f"{el['J_rel']:>11.3e}{el['gain']:>9.1f}"
+                )
+    b = result.bounds
+    if b:
+        src = b.get("sources", {})
+        lines.append("")
+        lines.append(
+            f"bounds: tau in [{b['tau_min_s']:.4g}, {b['tau_max_s']:.4g}] s (tau_min: {src.get('tau_min_s', '?')}; "
+            f"tau_max: {src.get('tau_max_s', '?')}); J_rel in [{b['J_rel_min']:.0e}, {b['J_rel_max']:.0e}]; "
+            f"a in [{b['wave_speed_min_m_s']:.4g}, {b['wave_speed_max_m_s']:.4g}] m/s"
+        )
+    for f in result.models:
+        if f.at_bounds:
+            lines.append("on a bound: " + bounds_line(f))
+    fr = result.settings.get("friction")
+    if isinstance(fr, dict) and fr.get("text"):
+        lines.append("friction: " + fr["text"])
+    lag = result.best.lag1_autocorr
+    lines.append("")
+    lines.append(
+        f"residuals of {best}: lag-1 autocorrelation {lag:.2f}, effective sample size {result.best.n_eff:.0f} of {result.n}"
+        + (" -- correlated: the white-noise AIC over-rewards extra parameters" if abs(lag) > 0.2 else "")
+    )
+    lines.extend(result.notes)
+    return "\n".join(lines)

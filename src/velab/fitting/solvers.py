@@ -1,0 +1,168 @@
+"""Local and global solvers on one objective F(x) = |h(x) - d|^2 / n (one grid, one data vector)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import differential_evolution, minimize
+
+from velab.fitting.engine import HeadEvaluator, gram, sumsq
+from velab.fitting.params import ParamMap
+
+
+@dataclass
+class Sol:
+    x: np.ndarray
+    F: float
+    pm: ParamMap
+
+
+class Stage:
+    """One objective: an evaluator on a grid and the data on that grid."""
+
+    def __init__(self, ev: HeadEvaluator, d: np.ndarray):
+        self.ev = ev
+        self.d = d
+        self.sqn = math.sqrt(d.size)
+
+    def with_data(self, d: np.ndarray) -> "Stage":
+        """Same evaluator, other data (e.g. corrected for the friction nonlinearity)."""
+        return Stage(self.ev, d)
+
+    def F(self, pm: ParamMap, x) -> float:
+        r = self.ev.head(*pm.unpack(x)) - self.d
+        return sumsq(r) / self.d.size
+
+    def residuals(self, pm: ParamMap, x) -> np.ndarray:
+        return self.ev.head(*pm.unpack(x)) - self.d
+
+    def sol(self, pm: ParamMap, x) -> Sol:
+        x = pm.project(x)
+        return Sol(x, self.F(pm, x), pm)
+
+    def lsq(self, pm: ParamMap, x0, *, max_nfev: int, ftol: float) -> Sol:
+        """Bounded Levenberg-Marquardt on F with the analytic Jacobian (normal equations).
+
+        The Jacobian has n rows but only k <= 13 columns: working with the k x k
+        matrix J^T J (column-scaled, Marquardt damping) costs far less than a
+        factorisation of J itself. Bounds: variables at a bound whose gradient points
+        outward are frozen; steps are projected on the box. Damping: Nielsen's update
+        from the gain ratio (actual over predicted decrease), which avoids the
+        accept/reject zig-zag of a fixed up/down factor along the J-tau ridge.
+
+        The residual and the Jacobian are kept as 1 + k rows of length n (C order), so
+        one Gram product [r; J] [r; J]^T gives J^T r and J^T J; the current and the
+        trial point live in two buffers that are swapped on acceptance. The result is
+        never worse than the start (only steps that lower F are accepted).
+        """
+        x = pm.project(x0)
+        n = self.d.size
+        ev = self.ev
+        tau_free = pm.tau_free
+        k = pm.size
+        bufs = (np.empty((1 + k, ev.n_t)), np.empty((1 + k, ev.n_t)))
+        cur = 0
+
+        def evaluate(i, xe):
+            b = bufs[i]
+            ev.head_jac_x(*pm.unpack(xe), tau_free, out=b)
+            b[0] -= self.d  # row 0: residual
+            return sumsq(b[0]) / n
+
+        F = evaluate(cur, x)
+        lam = 1e-3
+        nu = 2.0
+        nfev = 1
+        lo, hi = pm.bounds()
+        while nfev < max_nfev:
+            M = gram(bufs[cur])
+            g = M[1:, 0]
+            A = M[1:, 1:]
+            free = ~(((x <= lo + 1e-12) & (g > 0)) | ((x >= hi - 1e-12) & (g < 0)))
+            if not free.any():
+                break
+            if free.all():
+                Af, gf = A, g
+            else:
+                Af = A[np.ix_(free, free)]
+                gf = g[free]
+            dscale = np.sqrt(np.maximum(np.diag(Af), 1e-300))
+            As = Af / np.outer(dscale, dscale)
+            gs = gf / dscale
+            eye = np.eye(As.shape[0])
+            improved = False
+            while nfev < max_nfev:
+                try:
+                    step = -np.linalg.solve(As + lam * eye, gs) / dscale
+                except np.linalg.LinAlgError:
+                    lam *= 10
+                    continue
+                if not np.all(np.isfinite(step)):
+                    lam *= 10
+                    if lam > 1e12:
+                        break
+                    continue
+                xt = x.copy()
+                xt[free] += np.clip(step, -2.0, 2.0)
+                xt = pm.project(xt)
+                dx = xt - x
+                if not np.any(dx):
+                    break
+                Ft = evaluate(1 - cur, xt)
+                nfev += 1
+                if Ft < F:
+                    # predicted decrease of the linear model: -(|r + J dx|^2 - |r|^2)/n
+                    pred = -(2 * np.dot(g, dx) + dx @ A @ dx) / n
+                    rel = (F - Ft) / F
+                    rho = min(max((F - Ft) / max(pred, 1e-300), 0.0), 2.0)
+                    lam = max(lam * max(1 / 3, 1 - (2 * rho - 1) ** 3), 1e-12)
+                    nu = 2.0
+                    x, F = xt, Ft
+                    cur = 1 - cur
+                    improved = True
+                    if rel < ftol and pred / max(F, 1e-300) < 10 * ftol:
+                        return Sol(x, F, pm)
+                    break
+                lam *= nu
+                nu *= 2
+                if lam > 1e12:
+                    break
+            if not improved:
+                break
+        return Sol(x, F, pm)
+
+    def nelder_mead(self, pm: ParamMap, x0, *, maxfev: int) -> Sol:
+        """The paper's simplex search (tolerance 1e-16 on F), never worse than the start."""
+        x0 = pm.project(x0)
+        F0 = self.F(pm, x0)
+
+        def f(x):
+            return self.F(pm, pm.project(x))
+
+        # the initial simplex must not collapse on a variable at its bound: step inward
+        lo, hi = pm.bounds()
+        simplex = [x0]
+        for i in range(x0.size):
+            xi = x0.copy()
+            step = 0.05 * max(1.0, abs(x0[i])) if i else 0.02
+            xi[i] = x0[i] + step if x0[i] + step <= hi[i] else x0[i] - step
+            simplex.append(xi)
+        r = minimize(f, x0, method="Nelder-Mead",
+                     options={"xatol": 1e-10, "fatol": 1e-16, "maxfev": maxfev, "adaptive": True,
+                              "initial_simplex": np.array(simplex)})
+        x = pm.project(r.x)
+        F = self.F(pm, x)
+        return Sol(x, F, pm) if F <= F0 else Sol(x0, F0, pm)
+
+    def evolution(self, pm: ParamMap, seed: int, maxiter: int, x0=None) -> Sol:
+        """scipy's differential evolution over the whole box (seeded with ``x0`` if given)."""
+        lo, hi = pm.bounds()
+        r = differential_evolution(
+            lambda x: self.F(pm, pm.project(x)), list(zip(lo, hi)), seed=seed, maxiter=maxiter,
+            popsize=12, tol=1e-10, polish=False, init="sobol",
+            x0=None if x0 is None else pm.project(x0),
+        )
+        x = pm.project(r.x)
+        return Sol(x, self.F(pm, x), pm)

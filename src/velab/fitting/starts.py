@@ -1,0 +1,132 @@
+"""Starting points of the calibration: the wave-speed scan, tau grids, nested starts.
+
+Nested starts are what make F(S(m)) <= F(S(m-1)) hold in practice as well as by the
+final guard (velab.fitting.sweep): every S(m) is started from S(m-1)'s optimum with an
+element split in two and with a small element added below, between and above the others,
+and from S(m-1) plus a vanished element (``ParamMap.embed``), which reproduces S(m-1).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from velab.fitting.params import FitBounds, ParamMap
+from velab.fitting.solvers import Sol, Stage
+
+
+def scan_wave_speed(stage: Stage, pm0: ParamMap, a_nom: float) -> float:
+    """EL: grid scan of the wave speed over [0.5, 2] x nominal, then least squares."""
+    lo, hi = pm0.bounds()
+    grid = np.geomspace(max(a_nom / 2, math.exp(lo[0])), min(a_nom * 2, math.exp(hi[0])), 241)
+    Fs = [stage.F(pm0, [math.log(a)]) for a in grid]
+    i = int(np.argmin(Fs))
+    # refine locally (the objective has period-aliasing minima every few tenths of a percent)
+    fine = np.geomspace(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)], 21)
+    Fs = [stage.F(pm0, [math.log(a)]) for a in fine]
+    a = float(fine[int(np.argmin(Fs))])
+    s = stage.lsq(pm0, [math.log(a)], max_nfev=30, ftol=1e-12)
+    return math.exp(s.x[0])
+
+
+def tau_grids(m: int, lo: float, hi: float) -> list[np.ndarray]:
+    """Log-spaced retardation times over [lo, hi]: the plain grid and shifted variants."""
+    if m == 1:
+        return [np.array([v]) for v in np.geomspace(lo * 3, hi / 3, 3)]
+    base = np.geomspace(lo, hi, m)
+    r = (hi / lo) ** (1.0 / (m - 1))
+    return [base, base * r**0.25, np.geomspace(lo * 3, hi / 3, m), base * r**-0.25]
+
+
+def reduced_then_full(stage: Stage, pm: ParamMap, tau, a: float, method: str) -> np.ndarray:
+    """Start on a tau grid: solve for (a, J') with tau fixed, then return the full x."""
+    m = len(tau)
+    pr = ParamMap(m, pm.bounds_, tuple(float(v) for v in tau))
+    best = None
+    for tot in (0.15, 0.6):
+        x0 = pr.clip(pr.pack(a * (1 + tot) ** 0.5, np.full(m, tot / m)))
+        if method == "nelder-mead":
+            s = stage.nelder_mead(pr, x0, maxfev=300)
+        else:
+            s = stage.lsq(pr, x0, max_nfev=25, ftol=1e-8)
+        if best is None or s.F < best.F:
+            best = s
+    a1, J, _ = pr.unpack(best.x)
+    return pm.clip(pm.pack(a1, J, np.asarray(tau, dtype=float)))
+
+
+def split_all(ref: Sol, pm: ParamMap, factor: float = 1.6) -> list[np.ndarray]:
+    """Each element of the S(m-1) solution split in two (largest J' first), tau x/÷ factor.
+
+    With factor 1 the split reproduces S(m-1) exactly (two equal halves of one element).
+    """
+    a, J, tau = ref.pm.unpack(ref.x)
+    out = []
+    for k in np.argsort(-J):
+        Jn = np.append(J, J[k] / 2)
+        Jn[k] = J[k] / 2
+        tn = np.append(tau, tau[k] * factor)
+        tn[k] = tau[k] / factor
+        out.append(pm.project(pm.pack(a, Jn, tn)))
+    return out
+
+
+def nested_starts(ref: Sol, pm: ParamMap, bounds: FitBounds, lo: float, hi: float) -> list[np.ndarray]:
+    """Starts of S(m) from a smaller model's solution ``ref`` (S(m-1), or any S(j), j < m)."""
+    a, J, tau = ref.pm.unpack(ref.x)
+    extra = pm.m - ref.pm.m
+    out = []
+    if J.size and extra == 1:
+        out.extend(split_all(ref, pm))
+    live = J[J > 1e3 * bounds.J_rel_min]
+    small = max(1e-3, 0.05 * float(np.min(live))) if live.size else 1e-3
+    ts = np.sort(tau)
+    if ts.size:
+        new_taus = [min(ts[0] / 8, lo), max(ts[-1] * 8, hi)]
+        new_taus += [math.sqrt(x * y) for x, y in zip(ts[:-1], ts[1:])]
+    else:
+        new_taus = list(np.geomspace(lo * 3, hi / 3, 3))
+    for tn in new_taus:
+        if extra == 1:
+            out.append(pm.project(pm.pack(a, np.append(J, small), np.append(tau, tn))))
+        else:
+            tnew = np.geomspace(tn, tn * 10 ** (extra - 1), extra) if tn < hi else np.geomspace(tn / 10 ** (extra - 1), tn, extra)
+            out.append(pm.project(pm.pack(a, np.append(J, np.full(extra, small)), np.append(tau, tnew))))
+    # the exact embedding: S(j) plus vanished elements
+    out.append(pm.embed(ref.pm, ref.x))
+    return out
+
+
+def distinct(xs: list[np.ndarray], k: int, tol: float = 0.05) -> list[np.ndarray]:
+    out: list[np.ndarray] = []
+    for x in xs:
+        if all(np.max(np.abs(x - y)) > tol for y in out):
+            out.append(x)
+        if len(out) >= k:
+            break
+    return out
+
+
+def reduce_starts(big: Sol, pm: ParamMap) -> list[np.ndarray]:
+    """Starts of the smaller model ``pm`` (one element fewer) from a larger model's solution:
+    each element dropped, and the two elements closest in retardation time merged into one
+    (compliances added, tau their compliance-weighted geometric mean). When a larger model
+    found a better optimum along a structure the smaller one can express (a vanished or a
+    split element), this hands it back to the smaller model."""
+    a, J, tau = big.pm.unpack(big.x)
+    if J.size != pm.m + 1:
+        return []
+    if pm.fixed_tau:
+        return [pm.project(pm.pack(a, J[:-1]))]  # reduced models nest by their last element only
+    out = [pm.project(pm.pack(a, np.delete(J, k), np.delete(tau, k))) for k in range(J.size)]
+    if J.size >= 2:
+        lt = np.log(tau)
+        order = np.argsort(lt)
+        i = int(np.argmin(np.diff(lt[order])))
+        k1, k2 = order[i], order[i + 1]
+        Jm = J[k1] + J[k2]
+        tm = math.exp((J[k1] * lt[k1] + J[k2] * lt[k2]) / Jm)
+        keep = [k for k in range(J.size) if k not in (k1, k2)]
+        out.append(pm.project(pm.pack(a, np.append(J[keep], Jm), np.append(tau[keep], tm))))
+    return out
