@@ -124,10 +124,11 @@ def main(argv=None) -> int:
     probe.stop()
     rec_s = time.perf_counter() - t0
     busy, busy_cpu = stats(probe.late), probe.cpu
-    t_tab = time.perf_counter()
+    probe.start()  # the operator opens the Fit page: the final fit is drawn (in parts)
     win.tabs.setCurrentWidget(win.fit_panel)
-    app.processEvents()
-    tab_ms = (time.perf_counter() - t_tab) * 1e3
+    wait_until(lambda: False, 1.0)
+    probe.stop()
+    tab = stats(probe.late)
     s = win.last_summary
     print(f"velab gui latency: probe QTimer 10 ms, platform {app.platformName()}, Python {sys.version.split()[0]}")
     print(f"run: {s.status if s else 'none'}, {s.n_samples if s else 0} samples at {args.rate:g} Hz "
@@ -138,7 +139,7 @@ def main(argv=None) -> int:
               f"  GUI-thread CPU {100 * cpu / wall:4.1f} %")
     print(f"     ratio: p50 x{busy['p50'] / max(idle['p50'], 1e-3):.1f}, p99 x{busy['p99'] / max(idle['p99'], 1e-3):.1f} "
           f"(recording / idle)")
-    print(f"opening the Fit page after the run (drawing the final fit): {tab_ms:.0f} ms")
+    print(f"opening the Fit page after the run (the final fit drawn): longest stall {tab['max']:.0f} ms")
     ok = busy["p99"] < 50.0 and s is not None and s.status == "completed"
     print("PASS: p99 < 50 ms" if ok else "FAIL: p99 >= 50 ms or the run did not complete")
     win.close()

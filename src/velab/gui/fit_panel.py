@@ -14,7 +14,8 @@ import math
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtCore import Qt, Signal
+import shiboken6
+from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtGui import QBrush, QColor, QFont
 from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QTableWidget, QTableWidgetItem, QVBoxLayout,
                                QWidget)
@@ -241,8 +242,18 @@ class FitPanel(QWidget):
                if abs(best.lag1_autocorr) > 0.2 and doc_sel == "AIC" else "")
         )
         self._fill_table(result)
-        self._draw_result_plots(result)
-        if self.data is not None:
+        # the plots in the next turns of the event loop: drawing everything at once held the GUI
+        # thread for 80-100 ms; in three parts no part holds it for more than about 30 ms
+        serial = self._serial
+        QTimer.singleShot(0, lambda: self._later(serial, "plots"))
+        QTimer.singleShot(0, lambda: self._later(serial, "curves"))
+
+    def _later(self, serial: int, what: str) -> None:
+        if serial != self._serial or not shiboken6.isValid(self) or self.result is None:
+            return  # a newer result, or the panel is gone
+        if what == "plots":
+            self._draw_result_plots(self.result)
+        elif self.data is not None:
             self._draw_curves()
 
     def _fit_table_height(self, rows: int) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import traceback
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from PySide6.QtCore import QSettings, Qt, QTimer, Signal
@@ -82,7 +83,6 @@ class MainWindow(QMainWindow):
             c.phase_info.connect(self._phase_info)
             c.samples.connect(self.live.append)
             c.devices.connect(self.devices.update_readings)
-            c.device_status.connect(self._device_status)
             c.fit.connect(self._fit_event)
             c.message.connect(self.show_message)
             c.fault.connect(self._fault)
@@ -256,10 +256,11 @@ class MainWindow(QMainWindow):
             self.run_panel.show_prediction(pred)
 
     # ------------------------------------------------------------------ engine events
-    def _device_status(self, statuses) -> None:
-        self.devices.update_status(statuses)
+    def _devices_ready(self, devices: list) -> None:
+        """The engine's ``ready`` phase lists the devices that answered (after Connect, or Arm connecting)."""
+        self.devices.update_status([SimpleNamespace(**d) for d in devices])
         self.update_prediction()
-        self.show_message(f"Devices connected ({len(statuses or [])}).")
+        self.show_message("Devices connected: " + ", ".join(f"{d['name']} ({d['role']})" for d in devices) + ".")
 
     def _armed(self, path) -> None:
         self.last_run_path = Path(path) if path else None
@@ -285,12 +286,12 @@ class MainWindow(QMainWindow):
 
     def _phase_info(self, phase: str, data) -> None:
         reason = data.get("reason") if isinstance(data, dict) else ""
-        if phase == "aborted" and reason and reason.startswith("armed timeout"):
+        if phase == "ready" and data.get("devices"):
+            self._devices_ready(data["devices"])
+        elif phase == "aborted" and reason and reason.startswith("armed timeout"):
             self.show_message(f"Disarmed — {reason}", "warning")
         elif phase in ("stopped", "aborted", "failed") and reason:
             self.show_message(f"Run {phase}: {reason}", "warning" if phase == "stopped" else "error")
-        elif phase == "disconnected" and reason:
-            self.show_message(f"Not connected: {reason}", "error")
 
     def _refresh_plot(self) -> None:
         if self.live.refresh():
