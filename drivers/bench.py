@@ -1,6 +1,6 @@
 """Bench configurations: which devices velab talks to, how, and with which profile.
 
-``configs/benches/<name>.toml``::
+``benches/<name>.toml`` along the config search path (:mod:`velab.configpath`), or any path::
 
     name = "simulated rig"
     simulate = "default"            # optional: sim config that ``--simulate`` starts in-process
@@ -30,12 +30,13 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable
 
-from velab.config import CONFIG_ROOT, read_toml
+from velab.configpath import config_stem
 from velab.drivers.base import ProfileError
-from velab.errors import ConfigError
+from velab.tomlschema import Key, Reader, above, within
+
+RECORDER_ROLES = ("pressure_source", "valve", "flowmeter")
 
 
 @dataclass(frozen=True)
@@ -60,17 +61,27 @@ class Bench:
         if not isinstance(devs, dict) or not devs:
             raise ProfileError(f"{path}: [devices]: missing or empty")
         out = {}
+        r = Reader(path, d, error=ProfileError)
         for name, t in devs.items():
-            if not isinstance(t, dict) or "kind" not in t:
-                raise ProfileError(f"{path}: [devices.{name}] kind: missing key")
+            where = f"[devices.{name}]"
+            if not isinstance(t, dict):
+                raise r.fail(where, f"must be a table, got {type(t).__name__}")
             t = dict(t)
-            kind = t.pop("kind")
-            profile = t.pop("profile", None)
+            kind = r.get(t, where, "kind", str)
+            profile = r.get(t, where, "profile", str, None)
+            t.pop("kind")
+            t.pop("profile", None)
             out[name] = BenchDevice(name, kind, profile, t)
         rec = d.get("recorder") or {}
         if not isinstance(rec, dict):
             raise ProfileError(f"{path}: [recorder]: must be a table")
-        return cls(str(d.get("name", Path(path).stem)), out, d.get("simulate"), str(path), dict(rec))
+        # the recorder's roles name devices of this bench; armed_timeout_s disarms an armed rig left alone
+        spec = {role: Key(str, False, None, choices=tuple(out)) for role in RECORDER_ROLES}
+        spec["armed_timeout_s"] = Key(float, False, None, above(0, 86400, "s"))
+        rec = {k: v for k, v in r.read(rec, "[recorder] ", spec).items() if v is not None}
+        simulate = r.get(d, "", "simulate", str, None)
+        name = r.get(d, "", "name", str, config_stem(path))
+        return cls(name, out, simulate, str(path), dict(rec))
 
     def to_dict(self) -> dict:
         d = {"name": self.name, "devices": {}}
@@ -82,18 +93,47 @@ class Bench:
             d["devices"][n] = {"kind": dev.kind, **({"profile": dev.profile} if dev.profile else {}), **dev.settings}
         return d
 
+    def to_toml(self) -> str:
+        """This bench as a bench-config TOML text (for a file ``velab record --config`` reads)."""
+        d = self.to_dict()
+        lines = [f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict)]
+        if d.get("recorder"):
+            lines += ["", "[recorder]"] + [f"{k} = {_toml_value(v)}" for k, v in d["recorder"].items()]
+        for name, t in d["devices"].items():
+            lines += _toml_table(f"devices.{name}", t)
+        return "\n".join(lines) + "\n"
+
     def of_kind(self, kind: str) -> list[BenchDevice]:
         return [d for d in self.devices.values() if d.kind == kind]
 
 
+def _toml_value(v) -> str:
+    import json
+
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)  # a JSON string is a valid TOML basic string
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise ValueError(f"cannot write {v!r} to TOML")
+
+
+def _toml_table(name: str, t: dict) -> list[str]:
+    out = ["", f"[{name}]"] + [f"{k} = {_toml_value(v)}" for k, v in t.items() if not isinstance(v, dict)]
+    for k, v in t.items():
+        if isinstance(v, dict):
+            out += _toml_table(f"{name}.{k}", v)
+    return out
+
+
 def load_bench(name_or_path: str | os.PathLike) -> Bench:
-    p = Path(name_or_path)
-    if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
-        p = Path(CONFIG_ROOT) / "benches" / f"{name_or_path}.toml"
-    try:
-        path, doc = read_toml(p)
-    except ConfigError as exc:
-        raise ProfileError(str(exc)) from None
+    """A bench by short name (``benches/<name>.toml`` along the config search path) or by path."""
+    from velab.configpath import load_config
+
+    path, doc = load_config("benches", name_or_path, error=ProfileError)
     return Bench.from_dict(doc, str(path))
 
 
@@ -121,6 +161,12 @@ def _modbus_factory(cls):
             raise ProfileError(f"[devices.{dev.name}]: unknown key {sorted(settings.extra)[0]!r}")
         bus = open_bus(settings, connect=connect, name=f"{dev.name} ({settings.endpoint})")
         opts = {k: v for k, v in dev.settings.items() if k in _OPTION_KEYS}
+        r = Reader(None, opts, error=ProfileError)
+        where = f"[devices.{dev.name}] "
+        r.get(opts, where, "word_order", str, None, choices=("ABCD", "CDAB", "BADC", "DCBA"))
+        r.get(opts, where, "name", str, None)
+        r.get(opts, where, "density_kg_m3", float, None, check=within(100.0, 5000.0, "kg/m3"))
+        r.get(opts, where, "channels", dict, None)
         opts.setdefault("name", dev.name)
         return cls(bus, profile, unit=settings.unit, **opts)
 
@@ -154,7 +200,7 @@ def _try_plugins() -> None:
     """Driver modules owned elsewhere (the serial streaming ADC) register themselves on import."""
     import importlib
 
-    for mod in ("velab.drivers.streaming_adc",):
+    for mod in ("velab.drivers.sadc_bench",):
         try:
             importlib.import_module(mod)
         except ModuleNotFoundError as exc:

@@ -4,7 +4,7 @@
     fm.read_flow()        # Reading(value=0.00364, units="m3/s", quality=OK ...)
     fm.read_all()         # flow, totalizer1, totalizer2 in one block read + alarms
 
-Quality: NaN -> NAN; any alarm bit -> FAULT; outside the profile's [min, max] ->
+Quality: NaN -> NAN; any alarm bit (named or not: an unnamed bit is "bit N") -> FAULT; outside the profile's [min, max] ->
 OVER/UNDER_RANGE; a non-zero value that has not changed for ``stale_after_s`` -> STALE
 (the meter refreshes at 2 Hz with noise, so a frozen value means a stuck sensor). Zero
 flow is the exception: with the valve closed (or below the meter's low-flow cut-off,
@@ -69,7 +69,7 @@ class Flowmeter(ModbusDevice):
         flow = self.profile.reg("flow")
         t2 = self.profile.reg("totalizer2")
         start, end = flow.address, t2.address + t2.count
-        regs = self.bus.read_holding(start, end - start, unit=self.unit)
+        regs = self._bus_read("holding", start, end - start)
         ts = self.clock()
         out = {}
         for name in ("flow", "totalizer1", "totalizer2"):

@@ -1,32 +1,44 @@
-"""velab's small Modbus client layer: the only driver module that imports pymodbus.
+"""velab's small Modbus client: the only driver module that imports pymodbus.
 
 pymodbus (pinned 3.16.1) supplies the PDU codec (request encoding, reply
 decoding) and the Modbus CRC; velab supplies the transaction engine on top of an
 injected byte transport, so that timeouts, retries and reconnection are explicit,
-every failure becomes a typed :mod:`velab.drivers.base` error, and tests can feed
-exact bytes (see :class:`ExpectedProtocolTransport` in ``velab.drivers.testing``).
+every reply is checked before use, every failure is a named
+:mod:`velab.drivers.base` error, and tests can feed exact bytes (see
+``velab.drivers.testing.ExpectedProtocolTransport``).
 
 Layers::
 
     RegisterBus (Protocol)            read_holding / read_input / write_registers
       ModbusClient(transport, framing="tcp"|"rtu", unit, timeout_s, retries, reconnect)
-        ByteTransport (Protocol)      open / close / write / read(n, deadline)
-          TcpTransport(host, port)            Modbus TCP (MBAP framing)
-          SerialTransport(url, baudrate...)   RTU on a port path, a pty, socket://host:port
+        ByteTransport (Protocol)      velab.drivers.modbus_transport: TcpTransport, SerialTransport
+    data types / word orders          velab.drivers.modbus_types
 
-Data types and word orders (``decode_registers`` / ``encode_value``): uint16, int16,
-uint32, int32, float32, float64 in ABCD (big endian), CDAB (word swapped), BADC
-(byte swapped) and DCBA (little endian).
+Reply checks (any failure is a ProtocolError subclass naming the device and the
+reason, the reply is never used, and the request is retried up to ``retries``):
+
+* RTU: CRC (ChecksumError); unit id and function code (ReplyMismatch); frame
+  length from the function code and byte count, short (truncated) or long
+  (bytes trailing the frame within the inter-frame silence) (FrameError); byte
+  count equal to 2 x the requested register count (FrameError "byte_count");
+  write echo equal to the request's address and count.
+* TCP: MBAP protocol id 0 and length 2..254 (FrameError "bad_header"); the MBAP
+  length equal to the PDU's own length (FrameError short/long); transaction id:
+  a recent earlier id is a late reply and is skipped, any other id is a
+  ReplyMismatch "wrong_transaction"; unit id; function code; byte count.
+* Exception replies (0x80 | fc) are DeviceException(code), never retried.
+* Late replies: before each request the input is flushed; after an RTU timeout
+  the client waits for the line to go quiet and drops what arrived, so a late
+  reply is never taken as the answer to the next request (RTU has no
+  transaction id).
 """
 
 from __future__ import annotations
 
-import enum
-import math
-import socket
 import struct
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Protocol, Sequence, runtime_checkable
 
@@ -39,15 +51,29 @@ from pymodbus.pdu.register_message import (
 )
 
 from velab.drivers.base import (
+    ChecksumError,
+    ProfileError,
     DeviceDisconnected,
     DeviceError,
     DeviceException,
     DeviceTimeout,
+    FrameError,
     ProtocolError,
+    ReplyMismatch,
 )
+from velab.drivers.modbus_transport import ByteTransport, SerialTransport, TcpTransport
+from velab.drivers.modbus_types import DATA_TYPES, WordOrder, decode_registers, encode_value, register_count
+from velab.tomlschema import Reader, above, within
+
+__all__ = [
+    "BusSettings", "BusStats", "ByteTransport", "DATA_TYPES", "MAX_READ_REGISTERS", "MAX_WRITE_REGISTERS",
+    "ModbusClient", "RegisterBus", "SerialTransport", "TcpTransport", "WordOrder", "crc16", "decode_registers",
+    "encode_value", "open_bus", "register_count",
+]
 
 MAX_READ_REGISTERS = 125
 MAX_WRITE_REGISTERS = 123
+MIN_FRAME_GAP_S = 0.00175  # Modbus RTU t3.5 floor (baud rates above 19200)
 
 EXCEPTION_NAMES = {
     1: "illegal function",
@@ -62,247 +88,9 @@ EXCEPTION_NAMES = {
 }
 
 
-# ------------------------------------------------------------------ data types
-
-
-class WordOrder(str, enum.Enum):
-    """Order of the bytes of a multi-register value, A = most significant byte."""
-
-    ABCD = "ABCD"  # big endian (Modbus default; pymodbus word_order="big")
-    CDAB = "CDAB"  # low word first, bytes big endian inside a word (E+H "1-0-3-2")
-    BADC = "BADC"  # high word first, bytes swapped inside each word
-    DCBA = "DCBA"  # little endian
-
-    @property
-    def word_swap(self) -> bool:
-        return self in (WordOrder.CDAB, WordOrder.DCBA)
-
-    @property
-    def byte_swap(self) -> bool:
-        return self in (WordOrder.BADC, WordOrder.DCBA)
-
-
-_TYPES = {  # name -> (struct code, registers)
-    "uint16": ("H", 1),
-    "int16": ("h", 1),
-    "uint32": ("I", 2),
-    "int32": ("i", 2),
-    "float32": ("f", 2),
-    "uint64": ("Q", 4),
-    "float64": ("d", 4),
-}
-DATA_TYPES = tuple(_TYPES)
-
-
-def register_count(dtype: str) -> int:
-    try:
-        return _TYPES[dtype][1]
-    except KeyError:
-        raise ValueError(f"unknown data type {dtype!r} (known: {', '.join(_TYPES)})") from None
-
-
-def _reorder(words: list[int], order: WordOrder) -> list[int]:
-    if order.byte_swap:
-        words = [((w & 0xFF) << 8) | (w >> 8) for w in words]
-    if order.word_swap:
-        words = words[::-1]
-    return words
-
-
-def decode_registers(regs: Sequence[int], dtype: str, order: WordOrder | str = WordOrder.ABCD) -> int | float:
-    """Registers (as on the wire, first address first) -> Python value."""
-    code, n = _TYPES[dtype] if dtype in _TYPES else (None, register_count(dtype))
-    if len(regs) != n:
-        raise ValueError(f"{dtype} needs {n} registers, got {len(regs)}")
-    words = _reorder(list(regs), WordOrder(order))  # the transform is its own inverse
-    return struct.unpack(">" + code, struct.pack(f">{n}H", *words))[0]
-
-
-def encode_value(value: int | float, dtype: str, order: WordOrder | str = WordOrder.ABCD) -> list[int]:
-    """Python value -> registers in wire order."""
-    code, n = _TYPES[dtype] if dtype in _TYPES else (None, register_count(dtype))
-    if code in "HhIiQ":
-        value = int(value)
-    try:
-        words = list(struct.unpack(f">{n}H", struct.pack(">" + code, value)))
-    except struct.error as exc:
-        raise ValueError(f"{value!r} does not fit a {dtype}: {exc}") from None
-    return _reorder(words, WordOrder(order))
-
-
 def crc16(data: bytes) -> bytes:
     """Modbus CRC-16 as it goes on the wire (low byte first)."""
     return FramerRTU.compute_CRC(data).to_bytes(2, "big")
-
-
-# ------------------------------------------------------------------ transports
-
-
-@runtime_checkable
-class ByteTransport(Protocol):
-    """A byte pipe. ``read`` returns at most n bytes, fewer (maybe none) at the deadline."""
-
-    name: str
-
-    def open(self) -> None: ...
-    def close(self) -> None: ...
-    @property
-    def is_open(self) -> bool: ...
-    def write(self, data: bytes) -> None: ...
-    def read(self, n: int, deadline: float) -> bytes: ...
-    def discard_input(self) -> None: ...
-
-
-class TcpTransport:
-    """A TCP connection (Modbus TCP). Failures become DeviceDisconnected."""
-
-    def __init__(self, host: str, port: int, connect_timeout_s: float = 1.0):
-        self.host, self.port = host, int(port)
-        self.connect_timeout_s = connect_timeout_s
-        self.name = f"tcp://{host}:{port}"
-        self._sock: socket.socket | None = None
-
-    @property
-    def is_open(self) -> bool:
-        return self._sock is not None
-
-    def open(self) -> None:
-        if self._sock is not None:
-            return
-        try:
-            s = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)
-        except OSError as exc:
-            raise DeviceDisconnected(f"{self.name}: cannot connect: {exc}") from exc
-        s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self._sock = s
-
-    def close(self) -> None:
-        if self._sock is not None:
-            try:
-                self._sock.close()
-            finally:
-                self._sock = None
-
-    def write(self, data: bytes) -> None:
-        if self._sock is None:
-            raise DeviceDisconnected(f"{self.name}: not connected")
-        try:
-            self._sock.sendall(data)
-        except OSError as exc:
-            self.close()
-            raise DeviceDisconnected(f"{self.name}: connection lost while sending: {exc}") from exc
-
-    def read(self, n: int, deadline: float) -> bytes:
-        if self._sock is None:
-            raise DeviceDisconnected(f"{self.name}: not connected")
-        buf = bytearray()
-        while len(buf) < n:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                break
-            self._sock.settimeout(remaining)
-            try:
-                chunk = self._sock.recv(n - len(buf))
-            except socket.timeout:
-                break
-            except OSError as exc:
-                self.close()
-                raise DeviceDisconnected(f"{self.name}: connection lost: {exc}") from exc
-            if not chunk:
-                self.close()
-                raise DeviceDisconnected(f"{self.name}: connection closed by the device")
-            buf += chunk
-        return bytes(buf)
-
-    def discard_input(self) -> None:
-        if self._sock is None:
-            return
-        self._sock.setblocking(False)
-        try:
-            while self._sock.recv(4096):
-                pass
-        except (BlockingIOError, OSError):
-            pass
-        finally:
-            if self._sock is not None:
-                self._sock.setblocking(True)
-
-
-class SerialTransport:
-    """A serial line through pyserial's ``serial_for_url``: a device path, a pty, ``socket://host:port``."""
-
-    def __init__(self, url: str, baudrate: int = 19200, bytesize: int = 8, parity: str = "N", stopbits: float = 1):
-        self.url, self.baudrate = url, baudrate
-        self.bytesize, self.parity, self.stopbits = bytesize, parity, stopbits
-        self.name = url
-        self._ser = None
-
-    @property
-    def is_open(self) -> bool:
-        return self._ser is not None
-
-    @property
-    def char_time_s(self) -> float:
-        bits = 1 + self.bytesize + (0 if self.parity == "N" else 1) + self.stopbits
-        return bits / self.baudrate
-
-    def open(self) -> None:
-        if self._ser is not None:
-            return
-        import serial
-
-        try:
-            self._ser = serial.serial_for_url(
-                self.url, baudrate=self.baudrate, bytesize=self.bytesize, parity=self.parity,
-                stopbits=self.stopbits, timeout=0.1, write_timeout=1.0,
-            )
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise DeviceDisconnected(f"{self.name}: cannot open: {exc}") from exc
-
-    def close(self) -> None:
-        if self._ser is not None:
-            try:
-                self._ser.close()
-            except Exception:  # noqa: BLE001 - closing a dead port must not mask the real error
-                pass
-            self._ser = None
-
-    def write(self, data: bytes) -> None:
-        import serial
-
-        if self._ser is None:
-            raise DeviceDisconnected(f"{self.name}: not open")
-        try:
-            self._ser.write(data)
-        except (serial.SerialException, OSError) as exc:
-            self.close()
-            raise DeviceDisconnected(f"{self.name}: write failed: {exc}") from exc
-
-    def read(self, n: int, deadline: float) -> bytes:
-        import serial
-
-        if self._ser is None:
-            raise DeviceDisconnected(f"{self.name}: not open")
-        buf = bytearray()
-        while len(buf) < n:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                break
-            self._ser.timeout = remaining
-            try:
-                chunk = self._ser.read(n - len(buf))
-            except (serial.SerialException, OSError) as exc:
-                self.close()
-                raise DeviceDisconnected(f"{self.name}: read failed: {exc}") from exc
-            buf += chunk
-        return bytes(buf)
-
-    def discard_input(self) -> None:
-        if self._ser is not None:
-            try:
-                self._ser.reset_input_buffer()
-            except Exception:  # noqa: BLE001
-                pass
 
 
 # ------------------------------------------------------------------ the bus
@@ -316,7 +104,8 @@ class RegisterBus(Protocol):
 
     def read_holding(self, address: int, count: int, unit: int | None = None) -> list[int]: ...
     def read_input(self, address: int, count: int, unit: int | None = None) -> list[int]: ...
-    def write_registers(self, address: int, values: Sequence[int], unit: int | None = None) -> None: ...
+    def write_registers(self, address: int, values: Sequence[int], unit: int | None = None,
+                        retries: int | None = None) -> None: ...
     def close(self) -> None: ...
 
 
@@ -328,23 +117,43 @@ class BusStats:
     protocol_errors: int = 0
     exceptions: int = 0
     reconnects: int = 0
+    late_replies: int = 0  # replies to earlier (timed-out) requests, recognised and dropped
+    flushed_bytes: int = 0  # stray bytes dropped before a request or after a timeout
+
+
+@dataclass(frozen=True)
+class _Expect:
+    """What the reply to one request must look like."""
+
+    fc: int
+    unit: int
+    tid: int
+    count: int = 0  # registers (reads)
+    address: int = 0  # writes: the echo
+    what: str = ""
+
+    @property
+    def pdu_len(self) -> int:  # PDU length of the normal reply: fc + byte count + data, or fc + addr + count
+        return 2 + 2 * self.count if self.fc in (3, 4) else 5
 
 
 class ModbusClient:
     """Synchronous Modbus master over a ByteTransport (TCP or RTU framing).
 
     timeout_s : per attempt, from sending the request to the last reply byte.
-    retries : further attempts after a timeout, a garbled reply or a lost connection
-        (a Modbus exception reply is an answer and is never retried).
+    retries : further attempts after a timeout, a rejected reply or a lost connection
+        (a Modbus exception reply is an answer and is never retried). A call takes at
+        most about (retries + 1) x 2 x timeout_s.
     reconnect : re-open a lost transport before the next attempt.
+    frame_gap_s : RTU inter-frame silence (t3.5); default from the line's baud rate.
     """
 
     def __init__(self, transport: ByteTransport, framing: str = "tcp", *, unit: int = 1,
                  timeout_s: float = 0.5, retries: int = 2, reconnect: bool = True,
-                 name: str | None = None, turnaround_s: float = 0.0):
+                 name: str | None = None, turnaround_s: float = 0.0, frame_gap_s: float | None = None):
         if framing not in ("tcp", "rtu"):
             raise ValueError(f"framing must be 'tcp' or 'rtu', got {framing!r}")
-        if timeout_s <= 0:
+        if not timeout_s > 0:
             raise ValueError("timeout_s must be positive")
         if retries < 0:
             raise ValueError("retries must be >= 0")
@@ -355,9 +164,13 @@ class ModbusClient:
         self.retries = retries
         self.reconnect = reconnect
         self.turnaround_s = turnaround_s
+        if frame_gap_s is None:
+            frame_gap_s = max(MIN_FRAME_GAP_S, 3.5 * getattr(transport, "char_time_s", 0.0))
+        self.frame_gap_s = frame_gap_s
         self.name = name or transport.name
         self.stats = BusStats()
         self._tid = 0
+        self._recent_tids: deque[int] = deque(maxlen=16)
         self._was_open = False
         self._lock = threading.RLock()
         self._decoder = DecodePDU(is_server=False)
@@ -365,7 +178,10 @@ class ModbusClient:
     # -- context
     def connect(self) -> "ModbusClient":
         with self._lock:
-            self.transport.open()
+            try:
+                self.transport.open()
+            except DeviceDisconnected as exc:
+                raise self._named(exc) from exc.__cause__
             self._was_open = True
         return self
 
@@ -383,24 +199,23 @@ class ModbusClient:
     def read_holding(self, address: int, count: int, unit: int | None = None) -> list[int]:
         self._check_range(address, count, MAX_READ_REGISTERS)
         req = ReadHoldingRegistersRequest(address=address, count=count)
-        return self._transact(req, unit, f"read holding {address}+{count}").registers[:count]
+        return self._transact(req, unit, f"read holding {address}+{count}", count=count).registers[:count]
 
     def read_input(self, address: int, count: int, unit: int | None = None) -> list[int]:
         self._check_range(address, count, MAX_READ_REGISTERS)
         req = ReadInputRegistersRequest(address=address, count=count)
-        return self._transact(req, unit, f"read input {address}+{count}").registers[:count]
+        return self._transact(req, unit, f"read input {address}+{count}", count=count).registers[:count]
 
-    def write_registers(self, address: int, values: Sequence[int], unit: int | None = None) -> None:
+    def write_registers(self, address: int, values: Sequence[int], unit: int | None = None,
+                        retries: int | None = None) -> None:
+        """FC16. ``retries`` overrides the client's (0 for commands that must not be repeated blindly)."""
         values = [int(v) for v in values]
         self._check_range(address, len(values), MAX_WRITE_REGISTERS)
         if any(not 0 <= v <= 0xFFFF for v in values):
             raise ValueError(f"register values must be 0..65535, got {values}")
         req = WriteMultipleRegistersRequest(address=address, registers=values)
-        reply = self._transact(req, unit, f"write {address}+{len(values)}")
-        if reply.address != address or reply.count != len(values):
-            raise ProtocolError(
-                f"{self.name}: write {address}+{len(values)} acknowledged as {reply.address}+{reply.count}"
-            )
+        self._transact(req, unit, f"write {address}+{len(values)}", count=len(values), address=address,
+                       retries=retries)
 
     @staticmethod
     def _check_range(address: int, count: int, limit: int) -> None:
@@ -411,20 +226,33 @@ class ModbusClient:
         if address + count > 0x10000:
             raise ValueError(f"address {address} + count {count} runs past 65535")
 
+    # -- errors carry the device's name
+    def _named(self, exc: DeviceError) -> DeviceError:
+        if exc.device is None:
+            exc.device = self.name
+        return exc
+
+    def _err(self, cls, reason: str, exp: _Expect, text: str, frame: bytes = b"") -> DeviceError:
+        shown = f" ({frame.hex(' ')})" if frame else ""
+        return cls(f"{self.name} unit {exp.unit}: {exp.what}: {text}{shown}", device=self.name, reason=reason)
+
     # -- the transaction engine
     def _frame(self, pdu: bytes, unit: int) -> tuple[bytes, int]:
         if self.framing == "rtu":
             adu = bytes([unit]) + pdu
             return adu + crc16(adu), 0
         self._tid = (self._tid + 1) & 0xFFFF
+        self._recent_tids.append(self._tid)
         return struct.pack(">HHHB", self._tid, 0, len(pdu) + 1, unit) + pdu, self._tid
 
-    def _transact(self, req, unit: int | None, what: str):
+    def _transact(self, req, unit: int | None, what: str, *, count: int = 0, address: int = 0,
+                  retries: int | None = None):
         unit = self.unit if unit is None else unit
+        retries = self.retries if retries is None else retries
         pdu = bytes([req.function_code]) + req.encode()
         last: DeviceError | None = None
         with self._lock:
-            for attempt in range(self.retries + 1):
+            for attempt in range(retries + 1):
                 if attempt:
                     self.stats.retries += 1
                 try:
@@ -435,99 +263,162 @@ class ModbusClient:
                             self.stats.reconnects += 1
                         self.transport.open()
                         self._was_open = True
+                    self._flush("before " + what)
                     frame, tid = self._frame(pdu, unit)
+                    exp = _Expect(req.function_code, unit, tid, count, address, what)
                     self.stats.requests += 1
                     if self.turnaround_s:
                         time.sleep(self.turnaround_s)
                     self.transport.write(frame)
-                    reply_pdu = self._receive(req.function_code, unit, tid, what)
-                    return self._decode(reply_pdu, req.function_code, unit, what)
-                except DeviceException:
-                    raise
+                    body = self._receive(exp)
+                    return self._decode(body, exp)
+                except DeviceException as exc:
+                    raise self._named(exc)
                 except DeviceTimeout as exc:
                     self.stats.timeouts += 1
                     last = exc
+                    self._quiet_line()
                 except ProtocolError as exc:
                     self.stats.protocol_errors += 1
                     last = exc
-                    self._resync()
+                    self._quiet_line()
                 except DeviceDisconnected as exc:
                     last = exc
                     self.transport.close()
                     if not self.reconnect:
-                        raise
+                        raise self._named(exc)
                     time.sleep(min(0.05, self.timeout_s))
         assert last is not None
-        if self.retries:
-            msg = f"{last} (after {self.retries + 1} attempts)"
-            raise type(last)(msg) from last
+        self._named(last)
+        if retries:
+            raise last.again(f"{last} (after {retries + 1} attempts)") from last
         raise last
 
-    def _resync(self) -> None:
-        """After a garbled reply: let the line go quiet, then drop what arrived."""
-        if self.framing == "rtu":
-            time.sleep(0.005)
-        self.transport.discard_input()
+    def _flush(self, when: str) -> None:
+        """Drop stray bytes (a late reply to an earlier request) before sending."""
+        dropped = self.transport.discard_input()
+        if dropped:
+            self.stats.flushed_bytes += int(dropped)
 
-    def _read_exact(self, n: int, deadline: float, what: str, got: bytes = b"") -> bytes:
+    def _quiet_line(self) -> None:
+        """After a timeout or a rejected reply: wait until nothing has arrived for one
+        inter-frame gap (RTU; bounded by timeout_s), dropping what came, then flush."""
+        if self.framing == "rtu" and self.transport.is_open:
+            end = time.monotonic() + self.timeout_s
+            gap = max(self.frame_gap_s, 0.005)
+            while time.monotonic() < end:
+                try:
+                    got = self.transport.read(256, min(end, time.monotonic() + gap))
+                except DeviceDisconnected:
+                    return
+                if not got:
+                    break
+                self.stats.flushed_bytes += len(got)
+        if self.transport.is_open:
+            self._flush("after a failed exchange")
+
+    def _pending(self) -> bool:
+        pending = getattr(self.transport, "pending", None)
+        return bool(pending()) if pending is not None else False
+
+    def _read_exact(self, n: int, deadline: float, exp: _Expect, got: bytes = b"") -> bytes:
         data = self.transport.read(n, deadline)
         if len(data) < n:
             if not data and not got:
-                raise DeviceTimeout(f"{self.name} unit {self.unit}: no reply to {what} within {self.timeout_s:g} s")
-            raise ProtocolError(
-                f"{self.name}: truncated reply to {what}: got {len(got) + len(data)} bytes, "
-                f"expected {len(got) + n} ({(got + data).hex(' ')})"
-            )
+                raise DeviceTimeout(f"{self.name} unit {exp.unit}: no reply to {exp.what} within {self.timeout_s:g} s",
+                                    device=self.name)
+            raise self._err(FrameError, "short_frame", exp,
+                            f"truncated reply: {len(got) + len(data)} of {len(got) + n} bytes", got + data)
         return data
 
-    def _receive(self, fc: int, unit: int, tid: int, what: str) -> bytes:
+    def _receive(self, exp: _Expect) -> bytes:
         deadline = time.monotonic() + self.timeout_s
-        if self.framing == "tcp":
-            while True:
-                head = self._read_exact(7, deadline, what)
-                rtid, proto, length, runit = struct.unpack(">HHHB", head)
-                if proto != 0 or not 2 <= length <= 254:
-                    raise ProtocolError(f"{self.name}: bad MBAP header {head.hex(' ')} in reply to {what}")
-                body = self._read_exact(length - 1, deadline, what, head)
-                if rtid != tid:  # a late reply to an earlier, timed-out request: skip it
-                    continue
-                if runit != unit:
-                    raise ProtocolError(f"{self.name}: reply to {what} from unit {runit}, expected {unit}")
-                return body
-        # RTU: address, function, then either an exception code or a byte count
-        head = self._read_exact(3, deadline, what)
-        raddr, rfc, third = head
-        if rfc == fc | 0x80:
-            n_rest = 2
-        elif rfc != fc:
-            raise ProtocolError(f"{self.name}: reply to {what} has function code {rfc}, expected {fc} ({head.hex(' ')})")
-        elif fc in (3, 4):
-            n_rest = third + 2
-        else:  # 16: address(2) count(2) crc(2), third is the first address byte
-            n_rest = 5
-        rest = self._read_exact(n_rest, deadline, what, head)
-        frame = head + rest
-        if crc16(frame[:-2]) != frame[-2:]:
-            raise ProtocolError(f"{self.name}: CRC error in reply to {what} ({frame.hex(' ')})")
-        if raddr != unit:
-            raise ProtocolError(f"{self.name}: reply to {what} from unit {raddr}, expected {unit}")
-        return frame[1:-2]
+        return self._receive_tcp(exp, deadline) if self.framing == "tcp" else self._receive_rtu(exp, deadline)
 
-    def _decode(self, body: bytes, fc: int, unit: int, what: str):
-        if body and body[0] == fc | 0x80:
-            code = body[1] if len(body) > 1 else None
+    def _receive_tcp(self, exp: _Expect, deadline: float) -> bytes:
+        while True:
+            head = self._read_exact(7, deadline, exp)
+            rtid, proto, length, runit = struct.unpack(">HHHB", head)
+            if proto != 0 or not 2 <= length <= 254:
+                raise self._err(FrameError, "bad_header", exp, f"bad MBAP header (protocol {proto}, length {length})",
+                                head)
+            body = self._read_exact(length - 1, deadline, exp, head)
+            if rtid != exp.tid:
+                if rtid in self._recent_tids:  # a late reply to an earlier, timed-out request: drop it
+                    self.stats.late_replies += 1
+                    continue
+                raise self._err(ReplyMismatch, "wrong_transaction", exp,
+                                f"transaction id {rtid}, expected {exp.tid}", head + body)
+            if runit != exp.unit:
+                raise self._err(ReplyMismatch, "wrong_unit", exp, f"reply from unit {runit}", head + body)
+            self._check_pdu(body, exp, head + body)
+            if self._pending():  # a device sends nothing after its reply: these bytes make it suspect
+                raise self._err(FrameError, "long_frame", exp, "bytes right behind the reply frame", head + body)
+            return body
+
+    def _receive_rtu(self, exp: _Expect, deadline: float) -> bytes:
+        head = self._read_exact(3, deadline, exp)
+        raddr, rfc, third = head
+        if rfc == exp.fc | 0x80:
+            total = 5  # unit, fc, exception code, crc
+        elif rfc == exp.fc and exp.fc in (3, 4):
+            total = 5 + third  # unit, fc, byte count, data, crc: the frame says its own length
+        elif rfc == exp.fc:
+            total = 8  # unit, fc, address, count, crc
+        else:
+            # not our function: read what is there, so the reason shown is the truest one
+            rest = self.transport.read(256, min(deadline, time.monotonic() + max(self.frame_gap_s, 0.005)))
+            frame = head + rest
+            if len(frame) >= 4 and crc16(frame[:-2]) != frame[-2:]:
+                raise self._err(ChecksumError, "bad_crc", exp, "CRC error (and unexpected function code)", frame)
+            raise self._err(ReplyMismatch, "wrong_function", exp, f"function code {rfc:#04x}, expected {exp.fc:#04x}",
+                            frame)
+        frame = head + self._read_exact(total - 3, deadline, exp, head)
+        if crc16(frame[:-2]) != frame[-2:]:
+            raise self._err(ChecksumError, "bad_crc", exp, "CRC error", frame)
+        if raddr != exp.unit:
+            raise self._err(ReplyMismatch, "wrong_unit", exp, f"reply from unit {raddr}", frame)
+        # RTU frames end with a silence: bytes right after this one mean it was not a single reply
+        trailing = self.transport.read(1, time.monotonic() + self.frame_gap_s)
+        if trailing:
+            raise self._err(FrameError, "long_frame", exp, "bytes trailing the reply frame", frame + trailing)
+        body = frame[1:-2]
+        self._check_pdu(body, exp, frame)
+        return body
+
+    def _check_pdu(self, body: bytes, exp: _Expect, frame: bytes) -> None:
+        """The PDU answers our request: function code, length, byte count, write echo."""
+        if not body:
+            raise self._err(FrameError, "short_frame", exp, "empty PDU", frame)
+        if body[0] == exp.fc | 0x80:
+            if len(body) != 2:
+                raise self._err(FrameError, "short_frame" if len(body) < 2 else "long_frame", exp,
+                                "exception reply of wrong length", frame)
+            code = body[1]
             self.stats.exceptions += 1
             name = EXCEPTION_NAMES.get(code, "unknown exception")
-            raise DeviceException(f"{self.name} unit {unit}: {what} refused: Modbus exception {code} ({name})", code)
-        if not body or body[0] != fc:
-            raise ProtocolError(f"{self.name}: reply to {what} has function code {body[:1].hex()}, expected {fc:02x}")
-        if fc in (3, 4) and (len(body) < 2 or body[1] != len(body) - 2 or body[1] % 2):
-            raise ProtocolError(f"{self.name}: reply to {what} has inconsistent byte count ({body.hex(' ')})")
-        if fc == 16 and len(body) != 5:
-            raise ProtocolError(f"{self.name}: reply to {what} has wrong length ({body.hex(' ')})")
+            raise DeviceException(f"{self.name} unit {exp.unit}: {exp.what} refused: Modbus exception {code} ({name})",
+                                  code, device=self.name)
+        if body[0] != exp.fc:
+            raise self._err(ReplyMismatch, "wrong_function", exp, f"function code {body[0]:#04x}, expected {exp.fc:#04x}",
+                            frame)
+        if exp.fc in (3, 4):
+            if len(body) < 2:
+                raise self._err(FrameError, "short_frame", exp, "no byte count", frame)
+            if body[1] != 2 * exp.count:
+                raise self._err(FrameError, "byte_count", exp, f"byte count {body[1]}, expected {2 * exp.count}", frame)
+        if len(body) != exp.pdu_len:
+            reason = "short_frame" if len(body) < exp.pdu_len else "long_frame"
+            raise self._err(FrameError, reason, exp, f"PDU of {len(body)} bytes, expected {exp.pdu_len}", frame)
+        if exp.fc == 16:
+            raddr, rcount = struct.unpack(">HH", body[1:5])
+            if raddr != exp.address or rcount != exp.count:
+                raise self._err(ReplyMismatch, "wrong_echo", exp, f"write acknowledged as {raddr}+{rcount}", frame)
+
+    def _decode(self, body: bytes, exp: _Expect):
         reply = self._decoder.decode(body)
         if reply is None:
-            raise ProtocolError(f"{self.name}: undecodable reply to {what} ({body.hex(' ')})")
+            raise self._err(FrameError, "bad_header", exp, "undecodable reply", body)
         return reply
 
 
@@ -557,22 +448,27 @@ class BusSettings:
 
     @classmethod
     def from_dict(cls, d: dict, where: str = "device") -> "BusSettings":
-        from velab.drivers.base import ProfileError
-
+        r = Reader(None, d, error=ProfileError)
+        w = f"{where} "
         known = {f for f in cls.__dataclass_fields__ if f != "extra"}
-        kw = {k: v for k, v in d.items() if k in known}
         extra = {k: v for k, v in d.items() if k not in known}
-        s = cls(**kw, extra=extra)
-        if s.transport not in ("tcp", "rtu"):
-            raise ProfileError(f"{where}: transport must be 'tcp' or 'rtu', got {s.transport!r}")
-        if s.transport == "tcp" and not isinstance(s.port, int):
-            raise ProfileError(f"{where}: port must be an integer TCP port for transport 'tcp', got {s.port!r}")
-        if s.transport == "rtu" and not isinstance(s.port, str):
-            raise ProfileError(f"{where}: port must be a serial port path or socket:// URL for 'rtu', got {s.port!r}")
-        if not 0 <= s.unit <= 247:
-            raise ProfileError(f"{where}: unit must be 0..247, got {s.unit}")
-        if s.timeout_s <= 0 or math.isnan(s.timeout_s):
-            raise ProfileError(f"{where}: timeout_s must be positive, got {s.timeout_s}")
+        transport = r.get(d, w, "transport", str, "tcp", choices=("tcp", "rtu"))
+        if transport == "tcp":
+            port = r.get(d, w, "port", int, 502, check=within(1, 65535))
+        else:
+            port = r.get(d, w, "port", str, check=lambda v: None if v.strip() else "must not be empty")
+        s = cls(
+            transport=transport, host=r.get(d, w, "host", str, "127.0.0.1"), port=port,
+            unit=r.get(d, w, "unit", int, 1, check=within(0, 247)),
+            timeout_s=r.get(d, w, "timeout_s", float, 0.5, check=above(0, 600, "s")),
+            retries=r.get(d, w, "retries", int, 2, check=within(0, 100)),
+            reconnect=r.get(d, w, "reconnect", bool, True),
+            baudrate=r.get(d, w, "baudrate", int, 19200, check=within(50, 4_000_000)),
+            parity=r.get(d, w, "parity", str, "N", choices=("N", "E", "O")),
+            stopbits=r.get(d, w, "stopbits", float, 1, choices=(1.0, 1.5, 2.0)),
+            bytesize=r.get(d, w, "bytesize", int, 8, choices=(5, 6, 7, 8)),
+            extra=extra,
+        )
         return s
 
     @property

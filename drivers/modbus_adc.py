@@ -22,13 +22,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from velab.drivers.base import LoopCalibration, ProfileError, Quality, Reading, pressure_to_head_m
-from velab.drivers.blocks import QUALITY_CODE, QUALITY_CODES, SampleBlock, worst_quality  # noqa: F401
+from velab.drivers.base import DeviceReset, LoopCalibration, ProfileError, Quality, Reading, pressure_to_head_m
+from velab.drivers.blocks import (  # noqa: F401 - QUALITY_CODES re-exported
+    QUALITY_CODES,
+    SampleBlock,
+    StuckDetector,
+    signal_quality,
+    worst_quality,
+)
 from velab.drivers.modbus import MAX_READ_REGISTERS
 from velab.drivers.modbus_device import ModbusDevice, RangeError
 
-# per-sample quality codes (SampleBlock.sample_quality): velab.drivers.blocks.QUALITY_CODES
-_QCODE = QUALITY_CODE
+# per-channel status bits (ADAM-6017 style) and what they mean for a sample
+STATUS_FAULT_BITS = (1 << 0) | (1 << 7) | (1 << 9)  # UART timeout, ADC failed, calibration error
+STATUS_BURNOUT, STATUS_OVER, STATUS_UNDER = 1 << 3, 1 << 1, 1 << 2
 
 
 @dataclass(frozen=True)
@@ -70,7 +77,7 @@ class ModbusADC(ModbusDevice):
         self.stale_after_s = float(pol.get("stale_after_s", 2.0))
         self.stale_samples = int(buf_cfg.get("stale_samples", 200)) if (buf_cfg := p.sections.get("buffer")) else 200
         self._last_raw: dict[int, tuple[int, float]] = {}
-        self._run: dict[int, tuple[int, int]] = {}  # channel -> (raw value, run length) across blocks
+        self._stuck = StuckDetector(self.stale_samples)
         buf = p.section("buffer")
         self.ring_address = int(buf["ring_address"])
         self.ring_registers = int(buf["ring_registers"])
@@ -104,6 +111,7 @@ class ModbusADC(ModbusDevice):
         self._cap: int | None = None
         self._t0_dev = 0.0
         self._t0_host: float | None = None
+        self._last_counter = 0
 
     def channel(self, name_or_index) -> Channel:
         for c in self.channels:
@@ -115,8 +123,8 @@ class ModbusADC(ModbusDevice):
     def read_channels(self) -> dict[str, Reading]:
         """Every configured channel, in engineering units, with quality from status bits and range."""
         n = max(c.index for c in self.channels) + 1
-        raw = self.bus.read_holding(self.ai_address, n, unit=self.unit)
-        status = self.bus.read_holding(self.status_address, 2 * n, unit=self.unit)
+        raw = self._bus_read("holding", self.ai_address, n)
+        status = self._bus_read("holding", self.status_address, 2 * n)
         ts = self.clock()
         out = {}
         for c in self.channels:
@@ -132,15 +140,21 @@ class ModbusADC(ModbusDevice):
         return out
 
     def _status_quality(self, bits: int, c: Channel, signal: float) -> Quality:
-        if bits & (1 << 7) or bits & (1 << 9):
+        """Status bits first (a set bit the map does not know is a FAULT, never ignored), then
+        the loop calibration (NE43: open loop, sensor fault, over/under range)."""
+        known = STATUS_FAULT_BITS | STATUS_BURNOUT | STATUS_OVER | STATUS_UNDER
+        if bits & STATUS_FAULT_BITS or bits & ~known:
             return Quality.FAULT
-        if bits & (1 << 3):
+        if bits & STATUS_BURNOUT:
             return Quality.OPEN_LOOP
-        if bits & (1 << 1):
+        q = c.calibration.quality(signal)
+        if q is not Quality.OK:
+            return q
+        if bits & STATUS_OVER:
             return Quality.OVER_RANGE
-        if bits & (1 << 2):
+        if bits & STATUS_UNDER:
             return Quality.UNDER_RANGE
-        return c.calibration.quality(signal)
+        return q
 
     def status_names(self, bits: int) -> list[str]:
         return [n for b, n in sorted(self.status_bits.items()) if bits >> b & 1]
@@ -177,25 +191,36 @@ class ModbusADC(ModbusDevice):
     def _attach(self, from_start: bool) -> None:
         p = self.profile
         c = p.reg("sample_counter")
-        regs = self.bus.read_holding(c.address, 12, unit=self.unit)  # 1000..1011: counter..t0
+        regs = self._bus_read("holding", c.address, 12)  # 1000..1011: counter..t0
         get = lambda name: p.reg(name).to_value(regs[p.reg(name).address - c.address:][: p.reg(name).count])  # noqa: E731
         counter = int(get("sample_counter"))
         self._fs = float(get("sample_rate"))
         self._nch = int(get("buffer_channels"))
         self._cap = int(get("buffer_capacity"))
         self._t0_dev = float(get("t0"))
-        if self._fs <= 0 or self._nch < 1 or self._cap < 1:
-            raise ProfileError(f"{self.name}: module reports rate {self._fs}, {self._nch} channels, capacity {self._cap}")
+        if not (self._fs > 0 and 1 <= self._nch <= len(self.channels) and self._cap >= 1):
+            msg = f"module reports rate {self._fs} Hz, {self._nch} channels, capacity {self._cap}"
+            self._fs = None
+            raise self._implausible(msg)
         self._t0_host = self.clock() - counter / self._fs
         self._next = 0 if from_start else counter
+        self._last_counter = counter
         self.stats = BufferStats()
+        self._stuck.reset()
 
     @property
     def sample_rate_hz(self) -> float | None:
         return self._fs
 
     def _counter(self) -> int:
-        return int(self.read_value("sample_counter"))
+        """The module's sample counter; it never goes backwards unless the module restarted."""
+        c = int(self.read_value("sample_counter"))
+        if c < self._last_counter:
+            self._next = None  # re-attach explicitly (start_buffer / attach_buffer)
+            raise DeviceReset(f"{self.name}: sample counter went back from {self._last_counter} to {c} "
+                              f"(module restarted): samples since are not continuous", device=self.name)
+        self._last_counter = c
+        return c
 
     def read_buffer(self, max_samples: int | None = None) -> SampleBlock:
         """Everything new since the last call (or up to max_samples), never invented, losses counted."""
@@ -219,7 +244,7 @@ class ModbusADC(ModbusDevice):
         while k < end:
             slot = k % cap
             m = min(per_block, end - k, cap - slot)
-            regs = self.bus.read_holding(self.ring_address + slot * nch, m * nch, unit=self.unit)
+            regs = self._bus_read("holding", self.ring_address + slot * nch, m * nch)
             raw[k - start:k - start + m] = np.asarray(regs, dtype=np.uint16).reshape(m, nch)
             k += m
         if n:
@@ -250,15 +275,9 @@ class ModbusADC(ModbusDevice):
             s = c.signal(raw[:, j])
             signal[:, j] = s
             values[:, j] = c.calibration.value(s)
-            q = quality[:, j]
-            cal = c.calibration
-            span = cal.signal_hi - cal.signal_lo
-            q[s > cal.signal_hi + cal.range_margin * span] = _QCODE[Quality.OVER_RANGE]
-            q[raw[:, j] == 65535] = _QCODE[Quality.OVER_RANGE]
-            q[s < cal.signal_lo - cal.range_margin * span] = _QCODE[Quality.UNDER_RANGE]
-            if cal.open_loop_below is not None:
-                q[s < cal.open_loop_below] = _QCODE[Quality.OPEN_LOOP]
-            self._flag_stuck(j, raw[:, j], q)
+            # raw 0 / 65535: the module clamped at its range's ends, the true signal is beyond
+            quality[:, j] = signal_quality(s, c.calibration, clipped_hi=raw[:, j] == 65535, clipped_lo=raw[:, j] == 0)
+            self._stuck.flag(j, raw[:, j], quality[:, j])
         n = raw.shape[0]
         return SampleBlock(
             segment=0, first_index=first, rate_hz=fs, host_time_s=self._t0_host + (first + n - 1) / fs,
@@ -267,23 +286,6 @@ class ModbusADC(ModbusDevice):
             quality=tuple(worst_quality(quality[:, j]) for j in range(nch)), lost_before=lost,
             overrun=lost > 0, density_kg_m3=self.density_kg_m3, sample_quality=quality, device_t0_s=self._t0_dev,
         )
-
-    def _flag_stuck(self, ch: int, raw: np.ndarray, q: np.ndarray) -> None:
-        """Runs of identical raw counts longer than stale_samples (across blocks) -> STALE."""
-        if raw.size == 0:
-            return
-        prev_val, prev_len = self._run.get(ch, (None, 0))
-        change = np.flatnonzero(np.diff(raw.astype(np.int64))) + 1
-        starts = np.concatenate([[0], change])
-        ends = np.concatenate([change, [raw.size]])
-        for a, b in zip(starts, ends):
-            carried = prev_len if (a == 0 and raw[0] == prev_val) else 0
-            if carried + (b - a) > self.stale_samples:
-                first = max(a, a + self.stale_samples - carried)
-                q[first:b][q[first:b] == 0] = _QCODE[Quality.STALE]
-        last_start = starts[-1]
-        run = raw.size - last_start + (prev_len if last_start == 0 and raw[0] == prev_val else 0)
-        self._run[ch] = (int(raw[-1]), int(run))
 
     def head_m(self, block: SampleBlock, channel: str = "pressure") -> np.ndarray:
         return pressure_to_head_m(block.column(channel), self.density_kg_m3)

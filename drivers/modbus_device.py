@@ -1,17 +1,28 @@
-"""Base of the Modbus device drivers: a profile (register map) plus an injected RegisterBus."""
+"""Base of the Modbus device drivers: a profile (register map) plus an injected RegisterBus.
+
+Every bus call goes through ``_read_regs`` / ``_write_regs`` so that an error
+escaping a driver names the driver's device (``exc.device = self.name``).
+Register contents are checked where the device has a physical range: a value
+outside the profile's [min, max] is flagged (OVER/UNDER_RANGE), NaN is NAN, and
+an impossible content (an unknown state code) is an ``ImplausibleReply`` after
+one re-read.
+"""
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Callable
 
-from velab.drivers.base import DeviceError, Quality, Reading
+from velab.drivers.base import DeviceError, ImplausibleReply, Quality, Reading
 from velab.drivers.modbus import RegisterBus
 from velab.drivers.profile import Profile, RegisterSpec, load_profile
 
 
 class RangeError(DeviceError, ValueError):
     """An argument is outside the range the device profile allows (nothing was sent)."""
+
+    reason = "range"
 
 
 class ModbusDevice:
@@ -35,13 +46,42 @@ class ModbusDevice:
         self.name = name or self.kind
         self.clock = clock
 
-    # -- raw register access through the profile
-    def _read_regs(self, spec: RegisterSpec, count: int | None = None) -> list[int]:
-        n = spec.count if count is None else count
-        if spec.table == "input":
-            return self.bus.read_input(spec.address, n, unit=self.unit)
-        return self.bus.read_holding(spec.address, n, unit=self.unit)
+    # -- bus access: errors name this device
+    def _named(self, exc: DeviceError) -> DeviceError:
+        exc.device = self.name
+        return exc
 
+    def _bus_read(self, table: str, address: int, count: int) -> list[int]:
+        try:
+            if table == "input":
+                return self.bus.read_input(address, count, unit=self.unit)
+            return self.bus.read_holding(address, count, unit=self.unit)
+        except DeviceError as exc:
+            raise self._named(exc)
+
+    def _write_regs(self, address: int, values: list[int], retries: int | None = None) -> None:
+        try:
+            if retries is None:
+                self.bus.write_registers(address, values, unit=self.unit)
+            else:
+                self.bus.write_registers(address, values, unit=self.unit, retries=retries)
+        except DeviceError as exc:
+            raise self._named(exc)
+
+    def _read_regs(self, spec: RegisterSpec, count: int | None = None) -> list[int]:
+        return self._bus_read(spec.table, spec.address, spec.count if count is None else count)
+
+    def _implausible(self, what: str) -> ImplausibleReply:
+        return ImplausibleReply(f"{self.name}: {what}", device=self.name)
+
+    def _reread_once(self, read: Callable):
+        """``read()`` again once if its reply was implausible (a glitch gets one more chance)."""
+        try:
+            return read()
+        except ImplausibleReply:
+            return read()
+
+    # -- registers through the profile
     def read_value(self, reg: str) -> float | int:
         spec = self.profile.reg(reg)
         return spec.to_value(self._read_regs(spec))
@@ -55,7 +95,7 @@ class ModbusDevice:
     def _reading(self, spec: RegisterSpec, regs: list[int], ts: float) -> Reading:
         value = spec.to_value(regs)
         quality = Quality.OK
-        if isinstance(value, float) and value != value:
+        if isinstance(value, float) and math.isnan(value):
             quality = Quality.NAN
         elif spec.max is not None and value > spec.max:
             quality = Quality.OVER_RANGE
@@ -66,12 +106,12 @@ class ModbusDevice:
     def write_value(self, reg: str, value: float, what: str | None = None) -> None:
         spec = self.profile.reg(reg)
         if spec.access == "r":
-            raise RangeError(f"{self.name}: register {reg!r} is read-only in {self.profile.path}")
+            raise RangeError(f"{self.name}: register {reg!r} is read-only in {self.profile.path}", device=self.name)
         try:
             spec.check_range(value, what or reg)
         except ValueError as exc:
-            raise RangeError(f"{self.name}: {exc}") from None
-        self.bus.write_registers(spec.address, spec.to_registers(value), unit=self.unit)
+            raise RangeError(f"{self.name}: {exc}", device=self.name) from None
+        self._write_regs(spec.address, spec.to_registers(value))
 
     def close(self) -> None:
         self.bus.close()

@@ -1,6 +1,8 @@
 """Device profiles: register maps, data types, word order, scaling and ranges, from TOML.
 
-A profile lives in ``configs/devices/<name>.toml`` (or any path)::
+A profile is ``devices/<name>.toml`` along the config search path
+(:mod:`velab.configpath`: a lab's folders, ~/.config/velab, the built-in
+configs) or any path::
 
     kind = "flowmeter"                 # which driver class reads it
     model = "Siemens SITRANS F M MAG 6000, Modbus RTU module"
@@ -30,16 +32,11 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
+from velab.configpath import config_stem, load_config
 from velab.drivers.base import ProfileError
-from velab.config import CONFIG_ROOT, read_toml
-from velab.drivers.modbus import DATA_TYPES, WordOrder, decode_registers, encode_value, register_count
-from velab.errors import ConfigError
-
-
-def devices_dir() -> Path:
-    return Path(CONFIG_ROOT) / "devices"
+from velab.drivers.modbus_types import DATA_TYPES, WordOrder, decode_registers, encode_value, register_count
+from velab.tomlschema import Key, Reader, within
 
 
 @dataclass(frozen=True)
@@ -87,7 +84,8 @@ class RegisterSpec:
             raise ValueError(f"{what or self.name} = {value} {self.units} is above the profile maximum {self.max}")
 
     def bit_names(self, word: int) -> list[str]:
-        return [name for bit, name in sorted(self.bits.items()) if word >> bit & 1]
+        """Names of the set bits; a set bit the profile does not name is never hidden ("bit N")."""
+        return [self.bits.get(bit, f"bit {bit}") for bit in range(word.bit_length()) if word >> bit & 1]
 
 
 @dataclass(frozen=True)
@@ -124,96 +122,67 @@ class Profile:
         return replace(self, word_order=order, registers=regs)
 
 
-_REG_KEYS = {"address", "type", "table", "units", "scale", "offset", "word_order", "access", "min", "max", "bits", "enum", "description"}
+_WORD_ORDERS = tuple(o.value for o in WordOrder)
+_REGISTER = {
+    "address": Key(int, check=within(0, 0xFFFF)),
+    "type": Key(str, False, "uint16", choices=tuple(DATA_TYPES)),
+    "table": Key(str, False, "holding", choices=("holding", "input")),
+    "units": Key(str, False, ""),
+    "scale": Key(float, False, 1.0, check=lambda v: None if v != 0 else "must not be zero"),
+    "offset": Key(float, False, 0.0),
+    "word_order": Key(str, False, None, choices=_WORD_ORDERS),
+    "access": Key(str, False, "r", choices=("r", "rw", "w")),
+    "min": Key(float, False, None),
+    "max": Key(float, False, None),
+    "bits": Key(dict, False, {}),
+    "enum": Key(dict, False, {}),
+    "description": Key(str, False, ""),
+}
 
 
-def _fail(path, where, reason) -> ProfileError:
-    return ProfileError(f"{path}: {where}: {reason}")
-
-
-def _int_keys(path, where, d) -> dict:
-    if not isinstance(d, dict):
-        raise _fail(path, where, "must be a table of {number = name}")
+def _int_keys(r: Reader, where: str, d: dict) -> dict:
+    """A {number = name} table (bit fields, enums): integer keys, string names."""
     out = {}
     for k, v in d.items():
         try:
-            out[int(k)] = str(v)
+            out[int(k)] = v
         except ValueError:
-            raise _fail(path, f"{where}.{k}", "keys must be integers") from None
+            raise r.fail(f"{where}.{k}", "keys must be integers") from None
+        if not isinstance(v, str):
+            raise r.fail(f"{where}.{k}", f"must be a name (string), got {v!r}")
     return out
 
 
 def profile_from_dict(doc: dict, path: str = "<profile>") -> Profile:
-    for key in ("kind", "registers"):
-        if key not in doc:
-            raise _fail(path, key, "missing key")
-    try:
-        default_order = WordOrder(doc.get("word_order", "ABCD"))
-    except ValueError:
-        raise _fail(path, "word_order", f"must be one of ABCD, CDAB, BADC, DCBA, got {doc.get('word_order')!r}") from None
+    """A typed Profile from a parsed document; every error is one ProfileError naming file and key."""
+    r = Reader(path, doc, error=ProfileError)
+    kind = r.get(doc, "", "kind", str)
+    default_order = WordOrder(r.get(doc, "", "word_order", str, "ABCD", choices=_WORD_ORDERS))
     regs = {}
-    for name, r in doc["registers"].items():
+    for name, t in r.table("registers").items():
         where = f"[registers.{name}]"
-        if not isinstance(r, dict):
-            raise _fail(path, where, "must be a table")
-        unknown = sorted(set(r) - _REG_KEYS)
-        if unknown:
-            raise _fail(path, f"{where} {unknown[0]}", f"unknown key (known: {', '.join(sorted(_REG_KEYS))})")
-        if "address" not in r:
-            raise _fail(path, f"{where} address", "missing key")
-        addr = r["address"]
-        if isinstance(addr, bool) or not isinstance(addr, int) or not 0 <= addr <= 0xFFFF:
-            raise _fail(path, f"{where} address", f"must be an integer 0..65535, got {addr!r}")
-        dtype = r.get("type", "uint16")
-        if dtype not in DATA_TYPES:
-            raise _fail(path, f"{where} type", f"must be one of {', '.join(DATA_TYPES)}, got {dtype!r}")
-        table = r.get("table", "holding")
-        if table not in ("holding", "input"):
-            raise _fail(path, f"{where} table", f"must be 'holding' or 'input', got {table!r}")
-        access = r.get("access", "r")
-        if access not in ("r", "rw", "w"):
-            raise _fail(path, f"{where} access", f"must be r, rw or w, got {access!r}")
-        try:
-            order = WordOrder(r.get("word_order", default_order))
-        except ValueError:
-            raise _fail(path, f"{where} word_order", f"must be ABCD, CDAB, BADC or DCBA, got {r['word_order']!r}") from None
-        for k in ("scale", "offset", "min", "max"):
-            if k in r and (isinstance(r[k], bool) or not isinstance(r[k], (int, float))):
-                raise _fail(path, f"{where} {k}", f"must be a number, got {r[k]!r}")
-        if r.get("scale", 1.0) == 0:
-            raise _fail(path, f"{where} scale", "must not be zero")
+        v = r.read(t, where, _REGISTER)
+        if v["min"] is not None and v["max"] is not None and v["min"] > v["max"]:
+            raise r.fail(f"{where} max", f"must not be below min ({v['min']})")
         regs[name] = RegisterSpec(
-            name=name, address=addr, dtype=dtype, table=table, units=str(r.get("units", "")),
-            scale=float(r.get("scale", 1.0)), offset=float(r.get("offset", 0.0)), word_order=order,
-            access=access, min=None if "min" not in r else float(r["min"]),
-            max=None if "max" not in r else float(r["max"]),
-            bits=_int_keys(path, f"{where} bits", r.get("bits", {})),
-            enum=_int_keys(path, f"{where} enum", r.get("enum", {})),
-            explicit_order="word_order" in r,
+            name=name, address=v["address"], dtype=v["type"], table=v["table"], units=v["units"],
+            scale=v["scale"], offset=v["offset"], word_order=WordOrder(v["word_order"] or default_order),
+            access=v["access"], min=v["min"], max=v["max"],
+            bits=_int_keys(r, f"{where} bits", v["bits"]), enum=_int_keys(r, f"{where} enum", v["enum"]),
+            explicit_order=v["word_order"] is not None,
         )
-    unit = doc.get("default_unit", 1)
-    if isinstance(unit, bool) or not isinstance(unit, int) or not 0 <= unit <= 247:
-        raise _fail(path, "default_unit", f"must be an integer 0..247, got {unit!r}")
+    unit = r.get(doc, "", "default_unit", int, 1, check=within(0, 247))
     sections = {k: v for k, v in doc.items() if isinstance(v, dict) and k != "registers"}
     return Profile(
-        name=str(doc.get("name", Path(path).stem)), kind=str(doc["kind"]), registers=regs,
-        model=str(doc.get("model", "")), description=str(doc.get("description", "")), default_unit=unit,
-        word_order=default_order, sections=sections, path=str(path),
+        name=r.get(doc, "", "name", str, config_stem(path)), kind=kind, registers=regs,
+        model=r.get(doc, "", "model", str, ""), description=r.get(doc, "", "description", str, ""),
+        default_unit=unit, word_order=default_order, sections=sections, path=str(path),
     )
 
 
 def load_profile(name_or_path: str | os.PathLike | Profile) -> Profile:
-    """A profile by short name (``configs/devices/<name>.toml``) or by path."""
+    """A profile by short name (``devices/<name>.toml`` along the config search path) or by path."""
     if isinstance(name_or_path, Profile):
         return name_or_path
-    p = Path(name_or_path)
-    if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
-        p = devices_dir() / f"{name_or_path}.toml"
-        if not p.exists():
-            known = sorted(f.stem for f in devices_dir().glob("*.toml"))
-            raise ProfileError(f"{name_or_path}: no such device profile (built-in: {', '.join(known) or 'none'})")
-    try:
-        path, doc = read_toml(p)
-    except ConfigError as exc:
-        raise ProfileError(str(exc)) from None
+    path, doc = load_config("devices", name_or_path, error=ProfileError)
     return profile_from_dict(doc, str(path))

@@ -6,6 +6,9 @@
 
 Each pair is (bytes the driver must write, bytes the device answers). A reply of
 ``None`` (or b"") is a silent device: reads return nothing and the driver times out.
+``Late(data)`` is a reply that arrives only after the driver gave up waiting (its
+read came back empty at the deadline); ``Late(data, with_next=True)`` arrives just
+before the *next* exchange's reply (a late reply glued to the next answer).
 Writing anything unexpected fails the test with both byte strings shown.
 """
 
@@ -13,18 +16,29 @@ from __future__ import annotations
 
 import contextlib
 import time
+from dataclasses import dataclass
 from typing import Iterable
+
+
+@dataclass(frozen=True)
+class Late:
+    data: bytes
+    with_next: bool = False
 
 
 class ExpectedProtocolTransport:
     name = "expected-protocol"
+    char_time_s = 0.0
 
-    def __init__(self, pairs: Iterable[tuple[bytes, bytes | None]]):
+    def __init__(self, pairs: Iterable[tuple[bytes, bytes | Late | None]]):
         self.pairs = list(pairs)
         self.index = 0
         self._rx = bytearray()
+        self._late: bytes = b""  # arrives when the driver's next read times out
+        self._glued: bytes = b""  # arrives in front of the next exchange's reply
         self._open = False
         self.opens = 0
+        self.discarded = bytearray()  # every byte the driver threw away (flush / resync)
 
     @property
     def is_open(self) -> bool:
@@ -46,20 +60,37 @@ class ExpectedProtocolTransport:
                 f"exchange {self.index}: wrote {bytes(data).hex(' ')}, expected {bytes(expected).hex(' ')}"
             )
         self.index += 1
-        if reply:
+        if self._glued:
+            self._rx += self._glued
+            self._glued = b""
+        if isinstance(reply, Late):
+            if reply.with_next:
+                self._glued = reply.data
+            else:
+                self._late = reply.data
+        elif reply:
             self._rx += reply
 
     def read(self, n: int, deadline: float) -> bytes:
         if not self._rx:
             # a silent device: wait out the (short, test-chosen) deadline
             time.sleep(max(0.0, deadline - time.monotonic()))
+            if self._late:  # ... and then the late reply comes in
+                self._rx += self._late
+                self._late = b""
             return b""
         out = bytes(self._rx[:n])
         del self._rx[:n]
         return out
 
-    def discard_input(self) -> None:
+    def pending(self) -> bool:
+        return bool(self._rx)
+
+    def discard_input(self) -> int:
+        n = len(self._rx)
+        self.discarded += self._rx
         self._rx.clear()
+        return n
 
     def assert_done(self) -> None:
         assert self.index == len(self.pairs), f"only {self.index} of {len(self.pairs)} exchanges happened"

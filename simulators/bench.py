@@ -5,9 +5,11 @@
         bench = sim.bench()        # a velab.drivers.bench.Bench pointing at the live endpoints
         adc = open_device(bench.devices["pressure_adc"])
         sim.rig                    # the SimulatedRig (state, trigger_time, faults)
-        sim.faults["flowmeter"]    # DeviceFaults of one device (protocol faults)
+        sim.faults["flowmeter"]    # DeviceFaults of one device (protocol faults, from now on)
+        sim.schedule_fault("pressure_adc", at="trigger+1.5", duration_s=0.5, silent=True)
+        sim.set_fault("rig", channel_mA={0: 22.0}); sim.clear_fault("rig")
 
-Sim config (``configs/sim/<name>.toml``)::
+Sim config (``sim/<name>.toml`` along the config search path, :mod:`velab.configpath`)::
 
     rig = "perugia"
     material = "A"
@@ -21,7 +23,8 @@ Sim config (``configs/sim/<name>.toml``)::
     unit = 2
     endpoints = [{ transport = "rtu-pty", link = "/tmp/velab-sim/flowmeter", baudrate = 19200 },
                  { transport = "rtu-socket", port = 15023 }, { transport = "tcp", port = 15022 }]
-    [faults.<device name>] / [faults.rig]   # see velab.simulators.faults
+    [faults.<device name>] / [faults.rig]   # from the start: see velab.simulators.faults
+    [[faults.schedule]]                     # at an instant: see velab.simulators.schedule
 
 Device kinds are a registry (``register_sim_device``): the streaming-ADC simulator
 adds ``kind = "streaming_adc"`` by registering a factory
@@ -34,11 +37,13 @@ from __future__ import annotations
 
 import importlib
 import os
-from dataclasses import dataclass
+import threading
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
 from velab.errors import ConfigError
+from velab.tomlschema import Key, Reader, above, within
 
 
 @dataclass(frozen=True)
@@ -52,6 +57,9 @@ class Endpoint:
     link: str | None = None  # stable symlink to a pty path
     baudrate: int | None = None
 
+    def to_dict(self) -> dict:
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
     def bench_settings(self) -> dict:
         """The [devices.X] connection keys that reach this endpoint."""
         if self.kind == "streaming_adc":  # a serial stream: a pyserial URL (socket://) or the pty path
@@ -61,6 +69,18 @@ class Endpoint:
                     "unit": self.unit}
         return {"transport": "rtu", "port": self.link or self.address, "unit": self.unit,
                 "baudrate": self.baudrate or 19200}
+
+
+def is_loopback_host(host: str) -> bool:
+    """A loopback address (127.0.0.0/8, ::1) or "localhost"? Other names are not resolved (no DNS): not loopback."""
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.split("%", 1)[0]).is_loopback
+    except ValueError:
+        return False
 
 
 SIM_DEVICES: dict[str, Callable] = {}
@@ -173,51 +193,128 @@ def _load_plugins() -> None:
 
 
 def load_sim_config(name_or_path) -> tuple[Path, dict]:
-    from velab.config import CONFIG_ROOT, read_toml
+    """A sim config by short name (``sim/<name>.toml`` along the config search path) or path -> (path, doc)."""
+    from velab.configpath import load_config
 
-    p = Path(name_or_path)
-    if not (p.suffix == ".toml" or p.exists() or len(p.parts) > 1):
-        p = Path(CONFIG_ROOT) / "sim" / f"{name_or_path}.toml"
-    return read_toml(p)
+    return load_config("sim", name_or_path)
+
+
+# SimulatedRig keyword options ([model]) and the keys every device table may have, with their domains;
+# each device kind's factory refuses the keys it does not know.
+_MODEL = {
+    "pressure_noise_fs": Key(float, False, 2e-4, within(0, 1)),
+    "position_noise_pct": Key(float, False, 0.02, within(0, 100)),
+    "flow_noise_rel": Key(float, False, 2e-3, within(0, 1)),
+    "flow_update_s": Key(float, False, 0.5, above(0, 60, "s")),
+    "grid_dt_s": Key(float, False, 2e-4, within(1e-6, 0.1, "s")),
+    "transient_s": Key(float, False, 20.0, above(0, 3600, "s")),
+}
+_DEVICE_TYPES = {"kind": str, "profile": str, "unit": int, "word_order": str, "endpoints": list,
+                 "sample_rate_hz": int, "buffer_channels": int, "realtime": bool, "baudrate": int, "serial_no": str}
+_DEVICE_CHECKS = {"unit": within(0, 247), "sample_rate_hz": within(1, 100_000), "buffer_channels": within(1, 8),
+                  "baudrate": within(50, 4_000_000)}
+_ENDPOINT = {
+    "transport": Key(str, False, None),
+    "port": Key(int, False, 0, within(0, 65535)),
+    "baudrate": Key(int, False, 19200, within(50, 4_000_000)),
+    "link": Key(str, False, None),
+    "wire_delay": Key(bool, False, False),
+}
+
+
+def check_sim_config(config: dict, path: str = "<sim config>") -> dict:
+    """Types and domains of a sim config's keys (one-line ConfigError naming file and key) -> top-level values."""
+    r = Reader(path, config)
+    top = r.read(config, "", {
+        "name": Key(str, False, ""), "description": Key(str, False, ""), "rig": Key(str, False, "perugia"),
+        "material": Key(str, False, "A"), "seed": Key(int, False, 0, within(0, 2**32 - 1)),
+        "clock": Key(str, False, "realtime"), "host": Key(str, False, "127.0.0.1"),
+        "model": Key(dict, False, {}), "devices": Key(dict, False, {}), "faults": Key(dict, False, None),
+    })
+    top["model"] = {k: v for k, v in r.read(top["model"], "[model] ", _MODEL).items() if k in top["model"]}
+    for name, cfg in top["devices"].items():
+        where = f"[devices.{name}] "
+        if not isinstance(cfg, dict):
+            raise r.fail(where, f"must be a table, got {type(cfg).__name__}")
+        for key, kind in _DEVICE_TYPES.items():
+            if key in cfg:
+                r.get(cfg, where, key, kind, check=_DEVICE_CHECKS.get(key))
+        for i, ep in enumerate(cfg.get("endpoints", [])):
+            r.read(ep, f"{where}endpoints #{i + 1} ", _ENDPOINT)
+    faults = top["faults"] or {}
+    for name, t in faults.items():
+        if name == "schedule":  # [[faults.schedule]]: checked by velab.simulators.schedule
+            continue
+        if not isinstance(t, dict):
+            raise r.fail(f"[faults.{name}]", f"must be a table, got {type(t).__name__}")
+    rig_faults = faults.get("rig", {})
+    for key in ("stuck_channels", "channel_mA"):
+        for ch, v in (r.get(rig_faults, "[faults.rig] ", key, dict, {})).items():
+            if not ch.isdigit():
+                raise r.fail(f"[faults.rig] {key}.{ch}", "keys must be channel numbers")
+            r.get({ch: v}, f"[faults.rig] {key}.", ch, float)
+    return top
 
 
 class SimulatedBench:
     """Start every simulated device of a sim config in-process; a context manager."""
 
     def __init__(self, config: dict, *, ephemeral: bool = False, clock=None, host: str | None = None,
-                 path: str = "<sim config>"):
+                 path: str = "<sim config>", allow_remote: bool = False):
         from velab.config import load_material, load_rig
         from velab.simulators.clock import make_clock
         from velab.simulators.faults import FaultPlan
         from velab.simulators.rig import SimulatedRig
+        from velab.simulators.schedule import FaultSchedule
 
         _load_plugins()
         self.config = config
         self.path = path
-        known = {"name", "description", "rig", "material", "seed", "clock", "host", "model", "devices", "faults"}
-        unknown = sorted(set(config) - known)
-        if unknown:
-            raise ConfigError(f"{path}: {unknown[0]}: unknown key (known: {', '.join(sorted(known))})")
-        self.host = host or config.get("host", "127.0.0.1")
-        self.clock = clock or make_clock(config.get("clock", "realtime"))
-        self.rig = SimulatedRig(load_rig(config.get("rig", "perugia")), load_material(config.get("material", "A")),
-                                self.clock, seed=int(config.get("seed", 0)), **config.get("model", {}))
+        top = check_sim_config(config, path)
+        self.host = host or top["host"]
+        if not allow_remote and not is_loopback_host(self.host):
+            # the simulated actuator takes valve commands from whoever can reach it
+            raise ConfigError(f"{path}: host {self.host!r} is not a loopback address: the simulated rig (valve "
+                              f"control included) would be reachable from the network; allow it explicitly "
+                              f"(velab sim --allow-remote)")
+        try:
+            self.clock = clock or make_clock(top["clock"])
+        except ValueError as exc:
+            raise ConfigError(f"{path}: clock: {exc}") from None
+        try:
+            rig, material = load_rig(top["rig"]), load_material(top["material"])
+        except ConfigError as exc:  # say which sim config named the rig or material
+            raise ConfigError(f"{path}: rig/material: {exc}") from None
+        self.rig = SimulatedRig(rig, material, self.clock, seed=top["seed"], **top["model"])
+        self.instants = self.rig.instants
+        self.schedule = FaultSchedule(self.instants)
+        self.rig.schedule = self.schedule
         self.handles: dict[str, object] = {}
-        devices = config.get("devices") or {}
+        self.kinds: dict[str, str] = {"rig": "rig"}
+        self._poller: threading.Thread | None = None
+        self._poll_stop = threading.Event()
+        self._disconnected: set[str] = set()
+        self._poll_lock = threading.Lock()
+        devices = top["devices"]
         if not devices:
             raise ConfigError(f"{path}: [devices]: no simulated devices")
         for name, cfg in devices.items():
             cfg = dict(cfg)
             kind = cfg.get("kind")
+            if name == "rig":
+                raise ConfigError(f"{path}: [devices.rig]: the name 'rig' is reserved for the rig's model faults")
             if kind not in SIM_DEVICES:
                 raise ConfigError(f"{path}: [devices.{name}] kind: unknown simulated device kind {kind!r} "
                                   f"(known: {', '.join(sorted(SIM_DEVICES))})")
             if ephemeral:
                 cfg["endpoints"] = [{**e, "port": 0, "link": None} for e in cfg.get("endpoints", [{"transport": "tcp"}])]
             self.handles[name] = SIM_DEVICES[kind](name, self.rig, cfg, self.host)
+            self.kinds[name] = kind
         self.faults = {n: h.faults for n, h in self.handles.items()}
         self.plan = FaultPlan.from_dict(config.get("faults"), f"{path}: [faults]")
         self.plan.apply(self.rig, self.faults)
+        for kw in self.plan.scheduled(self.kinds, f"{path}: [faults]"):
+            self.schedule_fault(kw["device"], kw["at"], kw["duration_s"], every=kw["every"], **kw["fault"])
         self.endpoints: list[Endpoint] = []
 
     @classmethod
@@ -232,11 +329,99 @@ class SimulatedBench:
         except BaseException:
             self.stop()
             raise
+        self._poll_stop.clear()
+        self._poller = threading.Thread(target=self._poll_loop, name="velab-sim-faults", daemon=True)
+        self._poller.start()
         return self
 
     def stop(self) -> None:
+        self._poll_stop.set()
+        if self._poller is not None:
+            self._poller.join(2.0)
+            self._poller = None
         for h in self.handles.values():
             h.stop()
+
+    # ------------------------------------------------------------ faults at run time
+
+    def schedule_fault(self, device: str, at="now", duration_s: float | None = None, *, every: bool = False,
+                       **fault):
+        """Schedule ``fault`` (names of the device's kind, velab.simulators.schedule.FAULT_KEYS) on
+        ``device`` (a simulated device or "rig") at ``at``: "now", "start", "arm", "trigger",
+        each optionally "+seconds", or seconds after the start; for ``duration_s`` (None: until
+        cleared); ``every``: at every arm/trigger, not only the next. Returns the ScheduledFault
+        (pass it to clear_fault). Bad arguments: ConfigError, one line."""
+        from velab.simulators.schedule import Instant, ScheduledFault, fault_family, validate_fault
+
+        if device not in self.kinds:
+            raise ConfigError(f"schedule_fault: no simulated device {device!r} "
+                              f"(have: {', '.join(sorted(self.kinds))})")
+        where = f"schedule_fault({device!r})"
+        checked = validate_fault(fault, fault_family(self.kinds[device]), where)
+        now = self.clock.now()
+        instant = Instant.parse(at, f"{where}: at", now=now)
+        if duration_s is not None and not (isinstance(duration_s, (int, float)) and duration_s > 0):
+            raise ConfigError(f"{where}: duration_s = {duration_s!r}: must be > 0 (None: until cleared)")
+        entry = ScheduledFault(device, checked, instant, None if duration_s is None else float(duration_s),
+                               bool(every), created_s=now)
+        self.schedule.add(entry)
+        if self._poller is not None:
+            self.poll_faults()
+        return entry
+
+    def set_fault(self, device: str, **fault):
+        """A fault from now until cleared (``schedule_fault(device, "now", **fault)``)."""
+        return self.schedule_fault(device, "now", **fault)
+
+    def clear_fault(self, device: str | None = None, entry=None) -> None:
+        """Remove one scheduled fault (``entry``), or every fault of ``device`` (None: of every
+        device and the rig), scheduled or set from the start."""
+        if entry is not None:
+            self.schedule.remove(entry)
+        else:
+            self.schedule.clear(device)
+            for name in ([device] if device is not None else list(self.kinds)):
+                if name == "rig":
+                    self.rig.faults.clear()
+                    continue
+                h = self.handles[name]
+                if hasattr(h, "clear_faults"):
+                    h.clear_faults()
+                elif hasattr(h.faults, "clear"):
+                    h.faults.clear()
+        if self._poller is not None:
+            self.poll_faults()
+
+    def poll_faults(self) -> None:
+        """Apply the faults that are states, not replies, at the current instant: a Modbus
+        device's scheduled disconnect (and reconnect at its end), scheduled valve seizures.
+        The poller thread does this every 10 ms; tests on a manual clock may call it."""
+        with self._poll_lock:  # the poller thread and a test may both call this
+            now = self.clock.now()
+            for name, h in self.handles.items():
+                if not hasattr(h, "disconnect") or self.kinds[name] == "streaming_adc":
+                    continue  # the streaming ADC checks its own disconnect windows frame by frame
+                want = bool(self.schedule.merged(name, now).get("disconnect"))
+                if want and name not in self._disconnected:
+                    self._disconnected.add(name)
+                    h.disconnect()
+                elif not want and name in self._disconnected:
+                    self._disconnected.discard(name)
+                    h.reconnect()
+            self.rig.apply_due_seizures(now)
+
+    def _poll_loop(self) -> None:
+        while not self._poll_stop.wait(0.01):
+            try:
+                self.poll_faults()
+            except Exception:  # noqa: BLE001 - a failed reconnect is retried at the next tick
+                pass
+
+    def describe(self) -> dict:
+        """Machine-readable: the endpoints and a bench config (``[devices.X]`` tables) reaching them."""
+        bench = self.bench()
+        return {"config": self.path, "endpoints": [e.to_dict() for e in self.endpoints],
+                "bench": bench.to_dict(), "bench_toml": bench.to_toml()}
 
     def __enter__(self) -> "SimulatedBench":
         return self.start()

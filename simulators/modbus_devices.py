@@ -87,7 +87,7 @@ class SimFlowmeter(SimModbusDevice):
         tot = rig.totalizer_m3(tu)
         self.put("totalizer1", tot)
         self.put("totalizer1_f32", tot)
-        self.put("alarms", rig.faults.flow_alarm_bits)
+        self.put("alarms", rig.flow_alarm_bits(now))
 
     def write(self, address, values):
         if address == self.profile.reg("update_rate").address and len(values) == 1:
@@ -122,6 +122,7 @@ class SimValveActuator(SimModbusDevice):
 
     def refresh(self, now: float) -> None:
         rig = self.rig
+        rig.apply_due_seizures(now)  # a seizure scheduled at this instant shows in this very reply
         self.put("state", int(rig.state(now)))
         self.put("faults", rig.fault_bits(now))
         self.put("position", float(rig.valve_position(np.array([now]))[0]))

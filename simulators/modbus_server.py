@@ -11,26 +11,64 @@ endpoint, in a daemon thread with its own asyncio loop:
   :class:`velab.simulators.pty_bridge.PtyPair`.
 
 Register values are produced at request time by the device's ``read`` (no updater
-thread). Faults (``DeviceFaults``) act here: reply delay and exception replies in
-the pymodbus ``action`` callback, corrupted / garbled / missing replies in
-``trace_packet``.
+thread). Faults act here, decided once per request in the pymodbus ``action``
+callback from the device's ``DeviceFaults`` (from the start) and the rig's fault
+schedule at the request's instant: reply delay and exception replies in the action,
+corrupted / garbled / truncated / padded / wrong-unit / missing replies in
+``trace_packet``. A delay blocks this server's loop (a single-threaded device, like a
+real one): requests queue behind it and every reply keeps its own transaction id.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import os
+import socket
+import stat
 import threading
+import time
 
 from pymodbus.constants import ExcCodes
 from pymodbus.framer import FramerType
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from velab.drivers.modbus import crc16
+
 log = logging.getLogger(__name__)
 
 # pymodbus logs every garbled frame at ERROR level; fault-injection tests make many.
 logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+
+def _shut_sockets_on_port(port: int) -> None:
+    """Shut down every TCP socket of this process bound to ``port`` (Linux /proc).
+
+    pymodbus does not always close a client connection it accepted just before shutting
+    down: that connection would stay open and silent, and a simulated disconnect would look
+    like a timeout. A shutdown (FIN) makes the client see the connection drop; the fd itself
+    stays with its owner."""
+    try:
+        fds = os.listdir("/proc/self/fd")
+    except OSError:
+        return
+    for name in fds:
+        try:
+            fd = int(name)
+            if not stat.S_ISSOCK(os.fstat(fd).st_mode):
+                continue
+            s = socket.socket(fileno=fd)
+        except (OSError, ValueError):
+            continue
+        try:
+            if s.family in (socket.AF_INET, socket.AF_INET6) and s.type == socket.SOCK_STREAM \
+                    and s.getsockname()[1] == port:
+                s.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        finally:
+            s.detach()
 
 
 class ModbusDeviceServer:
@@ -52,7 +90,8 @@ class ModbusDeviceServer:
         self._server = None
         self._ready = threading.Event()
         self._error: BaseException | None = None
-        self._fault_now = False
+        self._now: dict = {}  # the faults decided for the request being answered
+        self._stopping = threading.Event()
         self.requests = 0
 
     # ------------------------------------------------------------ endpoint
@@ -73,14 +112,24 @@ class ModbusDeviceServer:
         blocks = [SimData(addr, count=n, values=0, datatype=DataType.REGISTERS) for addr, n in self.device.layout()]
         return SimDevice(id=self.device.unit, simdata=blocks, action=self._action)
 
+    def _decide(self) -> dict:
+        """The faults that apply to this request: the device's own, then the schedule's at this instant."""
+        dev = self.device
+        now = dict(dev.faults.as_dict()) if dev.faults.consume() else {}
+        sched = getattr(getattr(dev, "rig", None), "schedule", None)
+        if sched is not None:
+            now.update(sched.merged(dev.name, dev.rig.clock.now(), consume=True))
+        return now
+
     async def _action(self, fc, start, address, count, registers, values):
         self.requests += 1
-        faults = self.device.faults
-        if self._fault_now:
-            if faults.delay_s:
-                await asyncio.sleep(faults.delay_s)
-            if faults.exception_code:
-                return ExcCodes(faults.exception_code)
+        self._now = now = self._decide()
+        if now.get("delay_s"):
+            end = time.monotonic() + now["delay_s"]
+            while time.monotonic() < end and not self._stopping.is_set():  # blocking on purpose (see above)
+                time.sleep(min(0.01, end - time.monotonic()))
+        if now.get("exception_code"):
+            return ExcCodes(now["exception_code"])
         if self.wire_delay and self.transport != "tcp":
             # request + reply bytes on the wire (the pty bridge can do this instead)
             n_bytes = 8 + (5 + 2 * count if values is None else 8 + 2 * len(values))
@@ -98,18 +147,28 @@ class ModbusDeviceServer:
         return None
 
     def _trace_packet(self, sending: bool, data: bytes) -> bytes:
-        faults = self.device.faults
         if not sending:
-            self._fault_now = faults.consume()
             return data
-        if not self._fault_now:
+        now, self._now = self._now, {}
+        if not now or not data:
             return data
-        if faults.silent:
+        if now.get("silent") or now.get("disconnect"):
             return b""
-        if faults.garble:
-            return bytes((b ^ 0x5A) for b in data)
-        if faults.corrupt_crc and data:
-            return data[:-1] + bytes([data[-1] ^ 0xFF])
+        rtu = self.transport != "tcp"
+        if now.get("wrong_unit"):
+            if rtu:
+                body = bytes([(data[0] + 1) & 0xFF]) + data[1:-2]
+                data = body + crc16(body)
+            else:
+                data = data[:6] + bytes([(data[6] + 1) & 0xFF]) + data[7:]
+        if now.get("garble"):
+            data = bytes((b ^ 0x5A) for b in data)
+        if now.get("corrupt_crc"):
+            data = data[:-1] + bytes([data[-1] ^ 0xFF])
+        if now.get("short_by"):
+            data = data[: max(1, len(data) - int(now["short_by"]))]
+        if now.get("extra_bytes"):
+            data = data + bytes((0xA5 + 7 * i) & 0xFF for i in range(int(now["extra_bytes"])))
         return data
 
     async def _main(self) -> None:
@@ -132,6 +191,8 @@ class ModbusDeviceServer:
             return
         self._ready.set()
         await self._server.serving
+        for _ in range(5):  # let the transports' close callbacks run: clients see the connection drop
+            await asyncio.sleep(0.002)
 
     def _run(self) -> None:
         self._loop = asyncio.new_event_loop()
@@ -144,6 +205,7 @@ class ModbusDeviceServer:
     def start(self, timeout_s: float = 5.0) -> "ModbusDeviceServer":
         if self.running:
             return self
+        self._stopping.clear()
         self._ready.clear()
         self._error = None
         self._thread = threading.Thread(target=self._run, name=f"modbus-sim-{self.endpoint}", daemon=True)
@@ -158,6 +220,7 @@ class ModbusDeviceServer:
     def stop(self, timeout_s: float = 5.0) -> None:
         if not self.running or self._loop is None:
             return
+        self._stopping.set()  # ends an injected delay in progress
         fut = asyncio.run_coroutine_threadsafe(self._server.shutdown(), self._loop)
         try:
             fut.result(timeout_s)
@@ -165,6 +228,8 @@ class ModbusDeviceServer:
             pass
         self._thread.join(timeout_s)
         self._thread = None
+        if self.transport != "rtu":
+            _shut_sockets_on_port(self.port)
 
     def disconnect(self) -> None:
         """Drop every client and stop listening (a device power-cycling or a cable pulled)."""

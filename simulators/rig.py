@@ -28,20 +28,28 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from velab.config import GRAVITY_M_S2, Manoeuvre, Material, Rig
 # the actuator's state codes are the register contract: one definition, the driver's
 from velab.drivers.valve import ValveState  # noqa: F401 - re-exported for the simulators and tests
+from velab.simulators.rig_faults import (  # noqa: F401 - RigFaults, FAULT_FOLLOWING_ERROR re-exported
+    FAULT_FOLLOWING_ERROR,
+    RigFaults,
+    apply_input_faults,
+    due_seizures,
+    flow_faults_at,
+    pending_seize,
+)
+from velab.simulators.schedule import RunInstants
 from velab.synth import friction_is_linear, transient_head
 
 N_ANALOG = 4  # ch0 pressure, ch1 valve position, ch2-3 spare
 
 
 # fault bits of the actuator (shared with the actuator simulator and driver profile)
-FAULT_FOLLOWING_ERROR = 0x01
 FAULT_DRIVE = 0x02
 FAULT_SUPPLY_PRESSURE = 0x04
 FAULT_PARAMETERS = 0x10
@@ -53,33 +61,6 @@ class CommandRefused(Exception):
     def __init__(self, message: str, code: int = 3):
         super().__init__(message)
         self.code = code
-
-
-@dataclass
-class RigFaults:
-    """Model-level faults (the protocol-level ones are in simulators.faults.DeviceFaults).
-
-    stuck_channels : analog channel -> time from which it holds its value (stuck sensor)
-    channel_mA : analog channel -> forced loop current (out of range: 22.0; open loop: 0.0; NaN)
-    flow_nan : the flowmeter reports NaN
-    flow_value : the flowmeter reports this value (out of range)
-    flow_stuck_at : the flowmeter freezes at its value at this time
-    flow_alarm_bits : alarm bits the flowmeter raises (bit0 empty pipe ...)
-    valve_fault_after_s : the valve seizes this long after the trigger; state FAULT
-    valve_fault_bits : fault bits then reported
-    """
-
-    stuck_channels: dict = field(default_factory=dict)
-    channel_mA: dict = field(default_factory=dict)
-    flow_nan: bool = False
-    flow_value: float | None = None
-    flow_stuck_at: float | None = None
-    flow_alarm_bits: int = 0
-    valve_fault_after_s: float | None = None
-    valve_fault_bits: int = FAULT_FOLLOWING_ERROR
-
-    def clear(self) -> None:
-        self.__init__()
 
 
 @dataclass(frozen=True)
@@ -146,6 +127,8 @@ class SimulatedRig:
         self.grid_dt_s = grid_dt_s
         self.transient_s = transient_s
         self.faults = RigFaults()
+        self.schedule = None  # a velab.simulators.schedule.FaultSchedule (faults at run instants)
+        self.instants = RunInstants(clock.now())  # arm / trigger instants, for the schedule
         self._lock = threading.RLock()
         m = rig.manoeuvre
         self._beta, self._gamma, self._end = m.beta_per_s, m.gamma, 0.0
@@ -203,6 +186,10 @@ class SimulatedRig:
                 raise CommandRefused("actuator in FAULT: reset first", code=4)
             if st not in (ValveState.IDLE, ValveState.ARMED):
                 raise CommandRefused(f"cannot arm while {st.name} (reset first)")
+            seize = pending_seize(self)  # a seizure scheduled at trigger+tau is part of this stroke
+            if seize is not None:
+                self.faults.valve_fault_after_s, self.faults.valve_fault_bits = seize
+            self.instants.mark("arm", self.clock.now())
             fault_tau = self.faults.valve_fault_after_s
             self._armed = self._compute(0.0, self._beta, self._gamma, self._end, freeze_tau=fault_tau)
             self._state = ValveState.ARMED
@@ -218,6 +205,7 @@ class SimulatedRig:
             self._state = ValveState.RUNNING
             self._stopped_state = None
             self._trigger_count += 1
+            self.instants.mark("trigger", t)
             return t
 
     def hold(self, at: float | None = None) -> None:
@@ -250,6 +238,36 @@ class SimulatedRig:
                 self._tr = new
             self._stopped_state = new_state
 
+    def seize(self, at: float | None = None, bits: int = FAULT_FOLLOWING_ERROR) -> None:
+        """Fault: the valve stops where it is at ``at`` (default now) and the actuator goes to FAULT
+        with ``bits``; before the trigger it will not move at all. Until RESET."""
+        with self._lock:
+            t = self.clock.now() if at is None else float(at)
+            self.faults.valve_fault_bits = int(bits)
+            tr = self._tr
+            if tr is None or self.state(t) not in (ValveState.RUNNING, ValveState.HOLDING):
+                if tr is None:  # idle or armed: the next stroke seizes at once
+                    self.faults.valve_fault_after_s = 0.0
+                    if self._armed is not None:
+                        a = self._armed
+                        self._armed = self._compute(0.0, a.beta, a.gamma, a.end_pct, freeze_tau=0.0)
+                return
+            tau = max(0.0, t - tr.trigger_time)
+            if tr.freeze_tau is not None and tr.freeze_tau <= tau:
+                tau = tr.freeze_tau  # already stopped (HOLD): it seizes there
+            else:
+                self._tr = self._compute(tr.trigger_time, tr.beta, tr.gamma, tr.end_pct, freeze_tau=tau)
+            self.faults.valve_fault_after_s = tau
+            self._stopped_state = None
+
+    def apply_due_seizures(self, t: float | None = None) -> None:
+        """Scheduled seizures anchored at start / arm / an absolute time whose instant has come."""
+        t = self.clock.now() if t is None else t
+        for entry, t0, bits in due_seizures(self, t):
+            if getattr(entry, "_seized_at", None) != t0:
+                entry._seized_at = t0
+                self.seize(t0, bits)
+
     def reset(self) -> None:
         """Back to steady state, valve open (the operator re-opened it and waited; a simplification)."""
         with self._lock:
@@ -271,7 +289,7 @@ class SimulatedRig:
             t = self.clock.now() if t is None else t
             tau = t - tr.trigger_time
             fault_tau = self.faults.valve_fault_after_s
-            if fault_tau is not None and tr.freeze_tau is not None and tau >= tr.freeze_tau and \
+            if fault_tau is not None and tr.freeze_tau is not None and tau >= tr.freeze_tau - 1e-9 and \
                     abs(tr.freeze_tau - fault_tau) < 1e-12:
                 return ValveState.FAULT
             if self._stopped_state is not None:
@@ -349,8 +367,8 @@ class SimulatedRig:
             p = p + self.pressure_noise_fs * self.full_scale_pa * hashed_normal(self.seed, 0, t)
         return p
 
-    def analog_inputs(self, t: np.ndarray) -> np.ndarray:
-        """Loop currents (mA), shape (n, 4), at times t (clock seconds).
+    def clean_inputs(self, t: np.ndarray) -> np.ndarray:
+        """Loop currents (mA), shape (n, 4), at times t (clock seconds), without sensor faults.
 
         ch0: pressure transducer, 4-20 mA over 0..rig.transducer.full_scale_pa (gauge);
         ch1: valve position feedback, 4-20 mA over 0..100 % open; ch2, ch3: spare, 4 mA.
@@ -362,21 +380,14 @@ class SimulatedRig:
         if self.position_noise_pct:  # feedback potentiometer noise
             pos = pos + self.position_noise_pct * hashed_normal(self.seed, 1, t)
         out[:, 1] = 4.0 + 16.0 * pos / 100.0
-        f = self.faults
-        for ch, t_stuck in list(f.stuck_channels.items()):
-            mask = t >= t_stuck
-            if mask.any():
-                out[mask, ch] = self._channel_value(ch, float(t_stuck))
-        for ch, mA in list(f.channel_mA.items()):
-            out[:, ch] = mA
         return out
 
-    def _channel_value(self, ch: int, t: float) -> float:
-        saved = self.faults.stuck_channels.pop(ch)
-        try:
-            return float(self.analog_inputs(np.array([t]))[0, ch])
-        finally:
-            self.faults.stuck_channels[ch] = saved
+    def analog_inputs(self, t: np.ndarray) -> np.ndarray:
+        """Loop currents (mA), shape (n, 4), at times t, with the sensor faults in force at each t."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        out = self.clean_inputs(t)
+        apply_input_faults(self, t, out)
+        return out
 
     # ------------------------------------------------------------ flowmeter
     def flowmeter_update_time(self, t: float) -> float:
@@ -385,18 +396,22 @@ class SimulatedRig:
 
     def flowmeter_value(self, t: float) -> float:
         """What the flowmeter shows at time t: refreshed every flow_update_s, with noise."""
-        f = self.faults
-        if f.flow_nan:
+        f = flow_faults_at(self, t)
+        if f.nan:
             return float("nan")
-        if f.flow_value is not None:
-            return float(f.flow_value)
+        if f.value is not None:
+            return float(f.value)
         tu = self.flowmeter_update_time(t)
-        if f.flow_stuck_at is not None and tu > f.flow_stuck_at:
-            tu = self.flowmeter_update_time(f.flow_stuck_at)
+        if f.stuck_at is not None and tu > f.stuck_at:
+            tu = self.flowmeter_update_time(f.stuck_at)
         q = float(self.flow_m3_s(np.array([tu]))[0])
         if self.flow_noise_rel:
             q *= 1.0 + self.flow_noise_rel * float(hashed_normal(self.seed, 2, np.array([tu]))[0])
         return q
+
+    def flow_alarm_bits(self, t: float) -> int:
+        """The flowmeter's alarm word at time t."""
+        return flow_faults_at(self, t).alarm_bits
 
     def totalizer_m3(self, t: float) -> float:
         """Volume through the meter since the simulation started (m3)."""

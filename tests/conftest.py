@@ -1,7 +1,30 @@
+import atexit
 import os
+import shutil
+import tempfile
 
 # Qt tests run offscreen; set before any Qt import.
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+
+# Config lookup is hermetic: a developer's ~/.config/velab or $VELAB_CONFIG_PATH must not change
+# what "perugia" or "A" means in a test (subprocesses inherit this too).
+os.environ.pop("VELAB_CONFIG_PATH", None)
+os.environ["XDG_CONFIG_HOME"] = tempfile.mkdtemp(prefix="velab-test-xdg-")
+atexit.register(shutil.rmtree, os.environ["XDG_CONFIG_HOME"], True)
+
+# Property-based tests: reproducible in CI (derandomised, no per-example deadline on a loaded
+# 2-core machine); VELAB_FUZZ_EXAMPLES scales the number of examples for a longer local run.
+try:
+    from hypothesis import HealthCheck, settings
+
+    settings.register_profile(
+        "velab", derandomize=True, deadline=None, print_blob=True,
+        max_examples=int(os.environ.get("VELAB_FUZZ_EXAMPLES", "150")),
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+    )
+    settings.load_profile("velab")
+except ImportError:  # hypothesis is a test extra; only the fuzz tests need it
+    pass
 
 
 import pytest  # noqa: E402

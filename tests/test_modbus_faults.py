@@ -6,8 +6,8 @@ import time
 import numpy as np
 import pytest
 
-from velab.drivers.base import (DeviceDisconnected, DeviceException, DeviceFault, DeviceTimeout, ProtocolError,
-                                Quality)
+from velab.drivers.base import (DeviceDisconnected, DeviceException, DeviceFault, DeviceReset, DeviceTimeout,
+                                ProtocolError, Quality)
 from velab.drivers.bench import open_device
 from velab.drivers.valve import ValveState
 from velab.simulators.bench import SimulatedBench
@@ -200,23 +200,37 @@ def test_flowmeter_constant_zero_flow_is_not_stale(sim):
         fm.close()
 
 
-def test_adc_out_of_range_open_loop_and_adc_failure(sim):
+@pytest.mark.parametrize("mA,quality", [
+    (22.0, Quality.SENSOR_FAULT),  # NE43: above 20.5 mA is a transmitter fault, not a pressure
+    (20.4, Quality.OVER_RANGE),  # beyond the span but inside the NE43 band: a real (bounded) value
+    (3.82, Quality.UNDER_RANGE),
+    (3.7, Quality.SENSOR_FAULT),
+    (2.0, Quality.OPEN_LOOP),
+    (float("nan"), Quality.FAULT),  # the module's "ADC failed" status bit
+])
+def test_adc_loop_current_quality_polled(sim, mA, quality):
     adc = connect(sim, "pressure_adc")
     try:
-        sim.rig.faults.channel_mA = {0: 22.0}
-        assert adc.read_pressure().quality is Quality.OVER_RANGE
-        sim.rig.faults.channel_mA = {0: 2.0}
-        assert adc.read_pressure().quality is Quality.OPEN_LOOP
-        sim.rig.faults.channel_mA = {0: 3.9}
-        assert adc.read_pressure().quality is Quality.UNDER_RANGE
-        sim.rig.faults.channel_mA = {0: float("nan")}
-        assert adc.read_pressure().quality is Quality.FAULT
-        sim.rig.faults.channel_mA = {0: 22.0}
+        sim.rig.faults.channel_mA = {0: mA}
+        r = adc.read_pressure()
+        assert r.quality is quality and r.quality.is_measurement == (quality in (Quality.OVER_RANGE,
+                                                                                 Quality.UNDER_RANGE))
+    finally:
+        adc.close()
+
+
+@pytest.mark.parametrize("mA,quality", [(22.0, Quality.SENSOR_FAULT), (2.0, Quality.OPEN_LOOP),
+                                        (float("nan"), Quality.OPEN_LOOP), (20.4, Quality.OVER_RANGE)])
+def test_adc_loop_current_quality_buffered(sim, mA, quality):
+    adc = connect(sim, "pressure_adc")
+    try:
+        sim.rig.faults.channel_mA = {0: mA}
         adc.start_buffer()
         sim.clock.advance(0.01)
         b = adc.read_buffer()
-        assert len(b) == 20 and all(b.quality_of(i, 0) is Quality.OVER_RANGE for i in range(len(b)))
+        assert len(b) == 20 and all(b.quality_of(i, 0) is quality for i in range(len(b)))
         assert all(b.quality_of(i, 1) is Quality.OK for i in range(len(b)))
+        assert b.quality[0] is quality and b.good("pressure").sum() == (20 if quality.is_measurement else 0)
     finally:
         adc.close()
 
@@ -235,6 +249,33 @@ def test_adc_stuck_sensor_is_flagged_stale(sim):
         assert all(b.quality_of(i, 1) is Quality.OK for i in range(len(b)))
     finally:
         adc.close()
+
+
+def test_adc_counter_going_back_is_a_device_reset(sim):
+    adc, other = connect(sim, "pressure_adc"), connect(sim, "pressure_adc")
+    try:
+        adc.start_buffer()
+        sim.clock.advance(0.1)
+        assert adc.read_buffer().n == 200
+        other.start_buffer()  # someone restarts the module's acquisition: its counter goes back to 0
+        sim.clock.advance(0.01)
+        e = bounded(adc.read_buffer, DeviceReset, "sample counter went back from 200 to 20")
+        assert e.device == "pressure_adc" and e.reason == "reset"
+        adc.attach_buffer()  # re-attaching explicitly resumes from the new counter
+        sim.clock.advance(0.01)
+        assert adc.read_buffer().n == 20
+    finally:
+        adc.close()
+        other.close()
+
+
+def test_unnamed_flow_alarm_bit_is_a_fault_not_ignored(sim):
+    fm = connect(sim, "flowmeter", "tcp")
+    try:
+        sim.rig.faults.flow_alarm_bits = 1 << 7  # a bit the profile does not name
+        assert fm.read_flow().quality is Quality.FAULT and fm.read_alarms() == ["bit 7"]
+    finally:
+        fm.close()
 
 
 def test_adc_overrun_is_a_counted_gap_not_invented_samples(sim):

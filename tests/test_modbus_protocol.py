@@ -4,11 +4,12 @@ import struct
 
 import pytest
 
-from velab.drivers.base import DeviceDisconnected, DeviceException, DeviceTimeout, ProtocolError
+from velab.drivers.base import (ChecksumError, DeviceDisconnected, DeviceException, DeviceTimeout, FrameError,
+                                ProtocolError, ReplyMismatch)
 from velab.drivers.flowmeter import Flowmeter
 from velab.drivers.modbus import ModbusClient, WordOrder, crc16, decode_registers, encode_value
 from velab.drivers.modbus_device import RangeError
-from velab.drivers.testing import ExpectedProtocolTransport, expected_protocol
+from velab.drivers.testing import ExpectedProtocolTransport, Late, expected_protocol
 from velab.drivers.valve import ValveActuator
 
 
@@ -56,11 +57,26 @@ def test_tcp_mbap_frames_and_transaction_ids():
 
 
 def test_tcp_skips_late_reply_to_an_earlier_request():
-    late = struct.pack(">HHHB", 7, 0, 5, 1) + bytes([3, 2, 0, 9])
-    req = struct.pack(">HHHB", 1, 0, 6, 1) + bytes.fromhex("030000 0001".replace(" ", ""))
-    rep = struct.pack(">HHHB", 1, 0, 5, 1) + bytes([3, 2, 0, 42])
-    with expected_protocol([(req, late + rep)]) as t:
-        assert ModbusClient(t, "tcp", unit=1, timeout_s=0.05, retries=0).read_holding(0, 1) == [42]
+    """tid 1 times out; its late reply arrives glued before the reply to tid 2: dropped, not used."""
+    req1 = struct.pack(">HHHB", 1, 0, 6, 1) + bytes.fromhex("0300000001")
+    late1 = struct.pack(">HHHB", 1, 0, 5, 1) + bytes([3, 2, 0, 9])
+    req2 = struct.pack(">HHHB", 2, 0, 6, 1) + bytes.fromhex("0300000001")
+    rep2 = struct.pack(">HHHB", 2, 0, 5, 1) + bytes([3, 2, 0, 42])
+    with expected_protocol([(req1, Late(late1, with_next=True)), (req2, rep2)]) as t:
+        bus = ModbusClient(t, "tcp", unit=1, timeout_s=0.05, retries=0)
+        with pytest.raises(DeviceTimeout):
+            bus.read_holding(0, 1)
+        assert bus.read_holding(0, 1) == [42]
+    assert bus.stats.late_replies == 1
+
+
+def test_tcp_unknown_transaction_id_is_wrong_transaction():
+    req = struct.pack(">HHHB", 1, 0, 6, 1) + bytes.fromhex("0300000001")
+    rep = struct.pack(">HHHB", 7, 0, 5, 1) + bytes([3, 2, 0, 9])
+    with expected_protocol([(req, rep)]) as t:
+        with pytest.raises(ReplyMismatch, match="transaction id 7, expected 1") as ei:
+            ModbusClient(t, "tcp", unit=1, timeout_s=0.05, retries=0).read_holding(0, 1)
+    assert ei.value.reason == "wrong_transaction" and ei.value.device == "expected-protocol"
 
 
 @pytest.mark.parametrize("code,name", [(2, "illegal data address"), (3, "illegal data value"), (6, "busy")])
@@ -110,7 +126,7 @@ def test_silent_device_times_out_within_bound():
 
 @pytest.mark.parametrize("reply,match", [
     (rtu(5, 3, 4, bytes(4)), "from unit 5"),
-    (rtu(2, 4, 4, bytes(4)), "function code 4"),
+    (rtu(2, 4, 4, bytes(4)), "function code 0x04, expected 0x03"),
     (bytes.fromhex("020304406d"), "truncated"),
 ])
 def test_malformed_replies_are_protocol_errors(reply, match):
@@ -177,3 +193,140 @@ def test_valve_manoeuvre_is_one_write_and_ranges_checked_before_sending():
             v.set_manoeuvre(500.0, -5.5)
         with pytest.raises(RangeError, match="end_position"):
             v.set_manoeuvre(32.0, -5.5, 120.0)
+
+
+# ---------------------------------------------------------------- every reply check, byte-exact
+
+def mbap(tid: int, unit: int, pdu: bytes, length: int | None = None) -> bytes:
+    return struct.pack(">HHHB", tid, 0, len(pdu) + 1 if length is None else length, unit) + pdu
+
+
+READ_3002 = rtu(2, 3, bytes.fromhex("0bba0002"))  # read holding 3002+2 from unit 2
+GOOD_3002 = rtu(2, 3, 4, bytes.fromhex("406d0000"))
+
+
+def rtu_bus(t, **kw):
+    kw.setdefault("timeout_s", 0.05)
+    kw.setdefault("retries", 0)
+    return ModbusClient(t, "rtu", unit=2, name="flowmeter", **kw)
+
+
+@pytest.mark.parametrize("reply,cls,reason,match", [
+    (GOOD_3002[:-3], FrameError, "short_frame", "truncated reply: 6 of 9 bytes"),
+    (rtu(2, 3, 2, bytes.fromhex("406d")), FrameError, "byte_count", "byte count 2, expected 4"),  # valid CRC, 1 register
+    (rtu(2, 3, 6, bytes(6)), FrameError, "byte_count", "byte count 6, expected 4"),
+    (GOOD_3002 + b"\x00", FrameError, "long_frame", "bytes trailing the reply frame"),
+    (GOOD_3002[:-1] + bytes([GOOD_3002[-1] ^ 1]), ChecksumError, "bad_crc", "CRC error"),
+    (rtu(7, 3, 4, bytes.fromhex("406d0000")), ReplyMismatch, "wrong_unit", "reply from unit 7"),
+    (rtu(2, 4, 4, bytes(4)), ReplyMismatch, "wrong_function", "function code 0x04, expected 0x03"),
+    (rtu(2, 0x84, 2), ReplyMismatch, "wrong_function", "function code 0x84"),  # another function's exception
+])
+def test_rtu_reply_checks(reply, cls, reason, match):
+    with expected_protocol([(READ_3002, reply)]) as t:
+        with pytest.raises(cls, match=match) as ei:
+            rtu_bus(t).read_holding(3002, 2)
+    e = ei.value
+    assert isinstance(e, ProtocolError) and e.reason == reason and e.device == "flowmeter"
+    assert "flowmeter unit 2: read holding 3002+2" in str(e)
+
+
+def test_rtu_rejected_reply_is_retried_after_the_line_goes_quiet():
+    bad = GOOD_3002 + b"\xff\xff"  # a frame glued to junk: never used
+    with expected_protocol([(READ_3002, bad), (READ_3002, GOOD_3002)]) as t:
+        bus = rtu_bus(t, retries=1)
+        assert bus.read_holding(3002, 2) == [0x406D, 0]
+    assert bus.stats.protocol_errors == 1 and bus.stats.retries == 1
+
+
+def test_rtu_write_echo_must_match_the_request():
+    req = rtu(3, 0x10, bytes.fromhex("00000001"), 2, bytes.fromhex("0001"))
+    echo = rtu(3, 0x10, bytes.fromhex("00010001"))  # acknowledges address 1, not 0
+    with expected_protocol([(req, echo)]) as t:
+        with pytest.raises(ReplyMismatch, match="write acknowledged as 1\\+1") as ei:
+            ModbusClient(t, "rtu", unit=3, timeout_s=0.05, retries=0).write_registers(0, [1])
+    assert ei.value.reason == "wrong_echo"
+
+
+def test_rtu_late_reply_is_dropped_not_taken_for_the_next_request():
+    """Request 1 times out; its reply arrives late; request 2 (same shape, other address) gets its own."""
+    read_3100 = rtu(2, 3, bytes.fromhex("0c1c0002"))
+    good_3100 = rtu(2, 3, 4, bytes.fromhex("00010002"))
+    with expected_protocol([(READ_3002, Late(GOOD_3002)), (read_3100, good_3100)]) as t:
+        bus = rtu_bus(t)
+        with pytest.raises(DeviceTimeout, match="no reply to read holding 3002\\+2"):
+            bus.read_holding(3002, 2)
+        assert bus.read_holding(3100, 2) == [1, 2]  # not 0x406d, 0
+    assert bytes(t.discarded) == GOOD_3002 or bus.stats.flushed_bytes == len(GOOD_3002)
+
+
+def test_rtu_late_reply_glued_before_the_next_reply_is_rejected_then_retried():
+    """The worst case: the late frame arrives just before the next reply, with the same shape.
+    The frame is followed by bytes within the inter-frame silence: rejected (long_frame), the
+    line is let go quiet, the request is sent again and its own reply is used."""
+    read_3100 = rtu(2, 3, bytes.fromhex("0c1c0002"))
+    good_3100 = rtu(2, 3, 4, bytes.fromhex("00010002"))
+    pairs = [(READ_3002, Late(GOOD_3002, with_next=True)), (read_3100, good_3100), (read_3100, good_3100)]
+    with expected_protocol(pairs) as t:
+        bus = rtu_bus(t)
+        with pytest.raises(DeviceTimeout):
+            bus.read_holding(3002, 2)
+        bus.retries = 1
+        assert bus.read_holding(3100, 2) == [1, 2]
+    assert bus.stats.protocol_errors == 1 and bus.stats.retries == 1
+
+
+def test_rtu_exception_reply_is_checked_too():
+    with expected_protocol([(READ_3002, rtu(2, 0x83, 2)[:-1] + b"\x00")]) as t:
+        with pytest.raises(ChecksumError):
+            rtu_bus(t).read_holding(3002, 2)
+
+
+TCP_REQ = mbap(1, 3, bytes.fromhex("0300140005"))  # read holding 20+5 from unit 3
+
+
+def tcp_bus(t, **kw):
+    kw.setdefault("timeout_s", 0.05)
+    kw.setdefault("retries", 0)
+    return ModbusClient(t, "tcp", unit=3, name="valve", **kw)
+
+
+@pytest.mark.parametrize("reply,cls,reason,match", [
+    (mbap(1, 3, bytes([3, 10]) + bytes(10))[:-4], FrameError, "short_frame", "truncated reply"),
+    (mbap(1, 3, bytes([3, 8]) + bytes(8)), FrameError, "byte_count", "byte count 8, expected 10"),
+    (mbap(1, 3, bytes([3, 10]) + bytes(12)), FrameError, "long_frame", "PDU of 14 bytes, expected 12"),
+    (mbap(1, 3, bytes([3, 10]) + bytes(10), length=300), FrameError, "bad_header", "length 300"),
+    (struct.pack(">HHHB", 1, 7, 13, 3) + bytes([3, 10]) + bytes(10), FrameError, "bad_header", "protocol 7"),
+    (mbap(9, 3, bytes([3, 10]) + bytes(10)), ReplyMismatch, "wrong_transaction", "transaction id 9, expected 1"),
+    (mbap(1, 4, bytes([3, 10]) + bytes(10)), ReplyMismatch, "wrong_unit", "reply from unit 4"),
+    (mbap(1, 3, bytes([4, 10]) + bytes(10)), ReplyMismatch, "wrong_function", "function code 0x04"),
+    (mbap(1, 3, bytes([0x83, 2, 0])), FrameError, "long_frame", "exception reply of wrong length"),
+])
+def test_tcp_reply_checks(reply, cls, reason, match):
+    with expected_protocol([(TCP_REQ, reply)]) as t:
+        with pytest.raises(cls, match=match) as ei:
+            tcp_bus(t).read_holding(20, 5)
+    assert ei.value.reason == reason and ei.value.device == "valve"
+
+
+def test_tcp_exception_reply_names_device_and_code():
+    with expected_protocol([(TCP_REQ, mbap(1, 3, bytes([0x83, 2])))]) as t:
+        with pytest.raises(DeviceException, match="valve unit 3: read holding 20\\+5 refused: Modbus exception 2") as ei:
+            tcp_bus(t, retries=3).read_holding(20, 5)
+    assert ei.value.code == 2 and ei.value.reason == "exception" and ei.value.device == "valve"
+
+
+def test_tcp_garbled_reply_then_good_retry():
+    good = mbap(2, 3, bytes([3, 10]) + bytes(range(10)))
+    garbled = bytes(b ^ 0x5A for b in mbap(1, 3, bytes([3, 10]) + bytes(10)))
+    req2 = mbap(2, 3, bytes.fromhex("0300140005"))
+    with expected_protocol([(TCP_REQ, garbled), (req2, good)]) as t:
+        bus = tcp_bus(t, retries=1)
+        assert bus.read_holding(20, 5) == [0x0001, 0x0203, 0x0405, 0x0607, 0x0809]
+    assert bus.stats.protocol_errors == 1
+
+
+def test_retries_exhausted_keep_the_named_error():
+    with expected_protocol([(READ_3002, GOOD_3002[:-1]), (READ_3002, GOOD_3002[:-1])]) as t:
+        with pytest.raises(FrameError, match="after 2 attempts") as ei:
+            rtu_bus(t, retries=1).read_holding(3002, 2)
+    assert ei.value.reason == "short_frame" and ei.value.device == "flowmeter"

@@ -13,6 +13,7 @@ import pytest
 
 from velab.errors import VelabError
 from velab.recording import Recorder, RecorderEvent, RecordSettings
+from velab.runfiles.layout import read_json
 from velab.runfile import read_run
 from velab.simulators.bench import SimulatedBench
 from velab.simulators.clock import make_clock
@@ -86,7 +87,7 @@ def test_armed_rig_left_alone_disarms_itself(tmp_path):
     run = read_run(summary.path)
     assert run.status == "aborted" and any(k == "disarmed" for _, k, _ in run.events)
     with h5py.File(summary.path, "r") as fh:
-        assert json.loads(fh["entry/notes"].attrs["settings_json"])["armed_timeout_in_force_s"] == 4.0
+        assert read_json(fh["entry/notes"], "settings_json")["armed_timeout_in_force_s"] == 4.0
     assert _phases(events)[-1] == "aborted"
 
 
@@ -125,11 +126,14 @@ def test_run_is_self_describing_and_offline_fit_reproduces_the_online_fit(tmp_pa
     path = online["path"]
     assert "armed" in rec.stderr and "recording" in rec.stderr  # progress on stderr, the phases printed
     with h5py.File(path, "r") as fh:
-        rig = json.loads(fh["entry/sample"].attrs["rig_json"])
+        rig = read_json(fh["entry/sample"], "rig_json")
         assert float(fh["entry/manoeuvre/beta"][()]) == 10.0 == rig["manoeuvre"]["beta_per_s"]
-        setup = json.loads(fh["entry/instrument"].attrs["device_setup_json"])
-    assert setup["identities"]["streaming_adc"]["serial"] and setup["identities"]["valve"]
-    assert "[registers.state]" in setup["profiles"]["valve"]["toml"]
+        inst = fh["entry/instrument"]
+        setup, identities = read_json(inst, "device_setup_json"), read_json(inst, "devices_json")
+        profiles, bench = read_json(inst, "device_profiles_json"), read_json(inst, "bench_json")
+    assert identities["streaming_adc"]["serial"] and identities["valve"]
+    assert "[registers.state]" in profiles["valve"]["toml"]
+    assert bench["devices"]
     assert {"velab", "numpy", "scipy", "h5py", "pymodbus"} <= set(setup["versions"])
     off = subprocess.run(CLI + ["fit", path, "--window", "12", "--models", "1-3", "--json", "--no-save"],
                          capture_output=True, text=True, timeout=240)
@@ -148,7 +152,9 @@ def test_record_options_are_checked(tmp_path):
     for bad in (["--ceiling", "inf"], ["--duration", "nan"], ["--rate", "-5"], ["--repeat", "0"]):
         r = rec(*bad)
         assert r.returncode == 2 and "Traceback" not in r.stderr, (bad, r.stderr)
-    r = rec("--rate", "1e9", "--duration", "1")
+    r = rec("--rate", "1e9", "--duration", "1")  # beyond any rate: refused by the option's domain
+    assert r.returncode == 2 and "--rate" in r.stderr and r.stderr.count("\n") == 1
+    r = rec("--rate", "2e5", "--duration", "1")  # a rate, but beyond the pressure source's 50 kHz
     assert r.returncode == 2 and "outside the range" in r.stderr and "Traceback" not in r.stderr
     r = rec("--ceiling", "500", "--duration", "1")
     assert r.returncode == 2 and "above the limiting pressure" in r.stderr

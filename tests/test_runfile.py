@@ -81,8 +81,8 @@ def test_nexus_attributes_alone_lead_to_the_signal(synth_run):
         assert missing == []
         assert entry["sample/material/tau"].attrs["units"] == "s"
         np.testing.assert_allclose(entry["sample/material/tau"][()], [2, 0.2, 0.02])
-        assert f.attrs["format_version"] == "1.0"
-        assert json.loads(entry["sample"].attrs["rig_json"])["pipe"]["length_m"] == 102.58
+        assert f.attrs["format_version"] == "2.0"
+        assert json.loads(entry["sample/rig_json"][()])["pipe"]["length_m"] == 102.58
 
 
 @pytest.mark.skipif(shutil.which("h5dump") is None, reason="h5dump (Debian hdf5-tools) not installed")
@@ -254,7 +254,7 @@ def test_writer_events_gaps_and_close_status(tmp_path):
     assert r.status == "aborted" and r.status_reason == "pressure ceiling"
     assert r.gaps == [(20, 5)]
     assert r.events == [(0.0, "trigger", "sigmoid beta 32 gamma -5.5")]
-    assert r.channels["raw"].dtype.kind == "i" and r.channel_units["raw"] == "counts"
+    assert r.channels["raw"].dtype.kind == "i" and r.channel_units["raw"] == "1"  # ADC counts: a UDUNITS count
     with h5py.File(path, "r") as f:
         np.testing.assert_allclose(f["entry/instrument/flow/value"][()], [3.6e-3, 3.5e-3])
     with pytest.raises(DataError, match="5 samples lost before t = 0.15"):

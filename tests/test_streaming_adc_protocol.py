@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from velab.drivers.base import DeviceException, DeviceTimeout, ProtocolError, Quality
+from velab.drivers.blocks import QUALITY_CODE
 from velab.drivers.streaming_adc import (
     FLAG_OVERRUN,
     FrameParser,
@@ -319,11 +320,28 @@ def test_invalid_and_clipped_counts_become_nan_and_flags():
     assert np.isfinite(b.values[1:, 0]).all()
 
 
-def test_quality_over_range():
-    raw = np.full((4, 2), 6554)  # 5 mA
-    raw[2, 0] = 32767
+def mA_counts(mA):
+    return int(round(mA / 25.0 * 32767))
+
+
+@pytest.mark.parametrize("mA,quality", [
+    (25.0, Quality.SENSOR_FAULT),  # ADC full scale: beyond NE43 20.5 mA
+    (22.0, Quality.SENSOR_FAULT),  # a failure-high transmitter: not a pressure ceiling
+    (20.4, Quality.OVER_RANGE),  # inside the NE43 band, beyond the span (+2 % margin): a bound
+    (20.2, Quality.OK),  # within the range margin
+    (3.7, Quality.SENSOR_FAULT),
+    (2.0, Quality.OPEN_LOOP),
+])
+def test_per_sample_loop_quality(mA, quality):
+    raw = np.full((4, 2), mA_counts(5.0))
+    raw[2, 0] = mA_counts(mA) if mA < 25 else 32767
     adc, _ = run_stream(frame(0, 0, raw), 4)
-    assert adc.get_blocks()[0].quality == (Quality.OVER_RANGE, Quality.OK)
+    b = adc.get_blocks()[0]
+    assert b.quality == (quality, Quality.OK)
+    expect = np.zeros((4, 2), np.uint8)
+    expect[2, 0] = QUALITY_CODE[quality]
+    np.testing.assert_array_equal(b.sample_quality, expect)  # per sample, not only per block
+    assert b.good(0).tolist() == [True, True, quality.is_measurement, True]
 
 
 def test_callback_mode():

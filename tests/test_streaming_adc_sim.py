@@ -213,9 +213,10 @@ def test_reconnect_gives_up_after_timeout():
 
 def test_input_faults_become_quality_flags():
     nan_ch = (0, 0.010, 0.012, math.nan)
-    over = (1, 0.020, 0.021, 30.0)  # beyond the 25 mA range: clipped at full scale
+    clipped = (1, 0.020, 0.021, 30.0)  # beyond the 25 mA range: clipped at full scale, NE43 sensor fault
     open_loop = (0, 0.030, 0.031, 1.0)
-    plan = FaultPlan(input_faults=(nan_ch, over, open_loop))
+    over = (0, 0.040, 0.041, 20.4)  # above the span, inside NE43: a measurement (a bound)
+    plan = FaultPlan(input_faults=(nan_ch, clipped, open_loop, over))
     with StreamingADCSimulator(ramp_source, realtime=False, faults=plan) as sim:
         with StreamingADC(sim.serve_tcp(), profile()) as adc:
             adc.configure(10_000, ["pressure", "valve_position"], block_samples=10)
@@ -233,9 +234,13 @@ def test_input_faults_become_quality_flags():
         return next(b for b in blocks if b.first_index <= round(ts * 10_000) < b.next_index)
 
     assert block_at(0.010).quality[0] is Quality.NAN and block_at(0.010).flags & 0x04
-    assert block_at(0.020).quality[1] is Quality.OVER_RANGE
+    assert block_at(0.020).quality[1] is Quality.SENSOR_FAULT
     assert block_at(0.030).quality[0] is Quality.OPEN_LOOP
-    assert next(b for b in blocks if b.t0_s > 0.0315).quality == (Quality.OK, Quality.OK)
+    assert block_at(0.040).quality[0] is Quality.OVER_RANGE
+    # per sample: exactly the faulted samples are not measurements, nothing else
+    good = np.concatenate([b.good(0) for b in blocks])
+    bad_window = in_nan | ((t >= 0.030 - 1e-9) & (t < 0.031 - 1e-9))
+    np.testing.assert_array_equal(good, ~bad_window)
 
 
 def test_callback_mode_and_restart():

@@ -4,21 +4,21 @@ Units are part of every key name (``length_m``, ``steady_flow_m3_s``,
 ``E_pa``, ``eta_pa_s`` ...). Every error names the file, the key and the reason,
 on one line, so that an operator can fix the file without reading code.
 
-Built-in configurations live in the repository's ``configs/`` folder and are
-addressed by short names: ``load_rig("perugia")`` reads
-``configs/rigs/perugia.toml``; ``load_material("A")`` reads
-``configs/materials/A.toml``. A path to any TOML file works everywhere a name does.
+Configurations are addressed by short names or paths: ``load_rig("perugia")``
+reads ``rigs/perugia.toml`` from the first config folder that has it (a lab's
+folders in ``$VELAB_CONFIG_PATH``, ``~/.config/velab``, then the built-in
+``velab.configs``; see :mod:`velab.configpath`). A path to any TOML file works
+everywhere a name does. Files are read and checked by :mod:`velab.tomlschema`.
 """
 
 from __future__ import annotations
 
 import math
 import os
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
 
+from velab.configpath import config_stem, load_config
 from velab.errors import ConfigError
 from velab.friction import FACTOR_LAWS, STEADY_LAWS, UNSTEADY_LAWS
 # the rig's data classes live in velab.rig; re-exported here, where they always were
@@ -32,9 +32,12 @@ from velab.rig import (  # noqa: F401
     constraint_coefficient,
     rig_from_dict,
 )
-
-# The repository's configs/ folder (editable install); VELAB_CONFIGS overrides it.
-CONFIG_ROOT = Path(os.environ.get("VELAB_CONFIGS", Path(__file__).resolve().parents[2] / "configs"))
+# One validation machinery for every config (velab.tomlschema); the short names keep this module's schema readable.
+from velab.tomlschema import Key as _Key
+from velab.tomlschema import Reader as _Reader
+from velab.tomlschema import non_negative as _non_negative
+from velab.tomlschema import positive as _positive
+from velab.tomlschema import read_toml  # noqa: F401  (re-exported for callers of velab.config.read_toml)
 
 # Retardation times of the paper's "reduced" Sm: the first m of these are fixed.
 REDUCED_RETARDATION_TIMES_S = (0.01, 0.1, 1.0, 10.0, 100.0)
@@ -47,14 +50,6 @@ VISCOSITY_BOUNDS_PA_S = (1e6, 1e12)
 # --------------------------------------------------------------------------- schema
 
 
-def _positive(v: float) -> str | None:
-    return None if v > 0 else "must be positive"
-
-
-def _non_negative(v: float) -> str | None:
-    return None if v >= 0 else "must not be negative"
-
-
 def _fraction(v: float) -> str | None:
     return None if 0 <= v < 0.5 else "must be in [0, 0.5)"
 
@@ -62,112 +57,6 @@ def _fraction(v: float) -> str | None:
 def _alpha(v: float) -> str | None:
     return None if 0 < v <= 2 else "must be in (0, 2]"
 
-
-@dataclass(frozen=True)
-class _Key:
-    kind: type
-    required: bool = True
-    default: Any = None
-    check: Callable[[Any], str | None] | None = None
-    choices: tuple[str, ...] | None = None
-
-
-class _Reader:
-    """Reads one TOML document and raises ConfigError naming file and key."""
-
-    def __init__(self, path: Path, doc: dict):
-        self.path = path
-        self.doc = doc
-
-    def fail(self, where: str, reason: str) -> ConfigError:
-        return ConfigError(f"{self.path}: {where}: {reason}")
-
-    def table(self, name: str | None, required: bool = True) -> dict | None:
-        if name is None:
-            return self.doc
-        t = self.doc.get(name)
-        if t is None:
-            if required:
-                raise self.fail(f"[{name}]", "missing table")
-            return None
-        if not isinstance(t, dict):
-            raise self.fail(f"[{name}]", f"must be a table, got {type(t).__name__}")
-        return t
-
-    def read(self, table: dict, where: str, spec: dict[str, _Key]) -> dict[str, Any]:
-        unknown = sorted(set(table) - set(spec))
-        if unknown:
-            raise self.fail(
-                f"{where}{unknown[0]}", f"unknown key (known: {', '.join(sorted(spec))})"
-            )
-        out = {}
-        for key, k in spec.items():
-            label = f"{where}{key}"
-            if key not in table:
-                if k.required:
-                    raise self.fail(label, "missing key")
-                out[key] = k.default
-                continue
-            out[key] = self.value(table[key], label, k)
-        return out
-
-    def value(self, v: Any, label: str, k: _Key) -> Any:
-        if k.kind is float:
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise self.fail(label, f"must be a number, got {type(v).__name__} {v!r}")
-            v = float(v)
-            if not math.isfinite(v):
-                raise self.fail(label, f"must be finite, got {v}")
-        elif k.kind is int:
-            if isinstance(v, bool) or not isinstance(v, int):
-                raise self.fail(label, f"must be an integer, got {type(v).__name__} {v!r}")
-        elif k.kind is str:
-            if not isinstance(v, str):
-                raise self.fail(label, f"must be a string, got {type(v).__name__} {v!r}")
-            if k.choices and v not in k.choices:
-                raise self.fail(label, f"must be one of {', '.join(k.choices)}, got {v!r}")
-        elif k.kind is list:
-            if not isinstance(v, list):
-                raise self.fail(label, f"must be an array, got {type(v).__name__}")
-        elif k.kind is bool:
-            if not isinstance(v, bool):
-                raise self.fail(label, f"must be true or false, got {v!r}")
-        if k.check is not None:
-            reason = k.check(v)
-            if reason:
-                raise self.fail(label, f"{reason} (got {v})")
-        return v
-
-
-def read_toml(path: str | os.PathLike) -> tuple[Path, dict]:
-    """Parse a TOML file; a missing file or a syntax error is a ConfigError."""
-    path = Path(path)
-    try:
-        with open(path, "rb") as fh:
-            return path, tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{path}: is a directory, expected a TOML file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"{path}: not a text file") from None
-
-
-def resolve(name_or_path: str | os.PathLike, kind: str) -> Path:
-    """Map a built-in short name (``"A"``, ``"perugia"``) or a path to a file path."""
-    p = Path(name_or_path)
-    if p.suffix == ".toml" or p.exists() or len(p.parts) > 1:
-        return p
-    candidate = CONFIG_ROOT / kind / f"{name_or_path}.toml"
-    if candidate.exists():
-        return candidate
-    known = sorted(f.stem for f in (CONFIG_ROOT / kind).glob("*.toml"))
-    raise ConfigError(
-        f"{name_or_path}: no such {kind[:-1]} file, and not a built-in one "
-        f"(built-in: {', '.join(known) or 'none'})"
-    )
 
 
 # --------------------------------------------------------------------------- rig files
@@ -177,12 +66,12 @@ _ANCHORING = ("upstream", "throughout", "expansion_joints")
 
 
 def load_rig(name_or_path: str | os.PathLike) -> Rig:
-    path, doc = read_toml(resolve(name_or_path, "rigs"))
+    path, doc = load_config("rigs", name_or_path)
     r = _Reader(path, doc)
     top = r.read(
         {k: v for k, v in doc.items() if not isinstance(v, dict)},
         "",
-        {"name": _Key(str, False, path.stem), "description": _Key(str, False, "")},
+        {"name": _Key(str, False, config_stem(path)), "description": _Key(str, False, "")},
     )
     pipe = r.read(
         r.table("pipe"),
@@ -270,7 +159,14 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
         **friction,
         source=str(path),
     )
-    if rig.steady_head_m <= 0:
+    try:  # derived quantities of absurd (if finite) inputs can overflow: a config error, not a crash
+        steady_head_m = rig.steady_head_m
+        finite = math.isfinite(steady_head_m) and math.isfinite(rig.joukowsky_head_m())
+    except (OverflowError, ZeroDivisionError, ValueError):
+        finite = False
+    if not finite:
+        raise r.fail("[flow]", "non-physical rig: the steady or Joukowsky head is not a finite number")
+    if steady_head_m <= 0:
         raise r.fail("[flow] reservoir_head_m", f"smaller than the steady head loss {rig.steady_head_loss_m:.3g} m")
     return rig
 
@@ -373,7 +269,7 @@ def material_from_dict(d: dict, where: str = "material") -> Material:
 
 
 def load_material(name_or_path: str | os.PathLike) -> Material:
-    path, doc = read_toml(resolve(name_or_path, "materials"))
+    path, doc = load_config("materials", name_or_path)
     return load_material_doc(path, doc)
 
 
@@ -383,7 +279,7 @@ def load_material_doc(path: Path, doc: dict) -> Material:
         doc,
         "",
         {
-            "name": _Key(str, False, path.stem),
+            "name": _Key(str, False, config_stem(path)),
             "description": _Key(str, False, ""),
             "wave_speed_m_s": _Key(float, check=_positive),
             "kelvin_voigt": _Key(list, False, []),

@@ -12,14 +12,21 @@ import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from velab.config import GRAVITY_M_S2, Rig
 from velab.errors import DataError
+from velab.inputfiles import check_input_file
 
 PRESSURE_UNITS = {"m": None, "Pa": 1.0, "kPa": 1e3, "bar": 1e5}
 MIN_SAMPLES = 10
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from velab.config import Rig
+# A CSV is parsed into Python lists: refuse a file past this size (about 10 million rows)
+# before reading it, rather than exhaust memory on a wrong path.
+MAX_CSV_BYTES = 256 << 20
 
 
 @dataclass(frozen=True)
@@ -52,15 +59,18 @@ def read_csv_record(
     uneven_tolerance: float = 0.01,
 ) -> CsvRecord:
     """Parse and validate a CSV record; raises DataError naming the line."""
+    import numpy as np  # here, so that `velab --help` (which reads PRESSURE_UNITS) stays light
+
+    from velab.config import GRAVITY_M_S2
+
     path = Path(path)
     if units not in PRESSURE_UNITS:
         raise DataError(f"--units: must be one of {', '.join(PRESSURE_UNITS)}, got {units!r}")
+    check_input_file(path, "CSV file", MAX_CSV_BYTES)
     try:
         fh = open(path, newline="", encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise DataError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise DataError(f"{path}: is a directory, expected a CSV file") from None
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read: {exc.strerror or exc}") from None
     with fh:
         try:
             sample = fh.read(4096)

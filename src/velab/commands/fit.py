@@ -3,20 +3,23 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
-from velab.errors import DataError, VelabError
+from velab.commands.common import (ProgressLine, add_json_option, check_output_path, float_range, int_range, one_line,
+                                   write_json)
+from velab.errors import DataError, ExitCode, VelabError
+
+# velab.fitting.sweep.METHODS, named here so that building the parser does not import the
+# fitter (scipy); run() checks the option against the fitter's own list.
+METHOD_NAMES = "auto, least-squares, nelder-mead, evolution"
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 
 
 def register(sub) -> None:
-    from velab.fitting.sweep import METHODS
-
     p = sub.add_parser(
         "fit",
         help="calibrate the pipe-wall models (EL, S1..S6) on run files and rank them by AIC",
@@ -26,30 +29,36 @@ def register(sub) -> None:
     )
     p.add_argument("runs", nargs="+", metavar="RUN.h5", help="run file(s)")
     p.add_argument("--models", default="0-6", help="models by number of KV elements, e.g. 0-6, 1-5, 1,3 (0 = EL; default 0-6)")
-    p.add_argument("--window", type=float, default=20.0, help="window after the trigger, s (default 20)")
-    p.add_argument("--method", choices=METHODS, default="auto",
-                   help="search method (default auto: multi-start least squares, coarse-to-fine)")
+    p.add_argument("--window", type=float_range(0, 3600, lo_open=True, units="s"), default=20.0,
+                   help="window after the trigger, s (default 20)")
+    p.add_argument("--method", default="auto", metavar="METHOD",
+                   help=f"search method: {METHOD_NAMES} (default auto: multi-start least squares, coarse-to-fine)")
     p.add_argument("--reduced", action="store_true", help="also fit the reduced S1r..S5r (tau fixed at 0.01..100 s)")
-    p.add_argument("--starts", type=int, default=None, help="cap on the number of starts per model (default: all)")
+    p.add_argument("--starts", type=int_range(1, 1000), default=None,
+                   help="cap on the number of starts per model (default: all)")
     p.add_argument("--no-polish", action="store_true", help="skip the full-band polish (quick look only)")
-    p.add_argument("--json", action="store_true", help="print one JSON document on stdout instead of tables")
-    p.add_argument("--plot", metavar="FILE", help="write report figures (.png or .pdf); with several runs, "
+    add_json_option(p)
+    p.add_argument("--plot", metavar="FILE", help="write report figures (.png, .pdf or .svg); with several runs, "
                    "one file per run named FILE-stem_RUN-stem.suffix")
-    p.add_argument("--name", default=None, help="fit group name under /entry/fits (default: from method and window)")
+    p.add_argument("--name", default=None, help="fit group name under /entry/fits: 1-64 letters, digits, _ . + - "
+                   "(default: from method and window)")
     p.add_argument("--no-save", action="store_true", help="do not write the fit into the run file")
-    p.add_argument("--jobs", type=int, default=1, help="runs fitted in parallel (processes; default 1)")
+    p.add_argument("--jobs", type=int_range(1, 256), default=1, help="runs fitted in parallel (processes; default 1)")
     p.set_defaults(func=run)
 
 
-def _options(args) -> dict:
-    from velab.fitting.sweep import parse_models
 
-    if args.window is not None and not (args.window > 0 and math.isfinite(args.window)):
-        raise DataError(f"--window must be a positive number of seconds, got {args.window:g}")
-    if args.jobs < 1:
-        raise DataError(f"--jobs must be at least 1, got {args.jobs}")
-    if args.plot and Path(args.plot).suffix.lower() not in (".png", ".pdf", ".svg"):
-        raise DataError(f"--plot {args.plot}: use a .png, .pdf or .svg file name")
+def _options(args) -> dict:
+    from velab.fitting.sweep import METHODS, parse_models
+
+    if args.method not in METHODS:
+        raise DataError(f"--method {args.method!r}: choose from {', '.join(METHODS)}")
+    if args.plot:
+        check_output_path(args.plot, PLOT_SUFFIXES, "--plot figure")
+    if args.name is not None:  # before fitting: --name can only name a fit group, never a path
+        from velab.runfiles.fits import validate_fit_name
+
+        validate_fit_name(args.name)
     return {
         "models": parse_models(args.models), "window_s": args.window, "method": args.method,
         "reduced": args.reduced, "starts": args.starts, "polish": not args.no_polish,
@@ -88,7 +97,11 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
     if opts["plot"]:
         from velab.fitting.plots import report_figure
 
-        report_figure(t, h, run.rig, result, _plot_path(opts["plot"], path, many))
+        figure = _plot_path(opts["plot"], path, many)
+        try:
+            report_figure(t, h, run.rig, result, figure)
+        except OSError as exc:
+            raise DataError(f"{figure}: cannot write the figure: {exc.strerror or exc}") from None
     return result, name
 
 
@@ -107,67 +120,36 @@ def run(args: argparse.Namespace) -> int:
     opts = _options(args)
     if len(args.runs) == 1:
         path = args.runs[0]
+        with ProgressLine.for_args(args) as progress:
+            def cb(done, total, name):
+                progress.update(f"velab fit {Path(path).name}: {done}/{total} models, fitted {name}")
+
+            result, name = fit_file(path, opts, progress=cb)
         if args.json:
-            result, name = fit_file(path, opts)
-            doc = {"path": path, "fit_name": name, **result.to_dict()}
-            print(json.dumps(clean_json(doc), indent=1, allow_nan=False))
+            write_json({"path": path, "fit_name": name, **result.to_dict()})
         else:
-            result, name = _fit_one_verbose(path, opts)
             print(f"{path}")
             print(result.report())
             if name:
                 print(f"saved as /entry/fits/{name}")
-        return 0
-    return _run_many(args.runs, opts, args.jobs, args.json)
+        return ExitCode.OK
+    return _run_many(args.runs, opts, args.jobs, args.json, ProgressLine.for_args(args))
 
 
-def _fit_one_verbose(path, opts):
-    if not sys.stderr.isatty():
-        return fit_file(path, opts)
-    from rich.progress import Progress
-
-    with Progress(transient=True) as prog:
-        task = prog.add_task("fitting", total=None)
-
-        def cb(done, total, name):
-            prog.update(task, completed=done, total=total, description=f"fitted {name}")
-
-        return fit_file(path, opts, progress=cb)
-
-
-def clean_json(o):
-    """Non-finite floats -> None, recursively (JSON has no NaN/inf)."""
-    if isinstance(o, float):
-        return o if math.isfinite(o) else None
-    if isinstance(o, dict):
-        return {k: clean_json(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [clean_json(v) for v in o]
-    return o
-
-
-def _run_many(paths: list[str], opts: dict, jobs: int, as_json: bool) -> int:
+def _run_many(paths: list[str], opts: dict, jobs: int, as_json: bool, progress: ProgressLine) -> int:
     outcomes: dict[str, dict] = {}
-    progress = None
-    if not as_json:
-        try:
-            from rich.progress import Progress
 
-            from rich.console import Console
+    def advance(p):
+        progress.update(f"velab fit: {len(outcomes)}/{len(paths)} runs, last {Path(p).name}", force=True)
 
-            progress = Progress(console=Console(stderr=True))
-        except ImportError:  # pragma: no cover
-            progress = None
-    if progress is not None:
-        progress.start()
-        task = progress.add_task("fitting runs", total=len(paths))
-    try:
+    with progress:
         if jobs == 1:
             for p in paths:
                 outcomes[p] = _worker(p, opts)
-                if progress is not None:
-                    progress.advance(task)
+                advance(p)
         else:
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
             with ProcessPoolExecutor(max_workers=min(jobs, len(paths), os.cpu_count() or 1)) as ex:
                 futs = {ex.submit(_worker, p, opts): p for p in paths}
                 for fut in as_completed(futs):
@@ -176,11 +158,7 @@ def _run_many(paths: list[str], opts: dict, jobs: int, as_json: bool) -> int:
                         outcomes[p] = fut.result()
                     except Exception as exc:  # a crashed worker process
                         outcomes[p] = {"path": p, "error": f"{p}: worker failed: {exc}"}
-                    if progress is not None:
-                        progress.advance(task)
-    finally:
-        if progress is not None:
-            progress.stop()
+                    advance(p)
     failed = [o for o in outcomes.values() if "error" in o]
     if as_json:
         doc = {"runs": []}
@@ -190,7 +168,7 @@ def _run_many(paths: list[str], opts: dict, jobs: int, as_json: bool) -> int:
                 doc["runs"].append({"path": p, "error": o["error"]})
             else:
                 doc["runs"].append({"path": p, "fit_name": o["fit_name"], **o["result"].to_dict()})
-        print(json.dumps(clean_json(doc), indent=1, allow_nan=False))
+        write_json(doc)
     else:
         print(f"{'run':<40}{'best':>6}{'F (m^2)':>13}{'a (m/s)':>10}{'2nd':>6}{'dAIC':>8}{'time (s)':>10}")
         for p in paths:
@@ -204,6 +182,5 @@ def _run_many(paths: list[str], opts: dict, jobs: int, as_json: bool) -> int:
             print(f"{Path(p).name:<40}{r.best.name:>6}{r.best.F:>13.5e}{r.best.wave_speed_m_s:>10.2f}"
                   f"{(second.name if second else '-'):>6}{(second.delta_aic if second else math.nan):>8.2f}{o['seconds']:>10.2f}")
     for o in failed:
-        print(f"velab: {o['error']}", file=sys.stderr)
-    return 2 if failed else 0
-
+        print(f"velab: {one_line(o['error'])}", file=sys.stderr)
+    return ExitCode.BAD_INPUT if failed else ExitCode.OK

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from velab.errors import VelabError
 
@@ -17,7 +16,8 @@ def register(sub) -> None:
         "(PySide6, pyqtgraph). See docs/gui.md.",
     )
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--config", metavar="BENCH.toml", help="bench configuration (devices, limits)")
+    src.add_argument("--config", metavar="BENCH", help="bench configuration: a name (benches/BENCH.toml on the "
+                     "config path) or a TOML file")
     src.add_argument("--simulate", action="store_true", help="record from the built-in simulated rig")
     p.add_argument("--sim-config", default="default", help="simulated rig configuration (with --simulate)")
     p.add_argument("--material", default=None, help="pipe material of the simulated rig, e.g. A (with --simulate)")
@@ -30,10 +30,13 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.config and not Path(args.config).is_file():
-        raise VelabError(f"{args.config}: no such bench configuration")
-    if args.open and not Path(args.open).is_file():
-        raise VelabError(f"{args.open}: no such run file")
+    from velab.configpath import find_config
+    from velab.inputfiles import check_input_file
+
+    if args.config:
+        check_input_file(find_config("benches", args.config), "bench configuration")
+    if args.open:
+        check_input_file(args.open, "run file")
     try:
         import PySide6  # noqa: F401
         import pyqtgraph  # noqa: F401

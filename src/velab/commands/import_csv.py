@@ -5,12 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
-from velab.commands.common import prepare_output
-from velab.config import load_rig
-from velab.csvimport import PRESSURE_UNITS, read_csv_record
-from velab.runfile import write_run
+from velab.commands.common import finite_float, prepare_output
+from velab.csvimport import PRESSURE_UNITS
+from velab.errors import DataError
 
 
 def register(sub) -> None:
@@ -19,12 +16,12 @@ def register(sub) -> None:
         help="import an archived CSV record (time, pressure) as a run file",
         description="Import a CSV with a header row: time in s, and pressure head in m or gauge pressure in "
         "Pa, kPa or bar (--units; converted with rho g of the rig's fluid). The trigger instant is given by "
-        "--trigger (default t = 0); the steady head is the mean before it.",
+        "--trigger (default t = 0); the steady head is the mean before it. CSV files up to 256 MiB.",
     )
     p.add_argument("csv", help="CSV file")
     p.add_argument("--rig", required=True, help="rig name or TOML file describing the pipe the record comes from")
     p.add_argument("--units", choices=list(PRESSURE_UNITS), default="m", help="pressure column units (default m of head)")
-    p.add_argument("--trigger", type=float, default=0.0, help="trigger instant on the file's time axis, s (default 0)")
+    p.add_argument("--trigger", type=finite_float, default=0.0, help="trigger instant on the file's time axis, s (default 0)")
     p.add_argument("--time-column", help="name of the time column (default: the first)")
     p.add_argument("--value-column", help="name of the pressure column (default: the second)")
     p.add_argument("--title", help="run title (default: the CSV file name)")
@@ -34,14 +31,20 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from velab.config import load_rig
+    from velab.csvimport import read_csv_record
+    from velab.runfile import write_run
+
     rig = load_rig(args.rig)
     out = prepare_output(args.output, args.force)
     rec = read_csv_record(args.csv, rig, units=args.units, time_column=args.time_column, value_column=args.value_column)
     t = rec.time_s - args.trigger
     if not (t[0] <= 0 <= t[-1]):
-        from velab.errors import DataError
-
         raise DataError(f"--trigger {args.trigger:g} s is outside the record ({rec.time_s[0]:g} .. {rec.time_s[-1]:g} s)")
+    if not np.isfinite(t).all() or not np.isfinite(rec.head_m).all():
+        raise DataError(f"{args.csv}: values too large to convert into head (not finite after conversion)")
     write_run(
         out, rig, t, rec.head_m, status="imported", title=args.title or Path(args.csv).name,
         sample_rate_hz=rec.sample_rate_hz, overwrite=args.force,

@@ -9,8 +9,6 @@ the worst run decides. Progress goes to stderr; the summary to stdout (JSON with
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import shutil
 import signal
@@ -19,69 +17,8 @@ import threading
 import time
 from pathlib import Path
 
+from velab.commands.common import add_json_option, float_range, int_range, positive_float, write_json
 from velab.errors import VelabError
-
-
-# argparse types with domains (finite: "inf" and "nan" are refused); the shared helpers of
-# commands/common.py may replace these
-def _number(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"must be a finite number: {text!r}")
-    return v
-
-
-def finite_float(text: str) -> float:
-    return _number(text)
-
-
-def positive_float(text: str) -> float:
-    v = _number(text)
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"must be positive: {text!r}")
-    return v
-
-
-def non_negative_float(text: str) -> float:
-    v = _number(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must not be negative: {text!r}")
-    return v
-
-
-def positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1: {text!r}")
-    return v
-
-
-def strict_json(obj):
-    """NaN and infinities become null (strict JSON)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {str(k): strict_json(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [strict_json(v) for v in obj]
-    if obj is None or isinstance(obj, (str, int, bool)):
-        return obj
-    try:
-        import numpy as np
-
-        if isinstance(obj, np.generic):
-            return strict_json(obj.item())
-        if isinstance(obj, np.ndarray):
-            return strict_json(obj.tolist())
-    except ImportError:
-        pass
-    return str(obj)
 
 
 def register(subparsers) -> None:
@@ -106,16 +43,16 @@ def register(subparsers) -> None:
                      help="simulated clock runs 12x faster than real time")
     clk.add_argument("--clock", dest="clock", metavar="KIND", help="realtime | fast | scaled:K")
     p.add_argument("--rig", default=None, help="rig config (default: the simulator's rig, or perugia)")
-    p.add_argument("--duration", type=positive_float, default=30.0, help="seconds recorded after the trigger (30)")
-    p.add_argument("--pretrigger", type=positive_float, default=2.0, help="baseline before the trigger, s (2)")
-    p.add_argument("--rate", type=positive_float, default=1000.0, help="pressure sample rate, Hz (1000; within the pressure source's range)")
-    p.add_argument("--beta", type=positive_float, default=None, help="manoeuvre beta, 1/s (default: the rig's)")
-    p.add_argument("--gamma", type=finite_float, default=None, help="manoeuvre gamma (default: the rig's)")
-    p.add_argument("--end-position", type=non_negative_float, default=0.0, help="final valve opening, %% (0)")
-    p.add_argument("--surge-margin", type=non_negative_float, default=0.1, help="interlock margin on the surge (0.1)")
+    p.add_argument("--duration", type=float_range(0, 3600, lo_open=True, units="s"), default=30.0, help="seconds recorded after the trigger (30)")
+    p.add_argument("--pretrigger", type=float_range(0, 600, lo_open=True, units="s"), default=2.0, help="baseline before the trigger, s (2)")
+    p.add_argument("--rate", type=float_range(0, 1e6, lo_open=True, units="Hz"), default=1000.0, help="pressure sample rate, Hz (1000; within the pressure source's range)")
+    p.add_argument("--beta", type=float_range(0, 1e4, lo_open=True, units="1/s"), default=None, help="manoeuvre beta, 1/s (default: the rig's)")
+    p.add_argument("--gamma", type=float_range(-100, 100), default=None, help="manoeuvre gamma (default: the rig's)")
+    p.add_argument("--end-position", type=float_range(0, 100, hi_open=True, units="%"), default=0.0, help="final valve opening, %% (0)")
+    p.add_argument("--surge-margin", type=float_range(0, 10), default=0.1, help="interlock margin on the surge (0.1)")
     p.add_argument("--ceiling", type=positive_float, default=None, metavar="M",
                    help="pressure ceiling, m of head (default: 95%% of the limiting pressure; never above it)")
-    p.add_argument("--armed-timeout", type=positive_float, default=None, metavar="S",
+    p.add_argument("--armed-timeout", type=float_range(0, 86400, lo_open=True, units="s"), default=None, metavar="S",
                    help="disarm an armed rig left without a trigger after S s (default: the bench's "
                         "[recorder] armed_timeout_s, else 300)")
     p.add_argument("--reopen-valve", action="store_true",
@@ -125,15 +62,14 @@ def register(subparsers) -> None:
     p.add_argument("--operator", default="")
     p.add_argument("--specimen", default="")
     p.add_argument("--notes", default="")
-    p.add_argument("--repeat", type=positive_int, default=1, metavar="N",
+    p.add_argument("--repeat", type=int_range(1, 10000), default=1, metavar="N",
                    help="campaign: N runs, the valve reopened and the steady state re-checked between runs (1)")
-    p.add_argument("--interval", type=non_negative_float, default=0.0, metavar="S", help="pause between runs, s (0)")
-    p.add_argument("--json", action="store_true", help="print a machine-readable summary (JSON) on stdout")
+    p.add_argument("--interval", type=float_range(0, 86400, units="s"), default=0.0, metavar="S", help="pause between runs, s (0)")
+    add_json_option(p)
     p.add_argument("--no-fit", action="store_true", help="record only")
     p.add_argument("--models", default="0-6", help="models to fit, e.g. 0-6 or 1,3,5 (0 = EL)")
-    p.add_argument("--window", type=positive_float, default=20.0, help="fit window after the trigger, s (20)")
+    p.add_argument("--window", type=float_range(0, 3600, lo_open=True, units="s"), default=20.0, help="fit window after the trigger, s (20)")
     p.add_argument("--method", default="auto", help="fit method (auto, least-squares, nelder-mead, evolution)")
-    p.add_argument("--quiet", action="store_true", help="no progress output (stderr)")
     p.set_defaults(func=run_command)
 
 
@@ -415,8 +351,7 @@ def run_command(args) -> int:
                                "statuses": [s.status for s in summaries],
                                "best_models": [s.best_model for s in summaries],
                                "wave_speed_mean_m_s": (sum(a) / len(a)) if a else None}
-        json.dump(strict_json(doc), sys.stdout, indent=1, allow_nan=False)
-        print()
+        write_json(doc)
     return code
 
 

@@ -1,14 +1,21 @@
-"""``velab synth``: the paper's synthetic water-hammer run, written as a run file."""
+"""``velab synth``: a synthetic water-hammer run of a known material (the paper's experiment with --friction linear)."""
 
 from __future__ import annotations
 
 import argparse
+import logging
 
-from velab.commands.common import non_negative_float, positive_float, prepare_output
-from velab.config import Manoeuvre, load_material, load_rig
-from velab.runfile import write_run
-from velab.friction import STEADY_LAWS, UNSTEADY_LAWS
-from velab.synth import PAPER_NOISE_STD_M, PAPER_SEED, SynthSettings, friction_is_linear, synthesise
+from velab.commands.common import float_range, int_range, prepare_output
+from velab.errors import DataError
+
+log = logging.getLogger("velab.synth")
+
+# The work is bounded before anything is allocated: samples = rate x (pretrigger + duration).
+# 5 million samples (50 kHz x 100 s) take about 1.5 GB at the model's peak.
+MAX_SAMPLES = 5_000_000
+# The sampling rate must resolve the manoeuvre: at least twice the frequency above which the
+# sigmoid's spectrum is negligible (velab.model.manoeuvre_band_hz; 62 Hz for beta = 32 1/s).
+NYQUIST_FACTOR = 2.0
 
 
 def register(sub) -> None:
@@ -19,22 +26,29 @@ def register(sub) -> None:
         "write a run file. The rig's friction laws make the data (the reference rigs: quadratic Darcy-Weisbach, "
         "through the time-domain model); --friction linear gives the paper's synthetic experiment (the "
         "frequency-domain model). Materials: built-in names (A, B, elastic, hdpe_s1) "
-        "or a TOML file with wave_speed_m_s and [[kelvin_voigt]] elements (E_pa + eta_pa_s or J_per_pa + tau_s).",
+        "or a TOML file with wave_speed_m_s and [[kelvin_voigt]] elements (E_pa + eta_pa_s or J_per_pa + tau_s). "
+        f"The rate must resolve the manoeuvre (at least {NYQUIST_FACTOR:g} x its band) and rate x (pretrigger + "
+        f"duration) is at most {MAX_SAMPLES:,} samples.",
     )
     p.add_argument("--material", default="A", help="material name or TOML file (default: A)")
     p.add_argument("--rig", default="perugia", help="rig name or TOML file (default: perugia)")
-    p.add_argument("--noise", type=non_negative_float, default=PAPER_NOISE_STD_M,
-                   help=f"noise standard deviation, m (default {PAPER_NOISE_STD_M})")
-    p.add_argument("--seed", type=int, default=PAPER_SEED, help=f"noise seed (default {PAPER_SEED})")
-    p.add_argument("--rate", type=positive_float, default=1000.0, help="sampling rate, Hz (default 1000)")
-    p.add_argument("--duration", type=positive_float, default=20.0, help="record after the trigger, s (default 20)")
-    p.add_argument("--pretrigger", type=non_negative_float, default=1.0, help="record before the trigger, s (default 1)")
-    p.add_argument("--beta", type=positive_float, help="sigmoid beta, 1/s (default: the rig's)")
-    p.add_argument("--gamma", type=float, help="sigmoid gamma (default: the rig's)")
-    p.add_argument("--friction", choices=STEADY_LAWS,
+    p.add_argument("--noise", type=float_range(0, 100, units="m"), default=None,
+                   help="noise standard deviation, m, 0..100 (default: the paper's, 0.1 m)")
+    p.add_argument("--seed", type=int_range(0, 2**63 - 1), default=None, help="noise seed (default: the paper's, 2018)")
+    p.add_argument("--rate", type=float_range(0, 1e6, lo_open=True, units="Hz"), default=1000.0,
+                   help="sampling rate, Hz (default 1000)")
+    p.add_argument("--duration", type=float_range(0, 3600, lo_open=True, units="s"), default=20.0,
+                   help="record after the trigger, s (default 20)")
+    p.add_argument("--pretrigger", type=float_range(0, 600, units="s"), default=1.0,
+                   help="record before the trigger, s (default 1)")
+    p.add_argument("--beta", type=float_range(0, 1e4, lo_open=True, units="1/s"),
+                   help="sigmoid beta, 1/s (default: the rig's)")
+    p.add_argument("--gamma", type=float_range(-100, 100), help="sigmoid gamma (default: the rig's)")
+    # choices checked in run(): the law names live in velab.friction, which needs numpy (--help stays light)
+    p.add_argument("--friction", metavar="LAW",
                    help="steady friction: quadratic (Darcy-Weisbach), linear (the paper's tangent), none "
                    "(default: the rig's)")
-    p.add_argument("--friction-unsteady", choices=UNSTEADY_LAWS,
+    p.add_argument("--friction-unsteady", metavar="LAW",
                    help="unsteady friction: none, vardy-brown (weighting function), brunone (default: the rig's)")
     p.add_argument("-o", "--output", required=True, help="run file to write (.h5)")
     p.add_argument("--force", action="store_true", help="replace an existing output file")
@@ -42,7 +56,29 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def check_work(rate_hz: float, duration_s: float, pretrigger_s: float) -> int:
+    """Samples the run will have; refused above MAX_SAMPLES or below two per second of record."""
+    n = rate_hz * (duration_s + pretrigger_s)
+    if n > MAX_SAMPLES:
+        raise DataError(f"--rate {rate_hz:g} Hz x {duration_s + pretrigger_s:g} s = {n:,.0f} samples, more than "
+                        f"the {MAX_SAMPLES:,} a synthetic run may have (lower --rate or --duration)")
+    return int(round(n))
+
+
 def run(args: argparse.Namespace) -> int:
+    check_work(args.rate, args.duration, args.pretrigger)
+    out = prepare_output(args.output, args.force)
+
+    from velab.config import Manoeuvre, load_material, load_rig
+    from velab.friction import STEADY_LAWS, UNSTEADY_LAWS
+    from velab.model import manoeuvre_band_hz
+    from velab.synth import PAPER_NOISE_STD_M, PAPER_SEED, SynthSettings, friction_is_linear, synthesise
+
+    for option, value, laws in (("--friction", args.friction, STEADY_LAWS),
+                                ("--friction-unsteady", args.friction_unsteady, UNSTEADY_LAWS)):
+        if value is not None and value not in laws:
+            raise DataError(f"{option} {value!r}: choose from {', '.join(laws)}")
+
     rig = load_rig(args.rig)
     if args.beta is not None or args.gamma is not None:
         rig = rig.with_changes(manoeuvre=Manoeuvre(
@@ -53,11 +89,25 @@ def run(args: argparse.Namespace) -> int:
         rig = rig.with_changes(friction=args.friction)
     if args.friction_unsteady is not None:
         rig = rig.with_changes(friction_unsteady=args.friction_unsteady)
+    min_rate = NYQUIST_FACTOR * manoeuvre_band_hz(rig)
+    if args.rate < min_rate:
+        raise DataError(f"--rate {args.rate:g} Hz cannot resolve the manoeuvre (beta {rig.manoeuvre.beta_per_s:g} 1/s: "
+                        f"band {min_rate / NYQUIST_FACTOR:.3g} Hz); use at least {min_rate:.3g} Hz")
     material = load_material(args.material)
-    out = prepare_output(args.output, args.force)
-    s = SynthSettings(noise_std_m=args.noise, seed=args.seed, sample_rate_hz=args.rate,
+    s = SynthSettings(noise_std_m=PAPER_NOISE_STD_M if args.noise is None else args.noise,
+                      seed=PAPER_SEED if args.seed is None else args.seed, sample_rate_hz=args.rate,
                       duration_s=args.duration, pretrigger_s=args.pretrigger)
+    log.info("synthesising %s on %s: %g Hz, %g s + %g s", material.name, rig.name, s.sample_rate_hz,
+             s.pretrigger_s, s.duration_s)
     t, head, flow = synthesise(rig, material, s)
+    import numpy as np
+
+    if not (np.isfinite(head).all() and np.isfinite(flow).all()):
+        raise DataError(f"the model gives non-finite heads for material {material.name} on {rig.name} with "
+                        f"these settings (beta {rig.manoeuvre.beta_per_s:g}, gamma {rig.manoeuvre.gamma:g}); "
+                        f"nothing written")
+    from velab.runfiles import write_run
+
     model = "frequency-domain model" if friction_is_linear(rig) else "time-domain model (MOC)"
     friction = {"friction": rig.friction, "friction_unsteady": rig.friction_unsteady, "head_model": model}
     title = args.title or f"synthetic {material.model_name} material {material.name} on {rig.name}"

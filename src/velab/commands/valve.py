@@ -9,10 +9,9 @@ range and the pipe's rating); ``status`` prints the state. Exit codes as ``velab
 
 from __future__ import annotations
 
-import json
 import time
 
-from velab.commands.record import finite_float, non_negative_float, positive_float
+from velab.commands.common import add_json_option, float_range, write_json
 from velab.errors import VelabError
 
 
@@ -25,11 +24,11 @@ def register(subparsers) -> None:
     p.add_argument("action", choices=("open", "close", "status"))
     p.add_argument("--config", required=True, metavar="BENCH", help="bench config (configs/benches/<name>.toml or a path)")
     p.add_argument("--rig", default="perugia", help="rig config for the interlock (perugia)")
-    p.add_argument("--beta", type=positive_float, default=None, help="closing manoeuvre beta, 1/s (default: the rig's)")
-    p.add_argument("--gamma", type=finite_float, default=None, help="closing manoeuvre gamma (default: the rig's)")
-    p.add_argument("--end-position", type=non_negative_float, default=0.0, help="final opening, %% (0)")
-    p.add_argument("--surge-margin", type=non_negative_float, default=0.1, help="interlock margin on the surge (0.1)")
-    p.add_argument("--json", action="store_true", help="print the actuator's status as JSON on stdout")
+    p.add_argument("--beta", type=float_range(0, 1e4, lo_open=True, units="1/s"), default=None, help="closing manoeuvre beta, 1/s (default: the rig's)")
+    p.add_argument("--gamma", type=float_range(-100, 100), default=None, help="closing manoeuvre gamma (default: the rig's)")
+    p.add_argument("--end-position", type=float_range(0, 100, hi_open=True, units="%"), default=0.0, help="final opening, %% (0)")
+    p.add_argument("--surge-margin", type=float_range(0, 10), default=0.1, help="interlock margin on the surge (0.1)")
+    add_json_option(p)
     p.set_defaults(func=run_command)
 
 
@@ -90,7 +89,7 @@ def run_command(args) -> int:
         valve.close()
     d = _status_dict(name, st)
     if args.json:
-        print(json.dumps(d, allow_nan=False))
+        write_json(d)
     else:
         faults = f", faults: {', '.join(d['faults'])}" if d["faults"] else ""
         print(f"{name}: {d['state']}, {d['position_pct']:.1f} % open ({'open' if d['open'] else 'not open'}){faults}")

@@ -281,7 +281,10 @@ def parse_models(spec) -> list[int]:
             try:
                 if "-" in part:
                     a, b = part.split("-", 1)
-                    out.update(range(int(a), int(b) + 1))
+                    lo, hi = int(a), int(b)
+                    if not 0 <= lo <= hi <= MAX_M:  # before range(): "0-10**12" must not build a huge set
+                        raise DataError(f"bad model list {spec!r}: ranges must be within 0..{MAX_M} (0 = EL)")
+                    out.update(range(lo, hi + 1))
                 else:
                     out.add(int(part.upper().lstrip("S").replace("EL", "0") or 0))
             except ValueError:

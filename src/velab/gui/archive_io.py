@@ -14,7 +14,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from velab.commands.info import describe
+from velab.runfiles.summary import describe
 from velab.errors import DataError
 
 
@@ -95,8 +95,8 @@ def refit(path, opts: RefitOptions, progress=None) -> RefitOutcome:
         else:
             try:
                 saved = save_fit(path, result, opts.name)
-            except OSError as exc:
-                note = f"not saved: cannot write the fit into the run: {exc}"
+            except (OSError, DataError) as exc:  # e.g. flagged open for write: velab recover first
+                note = f"not saved: {exc}"
     return RefitOutcome(result, t, h, run.rig, saved, note)
 
 

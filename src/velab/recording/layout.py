@@ -86,6 +86,10 @@ def create_run_file(path: Path, rig: Rig, settings, *, fs: float, manoeuvre: tup
     return RunWriter(
         path, commanded_rig(rig, beta, gamma), sample_rate_hz=fs, title=s.title or f"water-hammer run {path.stem}",
         channels=FAST_CHANNELS, slow_channels=SLOW_CHANNELS, material=None, trigger_time_s=0.0, manoeuvre=man,
-        device_setup=device_setup, settings=snapshot, source=source | {"versions": device_setup.get("versions")},
+        # the bench, profiles and identities go to their own datasets; device_setup keeps the rest
+        device_setup={k: v for k, v in device_setup.items() if k not in ("bench", "profiles", "identities")},
+        settings=snapshot, source=source | {"versions": device_setup.get("versions")},
         calibration=calibration, swmr=True, expected_samples=int((s.pretrigger_s + s.duration_s) * fs),
+        bench=device_setup.get("bench"), device_profiles=device_setup.get("profiles"),
+        devices=device_setup.get("identities"),
     )

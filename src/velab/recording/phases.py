@@ -14,6 +14,8 @@ armed timeout); *halt* stops now, without the online fit (``aborted``, reason "h
 
 from __future__ import annotations
 
+from velab.errors import ExitCode
+
 DISCONNECTED, CONNECTING, READY = "disconnected", "connecting", "ready"
 ARMED, TRIGGERABLE, RECORDING, FITTING = "armed", "triggerable", "recording", "fitting"
 COMPLETED, COMPLETED_WITH_FAULTS = "completed", "completed-with-faults"
@@ -26,11 +28,10 @@ ACTIVE_PHASES = (CONNECTING,) + RUN_PHASES + (FITTING,)
 
 COMMANDS = ("connect", "arm", "trigger", "stop", "abort", "halt", "reset_valve", "close")
 
-# exit codes of `velab record` per end status (docs/recording.md "Exit codes"); "refused" is a
+# exit codes of `velab record` per end status (velab.errors.ExitCode, docs/cli.md); "refused" is a
 # run that never started (interlock, readiness)
-EXIT_CODES = {COMPLETED: 0, COMPLETED_WITH_FAULTS: 6, "refused": 3, ABORTED: 4, FAILED: 5, STOPPED: 130}
-# a campaign returns its most severe code: config error > failure > aborted > faults > stopped > refused > ok
-SEVERITY = {0: 0, 3: 1, 130: 2, 6: 3, 4: 4, 5: 5, 2: 6}
+EXIT_CODES = {COMPLETED: ExitCode.OK, COMPLETED_WITH_FAULTS: ExitCode.COMPLETED_WITH_FAULTS, "refused": ExitCode.REFUSED,
+              ABORTED: ExitCode.ABORTED, FAILED: ExitCode.FAILURE, STOPPED: ExitCode.INTERRUPTED}
 
 
 def allowed_commands(phase: str, *, valve_open: bool | None = None, trigger_queued: bool = False) -> tuple[str, ...]:
@@ -59,9 +60,9 @@ def allowed_commands(phase: str, *, valve_open: bool | None = None, trigger_queu
 
 
 def exit_code(status: str) -> int:
-    return EXIT_CODES.get(status, 5)
+    return int(EXIT_CODES.get(status, ExitCode.FAILURE))
 
 
 def worst_exit_code(codes) -> int:
-    codes = list(codes)
-    return max(codes, key=lambda c: SEVERITY.get(c, 5)) if codes else 0
+    """A campaign's code: its most severe run's (ExitCode.worst)."""
+    return int(ExitCode.worst(codes))

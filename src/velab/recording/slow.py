@@ -70,6 +70,7 @@ class SlowChannels:
     def poll(self) -> None:
         readings = {}
         t = self.now_axis()
+        epoch = time.time()  # the host instant of this poll, stored with the slow channels (NXlog time)
         try:
             st = self.valve.read_status()
             if not self.valve_answering:
@@ -78,8 +79,8 @@ class SlowChannels:
             readings["valve_position"] = st.position
             self.on_valve(st)
             self.hooks.emit("valve", valve_event(self.valve_name, st))
-            self.write(("slow", "valve_state", t, int(st.state)))
-            self.write(("slow", "valve_opening", t, st.position.value))
+            self.write(("slow", "valve_state", t, int(st.state), epoch))
+            self.write(("slow", "valve_opening", t, st.position.value, epoch))
             if st.state is ValveState.FAULT:
                 msg = f"valve actuator FAULT ({', '.join(st.faults) or 'no bits'}) at {st.position.value:.1f} % open"
                 self.hooks.fault("valve", msg, "actuator_fault", faults=list(st.faults))
@@ -99,7 +100,7 @@ class SlowChannels:
         try:
             r = self.flowmeter.read_flow()
             readings["flow"] = r
-            self.write(("slow", "flow", t, r.value))
+            self.write(("slow", "flow", t, r.value, time.time()))
             if r.quality.value != "ok" and r.quality.value not in self._flow_quality_seen:
                 self._flow_quality_seen.add(r.quality.value)
                 self.hooks.fault("flowmeter", f"flowmeter reading {r.quality.value} at t = {t:.2f} s", "quality",

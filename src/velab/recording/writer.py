@@ -2,7 +2,7 @@
 
 Operations arrive on a queue (``put(op)``): ``("append", t, channels)``, ``("event", t, kind,
 text)``, ``("gap", sample, lost)``, ``("trigger", t)``, ``("value", path, v)``, ``("slow",
-name, t, v)``, ``("close", status, reason)``. It flushes every ``flush_interval_s`` (or 0.5 s
+name, t, v[, host epoch])``, ``("close", status, reason)``. It flushes every ``flush_interval_s`` (or 0.5 s
 of data) and checks the room the file can still grow by before each flush: below a reserve of
 4 MiB + 2 s of samples it ends the run (``failed``, "storage failure: disk full ...") while
 the file can still be closed properly. A write that fails anyway (h5py: OSError or
@@ -80,7 +80,7 @@ class WriterStage:
         elif kind == "value":
             w.set_value(op[1], op[2])
         elif kind == "slow":
-            w.append_slow(op[1], op[2], op[3])
+            w.append_slow(op[1], op[2], op[3], epoch_s=op[4] if len(op) > 4 else None)
         return 0
 
     def _loop(self) -> None:
