@@ -120,13 +120,14 @@ def main(argv=None) -> int:
     wait_until(lambda: win.live.samples_received >= args.pretrigger * args.rate, 60)  # the baseline, live
     rc.trigger_button.click()
     wait_until(lambda: win.last_summary is not None, args.duration + 180)
-    wait_until(lambda: win.fit_panel.data is not None, 30)
+    wait_until(lambda: win.fit_panel.result is not None and "final fit" in win.fit_panel.title, 30)
     probe.stop()
     rec_s = time.perf_counter() - t0
     busy, busy_cpu = stats(probe.late), probe.cpu
-    probe.start()  # the operator opens the Fit page: the final fit is drawn (in parts)
+    probe.start()  # the operator opens the Fit page: the final fit is drawn (in parts), its curves computed
     win.tabs.setCurrentWidget(win.fit_panel)
-    wait_until(lambda: False, 1.0)
+    wait_until(lambda: win.fit_panel.data is not None, 30)
+    wait_until(lambda: False, 0.5)
     probe.stop()
     tab = stats(probe.late)
     s = win.last_summary

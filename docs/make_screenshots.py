@@ -96,10 +96,11 @@ def main(argv=None) -> int:
                and win.live.buffer.column("time_s")[-1] - win.live.offset_s > 3.2, 120)
     grab("gui-run")
     if not wait_until(lambda: win.last_summary is not None, 600) or not wait_until(
-            lambda: win.fit_panel.data is not None, 120):
+            lambda: win.fit_panel.result is not None and "final fit" in win.fit_panel.title, 120):
         print("the run did not end with its fit", file=sys.stderr)
         return 1
     win.tabs.setCurrentWidget(win.fit_panel)
+    wait_until(lambda: win.fit_panel.data is not None, 120)
     wait_until(lambda: False, 1.0)
     grab("gui-fit")
     s = win.last_summary

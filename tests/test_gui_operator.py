@@ -28,7 +28,9 @@ def _one_run(qtbot, tmp_path, clock: str) -> dict:
         op.press_when_enabled("arm", 60)
         trigger_phase = op.press_when_enabled("trigger", 60)
         summary = op.wait_done(120)
-        qtbot.waitUntil(lambda: win.fit_panel.data is not None, timeout=60000)
+        # the final fit, read back from the run file, is in the Fit page (drawn when the page is opened)
+        qtbot.waitUntil(lambda: win.fit_panel.result is summary.fit and "final fit" in win.fit_panel.title,
+                        timeout=60000)
     finally:
         stall = probe.stop()
     status, reason, best, run = run_file(summary.path)

@@ -5,7 +5,7 @@ delta AIC against m; the calibrated creep elements J against tau (decade labels 
 negligible elements hollow); |phi(omega)|. The model curves are computed by
 :func:`fit_view_data` on a worker thread (it is model evaluation over the whole window);
 the panel only draws, and only when it is on screen: a fit that arrives while the Run page
-is shown is drawn when the Fit page is opened (drawing costs the GUI thread ~50-100 ms).
+is shown is drawn (and its curves computed) when the Fit page is opened.
 """
 
 from __future__ import annotations
@@ -96,6 +96,7 @@ class FitPanel(QWidget):
         self._checked: set[str] = set()
         self._updating = False
         self._stale = False  # a result not drawn yet (the panel was hidden)
+        self._curves_for = None  # (t, h, rig, result) whose model curves are still to compute
         self.renders = 0
 
         lay = QVBoxLayout(self)
@@ -159,6 +160,7 @@ class FitPanel(QWidget):
         self.result = None
         self.data = None
         self._stale = False
+        self._curves_for = None
         self._serial += 1
         self.table.setRowCount(0)
         for p in (self.p_head, self.p_aic, self.p_creep, self.p_phi):
@@ -169,30 +171,39 @@ class FitPanel(QWidget):
             self.header.setText(text)
 
     def set_fit(self, t, h, rig, result, title: str = "", compute_async: bool = True) -> None:
-        """Show ``result``; the model curves are computed on a worker thread; drawn when on screen."""
+        """Show ``result``. Drawn when the panel is on screen; its model curves are computed then, on a
+        worker thread (model evaluation during a run would compete with the engine for the GIL)."""
         self.result = result
         self.data = None
         self.title = title
         self._serial += 1
-        serial = self._serial
         best = result.best
         self._checked = {best.name}
         others = sorted((f for f in result.models if f is not best and not f.reduced), key=lambda f: f.delta_aic)
         if others:
             self._checked.add(others[0].name)
         self._stale = True
+        self._curves_for = (t, h, rig, result)
+        if not compute_async:
+            self._curves_for = None
+            self._curves_ready(fit_view_data(t, h, rig, result), self._serial)
         if self.isVisible():
             self._render()
-        if compute_async:
-            tasks.submit(fit_view_data, t, h, rig, result,
-                         owner=self, on_done=lambda d, s=serial: self._curves_ready(d, s), on_error=lambda e: None)
-        else:
-            self._curves_ready(fit_view_data(t, h, rig, result), serial)
+
+    def _compute_curves(self) -> None:
+        """The model curves of the shown result, on a worker thread (once per result)."""
+        if self._curves_for is None:
+            return
+        args, self._curves_for = self._curves_for, None
+        serial = self._serial
+        tasks.submit(fit_view_data, *args, owner=self, on_done=lambda d, s=serial: self._curves_ready(d, s),
+                     on_error=lambda e: None)
 
     def ensure_rendered(self) -> None:
         """Draw a result that arrived while the panel was hidden (tests, screenshots)."""
         if self._stale:
             self._render()
+        self._compute_curves()
 
     def best_name(self) -> str | None:
         self.ensure_rendered()
@@ -242,6 +253,7 @@ class FitPanel(QWidget):
                if abs(best.lag1_autocorr) > 0.2 and doc_sel == "AIC" else "")
         )
         self._fill_table(result)
+        self._compute_curves()
         # the plots in the next turns of the event loop: drawing everything at once held the GUI
         # thread for 80-100 ms; in three parts no part holds it for more than about 30 ms
         serial = self._serial
