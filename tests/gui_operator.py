@@ -6,10 +6,8 @@ from __future__ import annotations
 
 import time
 
-import h5py
-
-from velab.fitting.store import read_fit_group
 from velab.runfile import read_run
+from velab.runfiles.summary import read_fits
 
 STALL_LIMIT_S = 0.25  # issue 16: the GUI thread never stalls more than 250 ms during a run
 
@@ -128,8 +126,5 @@ class Operator:
 def run_file(path):
     """(status, reason, best model of the stored online fit or None, the run's event log) of a run file."""
     run = read_run(path)
-    best = None
-    if "online" in run.fit_names:
-        with h5py.File(path, "r") as fh:
-            best = read_fit_group(fh["entry/fits/online"]).best.name
+    best = read_fits(path).get("online", {}).get("best") if "online" in run.fit_names else None
     return run.status, run.status_reason, best, run

@@ -58,9 +58,10 @@ def test_connect_arm_trigger_as_soon_as_enabled_completes_10_of_10(qtbot, tmp_pa
         if not (s.status == r["status"] == "completed" and s.fit is not None and r["best"] == s.best_model
                 and [p for p, _ in r["presses"]] == ["connect", "arm", "trigger"]
                 and not r["errors"] and not r["warnings"] and r["stall"] < STALL_LIMIT_S):
-            failures.append((i, s.status, s.reason, s.fit_error, r["best"], r["presses"], r["errors"], r["warnings"],
-                             round(r["stall"], 3)))
-    assert not failures, failures
+            failures.append(f"run {i}: {s.status} ({s.reason}) fit_error={s.fit_error!r} best={r['best']} "
+                            f"presses={r['presses']} errors={r['errors']} warnings={r['warnings']} "
+                            f"stall={r['stall']:.3f} s at {r['worst']}")
+    assert not failures, "\n".join(failures)
     for r in runs:
         ev = [(k, m) for _, k, m in r["events"]]
         # each press acted: the trigger was commanded once and the run's axis is the measured trigger's

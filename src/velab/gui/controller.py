@@ -158,23 +158,29 @@ class RecorderController(QObject):
         self.timer.stop()
         rec, self.recorder = self.recorder, None
         phase = self.phase
+        making = [fut for name, fut, _ in self._pending if name == "setup"]  # a Recorder still being made
 
         def shut():
-            if rec is None:
-                return
-            try:
-                if phase in P.RUN_PHASES:
-                    rec.abort("window closed").result(timeout=10)
-            except Exception:
-                pass
-            try:
-                rec.close()
-            except Exception:  # closing must not raise
-                traceback.print_exc()
+            recs = [rec] if rec is not None else []
+            for fut in making:
+                try:
+                    recs.append(fut.result(timeout=30))
+                except Exception:
+                    pass
+            for r in recs:
+                try:
+                    if r is rec and phase in P.RUN_PHASES:
+                        r.abort("window closed").result(timeout=10)
+                except Exception:
+                    pass
+                try:
+                    r.close()
+                except Exception:  # closing must not raise
+                    traceback.print_exc()
         fut = self._exec.submit(shut)
         self._exec.shutdown(wait=False)
         try:
-            fut.result(timeout=20)
+            fut.result(timeout=60)
         except Exception:
             pass
 

@@ -230,7 +230,9 @@ class MainWindow(QMainWindow):
         self.reset_valve_action.setEnabled(st.controls()["reset_valve"])
         self.run_panel.set_phase(st.phase)
         self.phase_label.setText(status_text(st))
-        self.phase_label.setStyleSheet(f"background:{COLORS.get(st.phase, 'transparent')}; padding:2px 6px;")
+        style = f"background:{COLORS.get(st.phase, 'transparent')}; padding:2px 6px;"
+        if self.phase_label.styleSheet() != style:
+            self.phase_label.setStyleSheet(style)
 
     # ------------------------------------------------------------------ the interlock's prediction
     def _predict(self):

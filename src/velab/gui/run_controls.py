@@ -78,12 +78,15 @@ class RunControls(QFrame):
         for name, on in state.controls().items():
             self.buttons[name].setEnabled(on)
         self.arm_button.setText("Reopen + Arm" if state.reopen_before_arm else "Arm")
-        bold = "font-weight: bold;" if (state.valve_fault or state.reopen_before_arm) else ""
-        self.reset_valve_button.setStyleSheet(f"QPushButton {{ {bold} }}")
+        bold = "QPushButton { font-weight: bold; }" if (state.valve_fault or state.reopen_before_arm) else ""
+        if self.reset_valve_button.styleSheet() != bold:  # a style sheet change re-polishes the widget
+            self.reset_valve_button.setStyleSheet(bold)
         phase, detail = state.indicator()
         self.phase_label.setText(phase)
         self.detail_label.setText(detail)
-        self.indicator.setStyleSheet(f"background: {COLORS.get(phase, 'transparent')}; border-radius: 3px;")
+        style = f"background: {COLORS.get(phase, 'transparent')}; border-radius: 3px;"
+        if self.indicator.styleSheet() != style:
+            self.indicator.setStyleSheet(style)
 
     def phase_text(self) -> str:
         return f"{self.phase_label.text()}: {self.detail_label.text()}".rstrip(": ")
