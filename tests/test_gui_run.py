@@ -15,18 +15,26 @@ from gui_operator import STALL_LIMIT_S, Operator, StallProbe, make_window, run_f
 pytestmark = [pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]
 
 
-# (phase to press in, window settings that make the phase last long enough to be seen at the fast clock)
+# (phase to press in, window settings that make the phase last long enough to be seen at each clock)
 PHASES = {
-    "armed": dict(pre=40.0, duration=2.5),  # 40 s of baseline: 3.3 s of wall time
-    "triggerable": dict(pre=0.5, duration=2.5),  # no trigger pressed: triggerable until the armed timeout (300 s)
-    "recording": dict(pre=0.5, duration=60.0, fit_window=20.0),  # 60 s after the trigger: 5 s of wall time
+    "fast": {
+        "armed": dict(pre=40.0, duration=2.5),  # 40 s of baseline: 3.3 s of wall time
+        "triggerable": dict(pre=0.5, duration=2.5),  # no trigger pressed: triggerable until the armed timeout
+        "recording": dict(pre=0.5, duration=60.0, fit_window=20.0),  # 60 s after the trigger: 5 s of wall time
+    },
+    "realtime": {
+        "armed": dict(pre=3.0, duration=2.5),
+        "triggerable": dict(pre=0.5, duration=2.5),
+        "recording": dict(pre=0.5, duration=5.0, fit_window=4.0),
+    },
 }
+CASES = [("fast", ph, act) for ph in PHASES["fast"] for act in ("stop", "abort")] + [
+    ("realtime", "armed", "abort"), ("realtime", "triggerable", "stop"), ("realtime", "recording", "abort")]
 
 
-@pytest.mark.parametrize("action", ["stop", "abort"])
-@pytest.mark.parametrize("phase", list(PHASES))
-def test_stop_and_abort_in_every_phase(qtbot, tmp_path, phase, action):
-    win = make_window(qtbot, tmp_path, clock="fast", **PHASES[phase])
+@pytest.mark.parametrize("clock,phase,action", CASES)
+def test_stop_and_abort_in_every_phase(qtbot, tmp_path, clock, phase, action):
+    win = make_window(qtbot, tmp_path, clock=clock, **PHASES[clock][phase])
     op = Operator(qtbot, win)
     probe = StallProbe().start()
     op.press_when_enabled("connect", 60)
