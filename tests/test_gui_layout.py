@@ -148,7 +148,7 @@ def test_fit_table_reports_bounds_negligible_elements_and_uncertainties(sweep):
         m["aic_ar1"] = m["aic"] - 5.0
     rows = {r.name: r for r in model_rows(doc)}
     r = rows["S2"]
-    assert r.cells[COLUMNS.index("a (m/s)")].endswith("± 0.4")
+    assert r.cells[COLUMNS.index("a (m/s)")].endswith("± 0.42")
     notes = r.cells[COLUMNS.index("notes")]
     assert "S2 = S1 + negligible element" in notes and "tau_2 on the upper bound 30 s (--tau-max moves it)" in notes
     assert r.negligible == (False, True) and "element 2: negligible" in r.tooltip and "±" in r.tooltip

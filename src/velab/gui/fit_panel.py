@@ -2,7 +2,7 @@
 
 Plots (pyqtgraph, one row): measured and fitted head for the models ticked in the table;
 delta AIC against m; the calibrated creep elements J against tau (decade labels only,
-negligible elements hollow); |phi(omega)|. The model curves are computed by
+negligible elements left out); |phi(omega)|. The model curves are computed by
 :func:`fit_view_data` on a worker thread (it is model evaluation over the whole window);
 the panel only draws, and only when it is on screen: a fit that arrives while the Run page
 is shown is drawn (and its curves computed) when the Fit page is opened.
@@ -343,13 +343,14 @@ class FitPanel(QWidget):
             if f.m and not f.reduced:
                 tau = np.array(f.tau_s)
                 J = np.array(f.J_per_pa)
-                ok = np.isfinite(tau) & np.isfinite(J) & (tau > 0) & (J > 0)
+                neg = np.array(row.negligible or (False,) * tau.size, dtype=bool)
+                # a negligible (vanished) element's J is meaningless and would stretch the log axis by
+                # ten decades: it is left out here (the table's notes name it)
+                ok = np.isfinite(tau) & np.isfinite(J) & (tau > 0) & (J > 0) & ~neg
                 order = np.argsort(tau[ok])
-                neg = np.array(row.negligible or (False,) * tau.size, dtype=bool)[ok][order]
                 c = self._color(f.name)
                 self.p_creep.plot(tau[ok][order], J[ok][order], pen=pg.mkPen(c, width=2 if f is best else 1),
-                                  symbol="o", symbolSize=7, symbolPen=c,
-                                  symbolBrush=[pg.mkBrush(None) if n else pg.mkBrush(c) for n in neg], name=f.name)
+                                  symbol="o", symbolSize=7, symbolPen=c, symbolBrush=c, name=f.name)
 
     def _curves_ready(self, data: dict, serial: int) -> None:
         if serial != self._serial:

@@ -26,7 +26,8 @@ def _fin(x) -> bool:
 
 
 def _pm(value: float, se, fmt: str) -> str:
-    return f"{value:{fmt}} ± {_num(se):{fmt}}" if _fin(se) else f"{value:{fmt}}"
+    """value ± se (the uncertainty to two significant digits), or the value alone without one."""
+    return f"{value:{fmt}} ± {_num(se):.2g}" if _fin(se) else f"{value:{fmt}}"
 
 
 @dataclass
@@ -81,7 +82,7 @@ def model_rows(result) -> list[ModelRow]:
             tips.append(f"element {i}: τ = {_pm(tau, e.get('tau_se'), '.4g')} s, J = {_pm(J, e.get('J_se'), '.3e')} 1/Pa")
         cells = ("", name, str(m.get("k", "")), f"{_num(m.get('F')):.4g}", f"{aic:.1f}",
                  f"{_num(m.get('delta_aic')):.2f}", f"{_num(m.get('weight')):.3f}", str(m.get("support", "")),
-                 _pm(a, m.get("wave_speed_se"), ".1f"), f"{_num(m.get('lag1_autocorr')):.2f}", "; ".join(notes))
+                 _pm(a, m.get("wave_speed_se"), ".2f" if _fin(m.get("wave_speed_se")) else ".1f"), f"{_num(m.get('lag1_autocorr')):.2f}", "; ".join(notes))
         rows.append(ModelRow(name, cells, name == best, bool(m.get("reduced", False)), notes, "\n".join(tips),
                              negligible))
     return rows
