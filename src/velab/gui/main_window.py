@@ -15,6 +15,7 @@ from PySide6.QtWidgets import QDockWidget, QLabel, QMainWindow, QTabWidget
 
 from velab.gui import tasks
 from velab.gui.archive import ArchiveBrowser
+from velab.gui.app import freeze_heap
 from velab.gui.archive_io import fit_window_of
 from velab.gui.controller import RecorderController
 from velab.gui.fit_panel import FitPanel
@@ -105,6 +106,7 @@ class MainWindow(QMainWindow):
         self.plot_timer.start()
         self._restore()
         self.update_prediction()
+        freeze_heap()  # long-lived objects out of the garbage collector's full scans
 
     # ------------------------------------------------------------------ layout
     def _menus(self) -> None:
