@@ -42,6 +42,7 @@ def qt_cleanup(qtbot):
     from velab.gui import tasks
 
     tasks.wait_idle(20000)
+    gc.unfreeze()  # a window froze the heap (velab.gui.app.freeze_heap): the closed windows must be collectable
     for _ in range(3):
         QCoreApplication.sendPostedEvents(None, QEvent.DeferredDelete)
         QCoreApplication.processEvents()

@@ -128,7 +128,7 @@ def test_settings_persist(qtbot, tmp_path, synth_run):
     qtbot.addWidget(win2)
     assert win2.run_panel.operator_edit.text() == "Ada"
     assert win2.tabs.currentIndex() == 2
-    assert win2.archive.files.count() >= 1
+    qtbot.waitUntil(lambda: win2.archive.files.count() >= 1, timeout=10000)  # listed on a worker thread
     assert (win2.width(), win2.height()) == (760, 560)
     win2.close()
 

@@ -1,5 +1,7 @@
-"""GUI against the real recorder engine and the in-process simulated rig (fast clock):
-a whole test through the window's controls, the interlock refusal and a device fault."""
+"""Runs through the window with the real recorder engine and the in-process simulated rig: Stop and
+Abort pressed as soon as they are enabled in each phase, the armed timeout, a second run on the same
+connection (Reopen + Arm, Reset valve), the interlock's refusal and a device fault as messages.
+Each run's file is checked. Helpers: tests/gui_operator.py."""
 
 from __future__ import annotations
 
@@ -8,67 +10,139 @@ import pytest
 pytest.importorskip("PySide6")
 pytest.importorskip("pyqtgraph")
 
+from gui_operator import STALL_LIMIT_S, Operator, StallProbe, make_window, run_file  # noqa: E402
+
 pytestmark = [pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]
 
 
-@pytest.fixture()
-def win(qtbot, tmp_path):
-    from velab.gui.app import ensure_app, recorder_factory
-    from velab.gui.main_window import MainWindow, make_settings
-
-    ensure_app()
-    factory, rig = recorder_factory(simulate=True, clock="fast", material="A")
-    w = MainWindow(settings=make_settings(tmp_path / "gui.ini"), recorder_factory=factory, rig=rig,
-                   source_label="simulated rig")
-    rp = w.run_panel
-    rp.duration_spin.setValue(3.0)
-    rp.pre_spin.setValue(0.5)
-    rp.fit_window_spin.setValue(2.0)
-    rp.models_edit.setText("0-2")
-    rp.out_edit.setText(str(tmp_path / "runs"))
-    rp.operator_edit.setText("test")
-    qtbot.addWidget(w)
-    w.show()
-    yield w
-    w.close()
+# (phase to press in, window settings that make the phase last long enough to be seen at each clock)
+PHASES = {
+    "fast": {
+        "armed": dict(pre=40.0, duration=2.5),  # 40 s of baseline: 3.3 s of wall time
+        "triggerable": dict(pre=0.5, duration=2.5),  # no trigger pressed: triggerable until the armed timeout
+        "recording": dict(pre=0.5, duration=60.0, fit_window=20.0),  # 60 s after the trigger: 5 s of wall time
+    },
+    "realtime": {
+        "armed": dict(pre=3.0, duration=2.5),
+        "triggerable": dict(pre=0.5, duration=2.5),
+        "recording": dict(pre=0.5, duration=5.0, fit_window=4.0),
+    },
+}
+CASES = [("fast", ph, act) for ph in PHASES["fast"] for act in ("stop", "abort")] + [
+    ("realtime", "armed", "abort"), ("realtime", "triggerable", "stop"), ("realtime", "recording", "abort")]
 
 
-def test_whole_run_through_the_window(qtbot, win):
-    from PySide6.QtCore import Qt
+@pytest.mark.parametrize("clock,phase,action", CASES)
+def test_stop_and_abort_in_every_phase(qtbot, tmp_path, clock, phase, action):
+    win = make_window(qtbot, tmp_path, clock=clock, **PHASES[clock][phase])
+    op = Operator(qtbot, win)
+    probe = StallProbe().start()
+    op.press_when_enabled("connect", 60)
+    op.press_when_enabled("arm", 60)
+    if phase == "recording":
+        op.press_when_enabled("trigger", 60)
+    assert op.press_when_enabled(action, 60, phase=phase) == phase
+    summary = op.wait_done(60)
+    assert probe.stop() < STALL_LIMIT_S
+    status, reason, best, run = run_file(summary.path)
+    expected = {"stop": ("stopped", "stopped by the operator"), "abort": ("aborted", "operator abort")}[action]
+    assert (summary.status, status) == (expected[0], expected[0]) and expected[1] in reason
+    # no fit, and why: the run ended before the trigger or before the fit window closed
+    assert best is None and summary.fit is None
+    assert summary.fit_error.startswith("no fit: the run") if action == "stop" else summary.fit_error
+    rig = win.controller.recorder.sim.rig
+    assert rig.trigger_count == (1 if phase == "recording" else 0)
+    assert rig.state().name != "ARMED"  # the valve is never left armed
+    # what the window showed: the engine's allowed commands, nothing else
+    assert op.shown_while("fitting") == set()
+    assert "trigger" not in op.shown_while("recording") and "arm" not in op.shown_while(phase)
+    assert {action} <= op.shown_while(phase)
+    assert not win.log.texts("error") or action == "abort"  # an abort is reported as an error line
+    assert not any("not possible now" in t for t in win.log.texts())
 
-    rp = win.run_panel
-    rp.rate_combo.setCurrentIndex(rp.rate_combo.findData(10000.0))
-    rp.title_edit.setText("GUI test run")
-    assert "within limits" in rp.prediction.text()  # shown before arming
-    qtbot.mouseClick(rp.arm_button, Qt.LeftButton)
-    qtbot.waitUntil(lambda: win.controller.phase == "triggerable", timeout=60000)
-    assert rp.trigger_button.isEnabled() and not rp.arm_button.isEnabled()
-    qtbot.waitUntil(lambda: win.live.samples_received > 6000, timeout=30000)  # baseline complete at 10 kHz
-    qtbot.waitUntil(lambda: win.live.redraws > 0, timeout=5000)
-    qtbot.mouseClick(rp.trigger_button, Qt.LeftButton)
-    qtbot.waitUntil(lambda: win.last_summary is not None, timeout=90000)
-    s = win.last_summary
-    assert s.status == "completed", s
-    assert win.live.mode == "whole" and win.live.trigger_time_s is not None
-    assert win.live.samples_received == s.n_samples  # every sample reached the live plot
-    assert win.live.buffer.column("head_m").max() > 40.0  # the surge is there
-    assert "valve_position" in win.devices.readings and "flow" in win.devices.readings
-    qtbot.waitUntil(lambda: win.fit_panel.data is not None, timeout=30000)
-    assert win.fit_panel.best_name() == s.best_model
-    assert win.fit_panel.model_names() == ["EL", "S1", "S2"]
-    assert s.path.exists() and rp.arm_button.isEnabled()
-    # the finished run is listed in the archive browser
-    qtbot.waitUntil(lambda: win.archive.files.count() == 1, timeout=5000)
-    assert not win.log.texts("error")
+
+def test_armed_rig_left_alone_disarms_at_the_configured_time(qtbot, tmp_path):
+    """The armed timeout (here 3 s, set in the form) disarms the rig; the window counts it down and
+    says why the run ended; the run file says it too and keeps a bounded baseline."""
+    win = make_window(qtbot, tmp_path, clock="realtime", pre=0.5, armed_timeout=3.0, rate=1000.0)
+    op = Operator(qtbot, win)
+    probe = StallProbe().start()
+    op.press_when_enabled("connect", 60)
+    op.press_when_enabled("arm", 60)
+    qtbot.waitUntil(lambda: "disarms in" in win.run_controls.phase_text(), timeout=10000)
+    summary = op.wait_done(60)
+    assert probe.stop() < STALL_LIMIT_S
+    assert summary.status == "aborted" and summary.reason.startswith("armed timeout: no trigger within 3 s")
+    status, reason, best, run = run_file(summary.path)
+    assert status == "aborted" and reason.startswith("armed timeout") and best is None
+    assert any(k == "disarmed" for _, k, _ in run.events)
+    assert run.n_samples <= int(3.0 * 1000) + 200  # the baseline kept is bounded by the timeout
+    assert run.n_samples >= int(2.5 * 1000)
+    assert win.controller.recorder.sim.rig.trigger_count == 0
+    assert win.controller.recorder.sim.rig.state().name != "ARMED"
+    countdowns = [st.disarm_in() for st in op.states if st.phase in ("armed", "triggerable")]
+    countdowns = [c for c in countdowns if c is not None]
+    assert countdowns and max(countdowns) <= 3.0 and min(countdowns) < 1.5  # it counted down on screen
+    assert any(t.startswith("Disarmed — armed timeout") for t in win.log.texts("warning"))
+    assert win.run_controls.phase_label.text() == "aborted" and "armed timeout" in win.run_controls.phase_text()
+    assert win.run_controls.arm_button.isEnabled()  # the valve is still open: a new run can be armed
 
 
-def test_interlock_refusal_is_a_message(qtbot, win):
-    from PySide6.QtCore import Qt
+def test_second_run_on_the_same_connection(qtbot, tmp_path):
+    """After a completed run the valve is closed: Arm becomes "Reopen + Arm" and carries both out on
+    the same Recorder; Reset valve alone reopens it too; the measured trigger reaches the plot."""
+    win = make_window(qtbot, tmp_path, clock="fast", fit=False)
+    op = Operator(qtbot, win)
+    marks = []
+    win.controller.trigger_time.connect(lambda t, measured: marks.append((t, measured, win.last_summary is None)))
 
+    def one_run():
+        win.last_summary = None
+        op.press_when_enabled("arm", 60)
+        op.press_when_enabled("trigger", 60)
+        return op.wait_done(90)
+
+    op.press_when_enabled("connect", 60)
+    first = one_run()
+    rec = win.controller.recorder
+    assert first.status == "completed" and first.fit_error == ""
+    measured = [m for m in marks if m[1]]
+    assert measured and measured[0][2] and measured[0][0] == first.trigger_time_s  # during the run
+    assert win.live.offset_s == first.trigger_time_s
+    qtbot.waitUntil(lambda: win.run_controls.arm_button.text() == "Reopen + Arm", timeout=10000)
+    assert win.run_controls.reset_valve_button.isEnabled() and win.reset_valve_action.isEnabled()
+    second = one_run()
+    assert win.controller.recorder is rec and second.status == "completed" and second.path != first.path
+    assert rec.sim.rig.trigger_count == 2
+    assert any("reopening it before arming" in t for t in win.log.texts())
+    op.press_when_enabled("reset_valve", 30)
+    qtbot.waitUntil(lambda: any(t.startswith("Valve reopened") for t in win.log.texts()), timeout=30000)
+    qtbot.waitUntil(lambda: win.run_controls.arm_button.text() == "Arm", timeout=10000)
+    assert rec.sim.rig.state().name == "IDLE"
+    assert not win.log.texts("error") and not win.log.texts("warning")
+
+
+def test_arm_without_connect_connects_and_arms(qtbot, tmp_path):
+    """Arm is enabled before any connection (the engine connects first): one press, one armed run."""
+    win = make_window(qtbot, tmp_path, clock="fast")
+    op = Operator(qtbot, win)
+    assert win.run_controls.arm_button.isEnabled() and win.controller.recorder is None
+    op.press_when_enabled("arm", 60)
+    op.press_when_enabled("trigger", 60)
+    summary = op.wait_done(90)
+    assert summary.status == "completed" and summary.fit is not None
+    assert [p for p, _ in op.presses] == ["arm", "trigger"] and win.controller.recorder.devices
+    assert not win.log.texts("error") and not win.log.texts("warning")
+
+
+def test_interlock_refusal_is_a_message(qtbot, tmp_path):
+    from pathlib import Path
+
+    win = make_window(qtbot, tmp_path, clock="fast")
     rp = win.run_panel
     rp.margin_spin.setValue(50)  # Joukowsky surge + 50 % exceeds the transducer's full scale
     assert "REFUSED" in rp.prediction.text()
-    qtbot.mouseClick(rp.arm_button, Qt.LeftButton)
+    Operator(qtbot, win).press_when_enabled("arm", 10)
     msg = win.log.texts("error")[-1]
     assert msg.startswith("Refused by the interlock") and "EXCEEDS the transducer full scale" in msg
     assert "Refused by the interlock" in win.banner.text()
@@ -77,63 +151,21 @@ def test_interlock_refusal_is_a_message(qtbot, win):
     qtbot.waitUntil(lambda: len(win.log.texts("error")) >= 2, timeout=60000)
     assert "manoeuvre refused" in win.log.texts("error")[-1]
     assert "Traceback" not in win.log.toPlainText()
-    assert not list((win.run_panel.settings()["out_dir"] and __import__("pathlib").Path(rp.settings()["out_dir"])).glob("*.h5"))
+    assert not list(Path(rp.settings()["out_dir"]).glob("*.h5"))
+    qtbot.waitUntil(lambda: win.run_controls.arm_button.isEnabled(), timeout=10000)  # nothing is stuck
 
 
-def test_device_fault_is_a_message(qtbot, win):
-    rp = win.run_panel
-    rp.duration_spin.setValue(60.0)
-    rp.pre_spin.setValue(30.0)  # stays in the pre-trigger while the flowmeter goes silent
-    win.arm()
-    qtbot.waitUntil(lambda: win.controller.phase == "triggerable", timeout=60000)
+def test_device_fault_is_a_message(qtbot, tmp_path):
+    win = make_window(qtbot, tmp_path, clock="fast", pre=30.0, duration=60.0, fit_window=20.0)
+    op = Operator(qtbot, win)
+    op.press_when_enabled("arm", 60)
+    qtbot.waitUntil(lambda: win.controller.phase == "armed", timeout=60000)
     win.controller.recorder.sim.faults["flowmeter"].silent = True
     qtbot.waitUntil(lambda: any("flowmeter" in t for t in win.log.texts("error")), timeout=30000)
     text = [t for t in win.log.texts("error") if "flowmeter" in t][-1]
     assert text.startswith("Device fault") and "flowmeter" in win.banner.text()
     assert "flowmeter" in win.devices.faults
     win.controller.recorder.sim.faults["flowmeter"].silent = False
-    win.controller.abort("test over")
-    qtbot.waitUntil(lambda: win.controller.phase == "aborted", timeout=30000)
-
-
-def test_second_run_on_the_same_connection(qtbot, win):
-    """Arm after a completed run re-arms the same Recorder (the valve is reopened first); Reset valve is
-    offered while the valve is closed; the trigger marker moves to the measured instant during the run;
-    a device fault arrives as structured data."""
-    from PySide6.QtCore import Qt
-
-    rp = win.run_panel
-    rp.fit_check.setChecked(False)
-    marks = []
-    win.controller.trigger_time.connect(lambda t, measured: marks.append((t, measured, win.last_summary is None)))
-    assert not rp.reset_valve_button.isEnabled()
-
-    def one_run():
-        qtbot.mouseClick(rp.arm_button, Qt.LeftButton)
-        qtbot.waitUntil(lambda: win.controller.phase == "triggerable", timeout=60000)
-        qtbot.waitUntil(lambda: win.live.samples_received > 600, timeout=30000)  # the 0.5 s baseline is in
-        qtbot.mouseClick(rp.trigger_button, Qt.LeftButton)
-        qtbot.waitUntil(lambda: win.last_summary is not None, timeout=90000)
-        return win.last_summary
-
-    first = one_run()
-    rec = win.controller.recorder
-    assert first.status == "completed"
-    # the measured trigger reached the plot while the run was still going on
-    measured = [m for m in marks if m[1]]
-    assert measured and measured[0][2] and measured[0][0] == first.trigger_time_s
-    assert win.live.trigger_time_s == first.trigger_time_s
-    qtbot.waitUntil(lambda: rp.reset_valve_button.isEnabled(), timeout=10000)  # the valve is closed
-    assert win.reset_valve_action.isEnabled()
-    # Arm right away: same recorder, valve reopened, second run
-    second = one_run()
-    assert win.controller.recorder is rec and second.status == "completed" and second.path != first.path
-    assert rec.sim.rig.trigger_count == 2
-    assert any("reopening it before arming" in t for t in win.log.texts())
-    # the button on its own: reopens the valve and is then disabled
-    qtbot.waitUntil(lambda: rp.reset_valve_button.isEnabled(), timeout=10000)
-    qtbot.mouseClick(rp.reset_valve_button, Qt.LeftButton)
-    qtbot.waitUntil(lambda: any(t.startswith("Valve reopened") for t in win.log.texts()), timeout=30000)
-    qtbot.waitUntil(lambda: not rp.reset_valve_button.isEnabled(), timeout=10000)
-    assert rec.sim.rig.state().name == "IDLE"
-    assert not win.log.texts("error")
+    op.press_when_enabled("abort", 10)
+    summary = op.wait_done(60)
+    assert summary.status == "aborted"

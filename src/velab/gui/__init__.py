@@ -1,8 +1,10 @@
 """Operator GUI (PySide6 + pyqtgraph); imports Qt, so nothing outside velab.gui imports it.
 
 Modules: ``main_window`` (the window), ``controller`` (recorder events -> Qt signals,
-commands as futures), ``live_plot``, ``fit_panel``, ``archive`` (+ ``archive_io``, the
-file work on worker threads), ``devices``, ``run_panel``, ``messages``, ``tasks``
+commands as futures, the engine's phase), ``state`` (Qt-free: buttons and phase line from
+the engine's phase and allowed commands), ``run_page`` (+ ``run_controls``, ``run_panel``,
+``devices``), ``live_plot`` (+ ``strip_chart``), ``fit_panel`` (+ ``fit_rows``), ``archive``
+(+ ``archive_io``, the file work on worker threads), ``messages``, ``widgets``, ``tasks``
 (the worker pool), ``app`` (start-up, recorder factory). See docs/gui.md.
 """
 

@@ -24,6 +24,36 @@ def ensure_app():
     return app
 
 
+def preload(simulate: bool) -> None:
+    """Import (and for the simulated rig, load the compiled MOC kernel of) what a run will need, now,
+    before the window shows: an import or a kernel load on an engine thread holds the GIL for tens
+    of milliseconds at a time (extension modules, numba's cache), which the GUI thread would wait
+    through during the operator's first run (docs/gui.md, "Latency")."""
+    import scipy.signal  # noqa: F401 - the online fit's decimation
+
+    import velab.fitting  # noqa: F401
+    import velab.fitting.store  # noqa: F401
+    import velab.model  # noqa: F401 - the fit panel's model curves
+
+    if simulate:
+        import velab.simulators.bench  # noqa: F401
+        from velab.moc import warm_up
+
+        warm_up()
+
+
+def freeze_heap() -> None:
+    """Collect, then move every object alive now (modules, Qt wrappers, the window) out of the cyclic
+    garbage collector's reach (``gc.freeze``). A full collection of the ~250 000 objects of a running
+    window took 65-170 ms with the GIL held, on whichever thread triggered it (the GUI thread, or an
+    engine or simulator thread, which the GUI thread then waited for); afterwards a collection scans
+    only what was made since (docs/gui.md, "Latency")."""
+    import gc
+
+    gc.collect()
+    gc.freeze()
+
+
 def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "default", material=None, rig=None,
                      clock: str = "realtime"):
     """``(factory, rig)``: ``factory(**record_settings) -> velab.recording.Recorder`` and the rig it records;
@@ -36,6 +66,7 @@ def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "
     from velab import recording as rec
     from velab.config import load_rig
 
+    preload(simulate)
     if simulate:
         from velab.simulators.bench import load_sim_config
 

@@ -7,9 +7,9 @@ from pathlib import Path
 
 from PySide6.QtCore import QSettings, Qt, QTimer, Signal
 from PySide6.QtGui import QFont
-from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFileDialog, QFormLayout, QGroupBox,
+from PySide6.QtWidgets import (QCheckBox, QFileDialog, QFormLayout, QGroupBox,
                                QHBoxLayout, QLabel, QLineEdit, QListWidget, QListWidgetItem, QPlainTextEdit,
-                               QProgressBar, QPushButton, QScrollArea, QSpinBox, QSplitter, QTabWidget, QVBoxLayout,
+                               QProgressBar, QPushButton, QScrollArea, QSplitter, QTabWidget, QVBoxLayout,
                                QWidget)
 
 from velab.gui import tasks
@@ -17,6 +17,7 @@ from velab.gui.archive_io import RefitOptions, export_csv, export_report_figure,
 from velab.gui.fit_panel import FitPanel
 from velab.gui.live_plot import LivePlot
 from velab.gui.messages import describe_error
+from velab.gui.widgets import ComboBox, DoubleSpinBox, SpinBox
 
 
 class ArchiveBrowser(QWidget):
@@ -70,7 +71,7 @@ class ArchiveBrowser(QWidget):
 
         fits_box = QGroupBox("Stored fits")
         fl = QVBoxLayout(fits_box)
-        self.fit_combo = QComboBox()
+        self.fit_combo = ComboBox()
         self.fit_combo.currentIndexChanged.connect(self._fit_chosen)
         fl.addWidget(self.fit_combo)
         ll.addWidget(fits_box)
@@ -79,17 +80,17 @@ class ArchiveBrowser(QWidget):
         form = QFormLayout(refit_box)
         self.models_edit = QLineEdit(settings.value("archive/models", "0-6"))
         self.models_edit.setToolTip("models by number of Kelvin-Voigt elements: 0-6, 1-4, 1,3 (0 = EL)")
-        self.window_spin = QDoubleSpinBox()
+        self.window_spin = DoubleSpinBox()
         self.window_spin.setRange(0.1, 3600)
         self.window_spin.setDecimals(2)
         self.window_spin.setSuffix(" s")
         self.window_spin.setValue(float(settings.value("archive/window_s", 20.0)))
-        self.method_combo = QComboBox()
+        self.method_combo = ComboBox()
         from velab.fitting import METHODS
 
         self.method_combo.addItems(METHODS)
         self.method_combo.setCurrentText(settings.value("archive/method", "auto"))
-        self.starts_spin = QSpinBox()
+        self.starts_spin = SpinBox()
         self.starts_spin.setRange(0, 50)
         self.starts_spin.setSpecialValueText("all")
         self.starts_spin.setToolTip("cap on the number of starts per model (all: the full search)")
@@ -181,9 +182,16 @@ class ArchiveBrowser(QWidget):
         self.refresh_list(folder)
 
     def refresh_list(self, folder=None) -> None:
+        """List the folder's runs on a worker thread (a network share can be slow), then show them."""
         folder = Path(folder or self.settings.value("archive/folder", "") or ".")
+        tasks.submit(list_runs, folder, owner=self, on_done=lambda files, f=folder: self._listed(f, files),
+                     on_error=lambda exc: self.message.emit(describe_error(exc)[1], "warning"))
+
+    def _listed(self, folder: Path, files) -> None:
+        if str(folder) != str(self.settings.value("archive/folder", "")):
+            return  # another folder was chosen meanwhile
         self.files.clear()
-        for p in list_runs(folder)[:500]:
+        for p in files[:500]:
             it = QListWidgetItem(p.name)
             it.setData(Qt.UserRole, str(p))
             it.setToolTip(str(p))
@@ -205,7 +213,7 @@ class ArchiveBrowser(QWidget):
             return
         self._loading = True
         path = self.path
-        tasks.submit(load_run, path, on_done=lambda lr: self._loaded(lr, path, select, quiet), on_error=self._load_failed)
+        tasks.submit(load_run, path, owner=self, on_done=lambda lr: self._loaded(lr, path, select, quiet), on_error=self._load_failed)
 
     def _load_failed(self, exc) -> None:
         self._loading = False
@@ -291,7 +299,7 @@ class ArchiveBrowser(QWidget):
         self.message.emit(f"Re-fitting {self.path.name}: models {opts.models}, window {opts.window_s:g} s, "
                           f"method {opts.method}", "info")
         path = self.path
-        tasks.submit(refit, path, opts, on_done=lambda out: self._refit_done(out, path),
+        tasks.submit(refit, path, opts, owner=self, on_done=lambda out: self._refit_done(out, path),
                      on_error=self._refit_failed, on_progress=self._refit_progress)
 
     def _refit_progress(self, done: int, total: int, name: str) -> None:
@@ -345,7 +353,7 @@ class ArchiveBrowser(QWidget):
             if not path:
                 return
         tasks.submit(export_report_figure, self.path, self.current_fit[1],
-                     path, on_done=self._exported, on_error=self._export_failed)
+                     path, owner=self, on_done=self._exported, on_error=self._export_failed)
 
     def export_csv(self, path=None) -> None:
         if self.loaded_run is None:
@@ -356,7 +364,7 @@ class ArchiveBrowser(QWidget):
             path, _ = QFileDialog.getSaveFileName(self, "Export the run as CSV", start, "CSV (*.csv)")
             if not path:
                 return
-        tasks.submit(export_csv, self.loaded_run.run, path, on_done=self._exported, on_error=self._export_failed)
+        tasks.submit(export_csv, self.loaded_run.run, path, owner=self, on_done=self._exported, on_error=self._export_failed)
 
     def _exported(self, path) -> None:
         self.message.emit(f"Exported {path}", "info")

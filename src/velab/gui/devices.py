@@ -5,10 +5,10 @@ from __future__ import annotations
 import math
 import time
 
-from PySide6.QtCore import Qt, Signal
+from PySide6.QtCore import Qt
 from PySide6.QtGui import QBrush, QColor
-from PySide6.QtWidgets import (QAbstractItemView, QHBoxLayout, QHeaderView, QLabel, QPushButton, QTableWidget,
-                               QTableWidgetItem, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QTableWidget, QTableWidgetItem, QVBoxLayout,
+                               QWidget)
 
 COLUMNS = ("signal", "value", "units", "quality", "age")
 OK = QColor("#d8f0d2")
@@ -34,23 +34,17 @@ def _fmt(value) -> str:
 
 
 class DevicePanel(QWidget):
-    """``update_status(list)`` from connect(); ``update_readings(dict)`` from "device" events; ``set_fault``."""
+    """``update_status(list)`` from connect(); ``update_readings(dict)`` from "device" events; ``set_fault``.
 
-    reconnect_requested = Signal()
+    (Connect is in the run's control bar, run_controls.py.)"""
 
     def __init__(self, parent=None):
         super().__init__(parent)
         lay = QVBoxLayout(self)
         lay.setContentsMargins(0, 0, 0, 0)
-        row = QHBoxLayout()
         self.state_label = QLabel("Devices: not connected")
         self.state_label.setWordWrap(True)
-        self.reconnect_button = QPushButton("Connect")
-        self.reconnect_button.setToolTip("connect (or reconnect) every device of the bench")
-        self.reconnect_button.clicked.connect(self.reconnect_requested)
-        row.addWidget(self.state_label, 1)
-        row.addWidget(self.reconnect_button)
-        lay.addLayout(row)
+        lay.addWidget(self.state_label)
         self.table = QTableWidget(0, len(COLUMNS))
         self.table.setHorizontalHeaderLabels(COLUMNS)
         self.table.verticalHeader().setVisible(False)
@@ -58,7 +52,9 @@ class DevicePanel(QWidget):
         self.table.setSelectionMode(QAbstractItemView.NoSelection)
         self.table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeToContents)
         self.table.horizontalHeader().setStretchLastSection(True)
-        self.table.setMinimumHeight(120)
+        self.table.verticalHeader().setDefaultSectionSize(20)
+        self.table.setMinimumHeight(90)
+        self.table.setMaximumHeight(130)
         lay.addWidget(self.table)
         self.devices: dict[str, dict] = {}  # device -> {"state": str, "message": str}
         self.readings: dict[str, object] = {}
@@ -80,6 +76,18 @@ class DevicePanel(QWidget):
             if self.devices[name]["state"] in ("connected", "ok"):
                 self.faults.pop(name, None)
         self._summarise()
+
+    def update_valve(self, info: dict) -> None:
+        """A ``valve`` event from the engine: the actuator's state and position in the summary line."""
+        name = str(info.get("device") or "valve")
+        pos = info.get("position_pct")
+        msg = f"{info.get('state', '?')}" + (f", {pos:.1f} % open" if isinstance(pos, (int, float)) else "")
+        if info.get("faults"):
+            msg += f", faults {', '.join(map(str, info['faults']))}"
+        entry = self.devices.setdefault(name, {"state": "connected", "message": ""})
+        if entry["message"] != msg:
+            entry["message"] = msg
+            self._summarise()
 
     def set_state(self, text: str) -> None:
         self.state_label.setText(text)
@@ -150,4 +158,3 @@ class DevicePanel(QWidget):
             if dev not in self.devices:
                 parts.append(f"▲ {dev}: fault ({msg})")
         self.state_label.setText("\n".join(parts))
-        self.reconnect_button.setText("Reconnect")

@@ -1,9 +1,11 @@
-"""The fit panel: the model table (k, F, AIC, delta AIC, weight, support) and the paper's plots.
+"""The fit panel: the model table (fit_rows.py) and the paper's plots.
 
-Plots (pyqtgraph): measured and fitted head for the models ticked in the table;
-delta AIC against m; the calibrated creep elements J against tau; |phi(omega)|.
-The model curves are computed by :func:`fit_view_data` on a worker thread (it is
-model evaluation over the whole window); the panel only draws.
+Plots (pyqtgraph, one row): measured and fitted head for the models ticked in the table;
+delta AIC against m; the calibrated creep elements J against tau (decade labels only,
+negligible elements left out); |phi(omega)|. The model curves are computed by
+:func:`fit_view_data` on a worker thread (it is model evaluation over the whole window);
+the panel only draws, and only when it is on screen: a fit that arrives while the Run page
+is shown is drawn (and its curves computed) when the Fit page is opened.
 """
 
 from __future__ import annotations
@@ -12,18 +14,20 @@ import math
 
 import numpy as np
 import pyqtgraph as pg
-from PySide6.QtCore import Qt, Signal
+import shiboken6
+from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtGui import QBrush, QColor, QFont
-from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QSplitter, QTableWidget, QTableWidgetItem,
-                               QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QTableWidget, QTableWidgetItem, QVBoxLayout,
+                               QWidget)
 
 from velab.gui import tasks
+from velab.gui.fit_rows import COLUMNS, criterion, model_rows
 
-COLUMNS = ("plot", "model", "k", "F (m²)", "AIC", "ΔAIC", "weight", "support", "a (m/s)", "lag-1")
 PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf",
            "#7f7f7f", "#bcbd22", "#393b79", "#637939")
 BEST_BG = QColor("#d8f0d2")
 MAX_DISPLAY_POINTS = 4000
+ROW_H = 20
 
 
 def fit_view_data(t, h, rig, result) -> dict:
@@ -51,18 +55,49 @@ def fit_view_data(t, h, rig, result) -> dict:
     return {"t": td, "h": h[::q], "curves": curves, "freq_hz": omega / (2 * np.pi), "phi": phis, "result": result}
 
 
+class DecadeAxis(pg.AxisItem):
+    """A log axis labelled at decades (0.01, 0.1, 1, 1e-12 ...), and at 2 and 5 x 10^k only when it
+    spans less than a decade: pyqtgraph's labels at every 2..9 x 10^k overlapped."""
+
+    def tickStrings(self, values, scale, spacing):
+        if not self.logMode:
+            return super().tickStrings(values, scale, spacing)
+        values = list(values)
+        if spacing is None:  # pyqtgraph's minor level: k + log10(1..9), the decades included again
+            wide = bool(values) and max(values) - min(values) >= 1.0
+            return ["" if wide or _is_decade(v) or round(_mantissa(v)) not in (2, 5) else _fmt(v) for v in values]
+        return [_fmt(v) if _is_decade(v) else "" for v in values]
+
+
+def _is_decade(v: float) -> bool:
+    return abs(v - round(v)) < 1e-6
+
+
+def _mantissa(v: float) -> float:
+    return 10.0 ** (v - math.floor(v + 1e-9))
+
+
+def _fmt(v: float) -> str:
+    x = 10.0 ** v
+    return f"{x:g}" if 1e-3 <= x < 1e5 else f"{x:.0e}".replace("e-0", "e-").replace("e+0", "e")
+
+
 class FitPanel(QWidget):
     """``set_fit(t, h, rig, result)`` shows a SweepResult; ``best_name()`` and the table for tests."""
 
-    shown = Signal(str)  # best model name, once the plots are drawn
+    shown = Signal(str)  # best model name, once the model curves are in
 
     def __init__(self, parent=None, title: str = "Model selection by AIC"):
         super().__init__(parent)
         self.result = None
         self.data: dict | None = None
+        self.title = ""
         self._serial = 0
         self._checked: set[str] = set()
         self._updating = False
+        self._stale = False  # a result not drawn yet (the panel was hidden)
+        self._curves_for = None  # (t, h, rig, result) whose model curves are still to compute
+        self.renders = 0
 
         lay = QVBoxLayout(self)
         lay.setContentsMargins(2, 2, 2, 2)
@@ -73,98 +108,118 @@ class FitPanel(QWidget):
         self.header.setFont(f)
         lay.addWidget(self.header)
 
-        split = QSplitter(Qt.Vertical)
-        self.splitter = split
-        lay.addWidget(split, 1)
         self.table = QTableWidget(0, len(COLUMNS))
         self.table.setHorizontalHeaderLabels(COLUMNS)
         self.table.verticalHeader().setVisible(False)
         self.table.setEditTriggers(QAbstractItemView.NoEditTriggers)
         self.table.setSelectionBehavior(QAbstractItemView.SelectRows)
+        self.table.setWordWrap(False)
         hh = self.table.horizontalHeader()
         hh.setSectionResizeMode(QHeaderView.ResizeToContents)
-        hh.setSectionResizeMode(COLUMNS.index("support"), QHeaderView.Stretch)
-        self.table.verticalHeader().setDefaultSectionSize(22)
+        hh.setSectionResizeMode(COLUMNS.index("notes"), QHeaderView.Stretch)
+        self.table.verticalHeader().setDefaultSectionSize(ROW_H)
+        self.table.verticalHeader().setMinimumSectionSize(ROW_H)
         self.table.itemChanged.connect(self._item_changed)
-        split.addWidget(self.table)
+        lay.addWidget(self.table)  # as tall as its rows (_fit_table_height): every model shows
 
         self.plots = pg.GraphicsLayoutWidget()
-        split.addWidget(self.plots)
-        split.setStretchFactor(0, 1)
-        split.setStretchFactor(1, 3)
-        split.setSizes([200, 460])  # the table shows EL..S6 on a laptop screen
+        lay.addWidget(self.plots, 1)
         self.p_head = self.plots.addPlot(row=0, col=0, title="measured and fitted head")
         self.p_aic = self.plots.addPlot(row=0, col=1, title="ΔAIC against m")
-        self.p_creep = self.plots.addPlot(row=1, col=0, title="creep elements J against τ")
-        self.p_phi = self.plots.addPlot(row=1, col=1, title="|φ(ω)|")
+        self.p_creep = self.plots.addPlot(row=0, col=2, title="creep elements J against τ",
+                                          axisItems={"left": DecadeAxis("left"), "bottom": DecadeAxis("bottom")})
+        self.p_phi = self.plots.addPlot(row=0, col=3, title="|φ(ω)|",
+                                        axisItems={"left": DecadeAxis("left"), "bottom": DecadeAxis("bottom")})
+        lay_ = self.plots.ci.layout
+        for col, stretch in enumerate((2, 1, 1, 1)):
+            lay_.setColumnStretchFactor(col, stretch)
         self.p_head.setLabel("bottom", "time from trigger", units="s")
         self.p_head.setLabel("left", "head − steady", units="m")
         self.p_aic.setLabel("bottom", "m (Kelvin-Voigt elements)")
         self.p_aic.setLabel("left", "log10(1 + ΔAIC)")
-        self.p_creep.setLabel("bottom", "τ (s), log")
-        self.p_creep.setLabel("left", "J (1/Pa), log")
+        self.p_creep.setLabel("bottom", "τ (s)")
+        self.p_creep.setLabel("left", "J (1/Pa)")
         self.p_creep.setLogMode(x=True, y=True)
-        self.p_phi.setLabel("bottom", "f (Hz), log")
-        self.p_phi.setLabel("left", "|φ|, log")
+        self.p_phi.setLabel("bottom", "f (Hz)")
+        self.p_phi.setLabel("left", "|φ|")
         self.p_phi.setLogMode(x=True, y=True)
         for p in (self.p_head, self.p_aic, self.p_creep, self.p_phi):
             p.showGrid(x=True, y=True, alpha=0.25)
-            p.getAxis("left").setWidth(58)
+            p.getAxis("left").setWidth(52)
         for p in (self.p_creep, self.p_phi):
             for ax in ("left", "bottom"):
                 p.getAxis(ax).enableAutoSIPrefix(False)
         self.p_head.setClipToView(True)
         self.p_head.setDownsampling(auto=True, mode="peak")
         self.head_legend = self.p_head.addLegend(offset=(-5, 5), labelTextSize="8pt")
-        self.creep_legend = self.p_creep.addLegend(offset=(5, 5), labelTextSize="8pt")
+        self.creep_legend = self.p_creep.addLegend(offset=(5, 5), labelTextSize="7pt", colCount=3)
+        self._fit_table_height(7)
 
     # ------------------------------------------------------------------ API
     def clear(self, text: str = "") -> None:
         self.result = None
         self.data = None
+        self._stale = False
+        self._curves_for = None
         self._serial += 1
         self.table.setRowCount(0)
         for p in (self.p_head, self.p_aic, self.p_creep, self.p_phi):
             p.clear()
+        self.creep_legend.clear()
+        self.head_legend.clear()
         if text:
             self.header.setText(text)
 
     def set_fit(self, t, h, rig, result, title: str = "", compute_async: bool = True) -> None:
-        """Show ``result``; the model curves are computed on a worker thread."""
+        """Show ``result``. Drawn when the panel is on screen; its model curves are computed then, on a
+        worker thread (model evaluation during a run would compete with the engine for the GIL)."""
         self.result = result
+        self.data = None
+        self.title = title
         self._serial += 1
-        serial = self._serial
         best = result.best
         self._checked = {best.name}
-        others = sorted((f for f in result.models if f is not best and not f.reduced), key=lambda f: f.aic)
+        others = sorted((f for f in result.models if f is not best and not f.reduced), key=lambda f: f.delta_aic)
         if others:
             self._checked.add(others[0].name)
-        self.header.setText(
-            (title + "\n" if title else "")
-            + f"Best model {best.name} (minimum AIC): a = {best.wave_speed_m_s:.1f} m/s, F = {best.F:.3g} m²;  "
-            f"n = {result.n}, window {result.window_s:g} s, method {result.method}. "
-            f"Residual lag-1 autocorrelation {best.lag1_autocorr:.2f}"
-            + (" (correlated: AIC over-rewards extra parameters)" if abs(best.lag1_autocorr) > 0.2 else "")
-        )
-        self._fill_table(result)
-        self._draw_result_plots(result)
-        self.p_head.clear()
-        if compute_async:
-            tasks.submit(fit_view_data, t, h, rig, result,
-                         on_done=lambda d, s=serial: self._curves_ready(d, s), on_error=lambda e: None)
-        else:
-            self._curves_ready(fit_view_data(t, h, rig, result), serial)
+        self._stale = True
+        self._curves_for = (t, h, rig, result)
+        if not compute_async:
+            self._curves_for = None
+            self._curves_ready(fit_view_data(t, h, rig, result), self._serial)
+        if self.isVisible():
+            self._render()
+
+    def _compute_curves(self) -> None:
+        """The model curves of the shown result, on a worker thread (once per result)."""
+        if self._curves_for is None:
+            return
+        args, self._curves_for = self._curves_for, None
+        serial = self._serial
+        tasks.submit(fit_view_data, *args, owner=self, on_done=lambda d, s=serial: self._curves_ready(d, s),
+                     on_error=lambda e: None)
+
+    def ensure_rendered(self) -> None:
+        """Draw a result that arrived while the panel was hidden (tests, screenshots)."""
+        if self._stale:
+            self._render()
+        self._compute_curves()
 
     def best_name(self) -> str | None:
-        if self.table.rowCount() == 0:
-            return None
+        self.ensure_rendered()
         for r in range(self.table.rowCount()):
             if self.table.item(r, 1).font().bold():
                 return self.table.item(r, 1).text()
         return None
 
     def model_names(self) -> list[str]:
+        self.ensure_rendered()
         return [self.table.item(r, 1).text() for r in range(self.table.rowCount())]
+
+    def notes(self) -> dict[str, str]:
+        self.ensure_rendered()
+        return {self.table.item(r, 1).text(): self.table.item(r, COLUMNS.index("notes")).text()
+                for r in range(self.table.rowCount())}
 
     def set_checked(self, names) -> None:
         self._checked = set(names)
@@ -175,31 +230,79 @@ class FitPanel(QWidget):
         self._updating = False
         self._draw_head()
 
+    def showEvent(self, event) -> None:
+        super().showEvent(event)
+        if self._stale:
+            self._render()
+
     # ------------------------------------------------------------------ drawing
+    def _render(self) -> None:
+        result = self.result
+        self._stale = False
+        if result is None:
+            return
+        self.renders += 1
+        best = result.best
+        doc_sel = criterion({"selection": getattr(result, "selection", None)})
+        self.header.setText(
+            (self.title + "\n" if self.title else "")
+            + f"Best model {best.name} (minimum {doc_sel}): a = {best.wave_speed_m_s:.1f} m/s, F = {best.F:.3g} m²;  "
+            f"n = {result.n}, window {result.window_s:g} s, method {result.method}. "
+            f"Residual lag-1 autocorrelation {best.lag1_autocorr:.2f}"
+            + (" (correlated: the white-noise AIC over-rewards extra parameters)"
+               if abs(best.lag1_autocorr) > 0.2 and doc_sel == "AIC" else "")
+        )
+        self._fill_table(result)
+        self._compute_curves()
+        # the plots in the next turns of the event loop: drawing everything at once held the GUI
+        # thread for 80-100 ms; in three parts no part holds it for more than about 30 ms
+        serial = self._serial
+        QTimer.singleShot(0, lambda: self._later(serial, "plots"))
+        QTimer.singleShot(0, lambda: self._later(serial, "curves"))
+
+    def _later(self, serial: int, what: str) -> None:
+        if serial != self._serial or not shiboken6.isValid(self) or self.result is None:
+            return  # a newer result, or the panel is gone
+        if what == "plots":
+            self._draw_result_plots(self.result)
+        elif self.data is not None:
+            self._draw_curves()
+
+    def _fit_table_height(self, rows: int) -> None:
+        """The table is exactly as tall as its rows (all of EL..S6, and reduced ones if shown)."""
+        h = self.table.horizontalHeader().sizeHint().height() + rows * ROW_H + 2 * self.table.frameWidth() + 2
+        self.table.setMinimumHeight(h)
+        self.table.setMaximumHeight(h)
+
     def _fill_table(self, result) -> None:
         self._updating = True
-        self.table.setRowCount(len(result.models))
-        best = result.best.name
+        rows = model_rows(result)
+        self.table.setRowCount(len(rows))
+        self.table.horizontalHeaderItem(COLUMNS.index("AIC")).setText(criterion(result.to_dict()))
         bold = QFont(self.table.font())
         bold.setBold(True)
-        for r, f in enumerate(result.models):
-            values = ("", f.name, str(f.k), f"{f.F:.4g}", f"{f.aic:.1f}", f"{f.delta_aic:.2f}", f"{f.weight:.3f}",
-                      f.support, f"{f.wave_speed_m_s:.1f}", f"{f.lag1_autocorr:.2f}")
-            for c, v in enumerate(values):
+        for r, row in enumerate(rows):
+            for c, v in enumerate(row.cells):
                 it = QTableWidgetItem(v)
                 if c == 0:
                     it.setFlags(Qt.ItemIsUserCheckable | Qt.ItemIsEnabled | Qt.ItemIsSelectable)
-                    it.setCheckState(Qt.Checked if f.name in self._checked else Qt.Unchecked)
+                    it.setCheckState(Qt.Checked if row.name in self._checked else Qt.Unchecked)
                     it.setToolTip("show this model in the head plot")
-                elif c >= 2 and c != 7:
+                elif c == 1:
+                    it.setForeground(QBrush(QColor(self._color(row.name))))
+                    if row.tooltip:
+                        it.setToolTip(row.tooltip)
+                elif COLUMNS[c] == "notes":
+                    it.setToolTip("\n".join(row.notes))
+                elif c >= 2 and COLUMNS[c] != "support":
                     it.setTextAlignment(Qt.AlignRight | Qt.AlignVCenter)
-                if f.name == best:
+                if row.best:
                     it.setBackground(QBrush(BEST_BG))
                     it.setFont(bold)
                     if c == 1:
-                        it.setText(f.name)
-                        it.setToolTip("best model: minimum AIC")
+                        it.setToolTip("best model: minimum of the criterion\n" + row.tooltip)
                 self.table.setItem(r, c, it)
+        self._fit_table_height(len(rows))
         self._updating = False
 
     def _item_changed(self, item) -> None:
@@ -230,31 +333,41 @@ class FitPanel(QWidget):
                             symbolSize=8, symbolBrush="#1f4e9c" if not red else "#888", name="reduced" if red else "Sm")
         self.p_aic.plot([best.m], [np.log10(1.0 + max(best.delta_aic, 0.0))], pen=None, symbol="star",
                         symbolSize=16, symbolBrush="#2a9d2a")
-        for level, style, where in ((2, Qt.DotLine, 0.35), (10, Qt.DashLine, 0.6)):
+        for level, style, where in ((2, Qt.DotLine, 0.3), (10, Qt.DashLine, 0.7)):
             self.p_aic.addItem(pg.InfiniteLine(pos=np.log10(1 + level), angle=0,
                                                pen=pg.mkPen("#999", style=style),
                                                label=f"ΔAIC = {level}", labelOpts={"position": where, "color": "#777"}))
         self.p_creep.clear()
         self.creep_legend.clear()
-        for f in result.models:
+        for f, row in zip(result.models, model_rows(result)):
             if f.m and not f.reduced:
                 tau = np.array(f.tau_s)
                 J = np.array(f.J_per_pa)
-                order = np.argsort(tau)
+                neg = np.array(row.negligible or (False,) * tau.size, dtype=bool)
+                # a negligible (vanished) element's J is meaningless and would stretch the log axis by
+                # ten decades: it is left out here (the table's notes name it)
+                ok = np.isfinite(tau) & np.isfinite(J) & (tau > 0) & (J > 0) & ~neg
+                order = np.argsort(tau[ok])
                 c = self._color(f.name)
-                self.p_creep.plot(tau[order], J[order], pen=pg.mkPen(c, width=1.5 if f is best else 1),
-                                  symbol="o", symbolSize=7, symbolBrush=c, name=f.name)
+                self.p_creep.plot(tau[ok][order], J[ok][order], pen=pg.mkPen(c, width=2 if f is best else 1),
+                                  symbol="o", symbolSize=7, symbolPen=c, symbolBrush=c, name=f.name)
 
     def _curves_ready(self, data: dict, serial: int) -> None:
         if serial != self._serial:
             return  # a newer result replaced this one
         self.data = data
+        if self.isVisible() and not self._stale:
+            self._draw_curves()
+        else:
+            self._stale = True  # drawn when the panel is shown
+        self.shown.emit(self.result.best.name if self.result else "")
+
+    def _draw_curves(self) -> None:
         self._draw_head()
         self.p_phi.clear()
-        for name, ph in data["phi"].items():
+        for name, ph in self.data["phi"].items():
             best = self.result is not None and name == self.result.best.name
-            self.p_phi.plot(data["freq_hz"], ph, pen=pg.mkPen(self._color(name), width=2 if best else 1))
-        self.shown.emit(self.result.best.name if self.result else "")
+            self.p_phi.plot(self.data["freq_hz"], ph, pen=pg.mkPen(self._color(name), width=2 if best else 1))
 
     def _draw_head(self) -> None:
         self.p_head.clear()

@@ -1,17 +1,22 @@
-"""Run controls: run metadata, manoeuvre and recording parameters, the predicted surge, and
-Arm / Trigger / Stop / Abort / Reset valve."""
+"""The run form: run metadata, manoeuvre and recording parameters, and the interlock's predicted surge.
+
+The buttons that act on a run are in :mod:`velab.gui.run_controls`; the form is disabled while
+a run is armed or recording (its settings go with the Arm command)."""
 
 from __future__ import annotations
 
 from PySide6.QtCore import QSettings, Qt, Signal
-from PySide6.QtWidgets import (QCheckBox, QComboBox, QDoubleSpinBox, QFormLayout, QGridLayout, QGroupBox, QLabel,
-                               QLineEdit, QPushButton, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (QCheckBox, QFormLayout, QGroupBox, QLabel, QLineEdit,
+                               QVBoxLayout, QWidget)
+
+from velab.gui.widgets import ComboBox, DoubleSpinBox
+from velab.recording.phases import ACTIVE_PHASES
 
 RATES_HZ = (1000.0, 2000.0, 5000.0, 10000.0)
 
 
-def _spin(lo, hi, value, decimals=2, suffix="", step=None, special=None) -> QDoubleSpinBox:
-    s = QDoubleSpinBox()
+def _spin(lo, hi, value, decimals=2, suffix="", step=None, special=None) -> DoubleSpinBox:
+    s = DoubleSpinBox()
     s.setRange(lo, hi)
     s.setDecimals(decimals)
     s.setValue(value)
@@ -28,11 +33,6 @@ def _spin(lo, hi, value, decimals=2, suffix="", step=None, special=None) -> QDou
 class RunPanel(QWidget):
     """The form; ``settings()`` gives the RecordSettings keyword arguments."""
 
-    arm_clicked = Signal()
-    trigger_clicked = Signal()
-    stop_clicked = Signal()
-    abort_clicked = Signal()
-    reset_valve_clicked = Signal()
     changed = Signal()
 
     def __init__(self, qsettings: QSettings, rig=None, parent=None):
@@ -70,7 +70,11 @@ class RunPanel(QWidget):
         self.margin_spin.setToolTip("safety margin added to the Joukowsky surge by the interlock")
         self.duration_spin = _spin(0.5, 600, float(qsettings.value("run/duration_s", 30.0)), 1, " s", 5)
         self.pre_spin = _spin(0.1, 60, float(qsettings.value("run/pretrigger_s", 2.0)), 1, " s", 0.5)
-        self.rate_combo = QComboBox()
+        self.armed_timeout_spin = _spin(0, 3600, float(qsettings.value("run/armed_timeout_s", 0.0)), 0, " s", 10,
+                                        special="bench default")
+        self.armed_timeout_spin.setToolTip("an armed rig without a trigger disarms itself after this long "
+                                           "(bench default: the bench's [recorder] armed_timeout_s, else 300 s)")
+        self.rate_combo = ComboBox()
         for r in RATES_HZ:
             self.rate_combo.addItem(f"{r:g} Hz", r)
         rate = float(qsettings.value("run/sample_rate_hz", 1000.0))
@@ -87,6 +91,7 @@ class RunPanel(QWidget):
         g.addRow("surge margin", self.margin_spin)
         g.addRow("duration", self.duration_spin)
         g.addRow("pre-trigger", self.pre_spin)
+        g.addRow("disarm after", self.armed_timeout_spin)
         g.addRow("sample rate", self.rate_combo)
         g.addRow(self.fit_check)
         g.addRow("fit models", self.models_edit)
@@ -100,40 +105,11 @@ class RunPanel(QWidget):
         self.prediction.setMargin(4)
         lay.addWidget(self.prediction)
 
-        buttons = QGridLayout()
-        self.arm_button = QPushButton("Arm")
-        self.trigger_button = QPushButton("Trigger")
-        self.stop_button = QPushButton("Stop")
-        self.abort_button = QPushButton("Abort")
-        self.arm_button.setToolTip("check the interlocks, open the run file and start the pre-trigger record")
-        self.trigger_button.setToolTip("start the valve manoeuvre")
-        self.stop_button.setToolTip("end the recording normally (the run is kept and fitted)")
-        self.abort_button.setToolTip("abort: valve to the safe state, run marked aborted")
-        self.abort_button.setStyleSheet("QPushButton { color: white; background: #b3261e; font-weight: bold; }"
-                                        "QPushButton:disabled { background: #d9a3a0; }")
-        self.trigger_button.setStyleSheet("QPushButton { font-weight: bold; }")
-        buttons.addWidget(self.arm_button, 0, 0)
-        buttons.addWidget(self.trigger_button, 0, 1)
-        buttons.addWidget(self.stop_button, 1, 0)
-        buttons.addWidget(self.abort_button, 1, 1)
-        self.reset_valve_button = QPushButton("Reset valve")
-        self.reset_valve_button.setToolTip("reset the actuator: reopens the closed valve (clears an actuator FAULT) "
-                                           "and lets the flow settle, on the same connection, before the next Arm")
-        buttons.addWidget(self.reset_valve_button, 2, 0, 1, 2)
-        lay.addLayout(buttons)
         lay.addStretch(1)
-        self.arm_button.clicked.connect(self.arm_clicked)
-        self.trigger_button.clicked.connect(self.trigger_clicked)
-        self.stop_button.clicked.connect(self.stop_clicked)
-        self.abort_button.clicked.connect(self.abort_clicked)
-        self.reset_valve_button.clicked.connect(self.reset_valve_clicked)
-        self._valve_closed = False
-        self._phase = "idle"
         for w in (self.beta_spin, self.gamma_spin, self.end_spin, self.margin_spin, self.duration_spin,
-                  self.pre_spin, self.fit_window_spin):
+                  self.pre_spin, self.fit_window_spin, self.armed_timeout_spin):
             w.valueChanged.connect(self.changed)
         self.fit_check.toggled.connect(self.changed)
-        self.set_phase("idle")
 
     def settings(self) -> dict:
         """RecordSettings keyword arguments from the form."""
@@ -147,6 +123,7 @@ class RunPanel(QWidget):
             specimen=self.specimen_edit.text().strip(), notes=self.notes_edit.text().strip(),
             fit=self.fit_check.isChecked(), fit_window_s=self.fit_window_spin.value(),
             surge_margin=self.margin_spin.value() / 100.0, fit_models=self._models(),
+            armed_timeout_s=self.armed_timeout_spin.value() or None,
         )
 
     def _models(self) -> tuple:
@@ -168,6 +145,7 @@ class RunPanel(QWidget):
         self.qs.setValue("run/fit", "true" if s["fit"] else "false")
         self.qs.setValue("run/surge_margin_pct", self.margin_spin.value())
         self.qs.setValue("run/fit_models", self.models_edit.text())
+        self.qs.setValue("run/armed_timeout_s", self.armed_timeout_spin.value())
 
     def show_prediction(self, pred) -> None:
         """A SurgePrediction (or None)."""
@@ -192,24 +170,10 @@ class RunPanel(QWidget):
         self.prediction.setText(f"<b>Settings:</b> {text}")
         self.prediction.setStyleSheet("background:#fde2e1; color:#6b0d0a;")
 
-    def set_valve_closed(self, closed: bool) -> None:
-        """From the engine's valve status: Reset valve is offered when the valve is closed and no run is active."""
-        self._valve_closed = bool(closed)
-        self._update_reset()
-
-    def _update_reset(self) -> None:
-        active = self._phase in ("connecting", "armed", "triggerable", "recording")
-        self.reset_valve_button.setEnabled(self._valve_closed and not active)
-
     def set_phase(self, phase: str) -> None:
-        self._phase = phase
-        self._update_reset()
-        # the engine's phases (velab.recording.phases); a trigger pressed while armed is queued
-        active = phase in ("connecting", "armed", "triggerable", "recording", "fitting")
-        self.arm_button.setEnabled(not active)
-        self.trigger_button.setEnabled(phase in ("armed", "triggerable"))
-        self.stop_button.setEnabled(phase in ("armed", "triggerable", "recording"))
-        self.abort_button.setEnabled(phase in ("armed", "triggerable", "recording", "fitting"))
+        """The form is read-only while a run is armed, recording or fitting (its settings went with Arm)."""
+        active = phase in ACTIVE_PHASES
         for w in (self.beta_spin, self.gamma_spin, self.end_spin, self.margin_spin, self.duration_spin, self.pre_spin,
-                  self.rate_combo, self.out_edit, self.fit_check, self.fit_window_spin, self.models_edit):
+                  self.armed_timeout_spin, self.rate_combo, self.out_edit, self.fit_check, self.fit_window_spin,
+                  self.models_edit):
             w.setEnabled(not active)

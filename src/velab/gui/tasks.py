@@ -11,6 +11,7 @@ from __future__ import annotations
 import traceback
 from typing import Callable
 
+import shiboken6
 from PySide6.QtCore import QObject, QRunnable, QThreadPool, Signal, Slot
 
 _POOL: QThreadPool | None = None
@@ -33,25 +34,30 @@ class TaskSignals(QObject):
 
 
 class _Relay(QObject):
-    """Lives on the GUI thread: the worker's signals are queued to it, it calls the callbacks."""
+    """Lives on the GUI thread: the worker's signals are queued to it, it calls the callbacks
+    (not when the widget that asked for the work, ``owner``, has been deleted meanwhile)."""
 
-    def __init__(self, task: "Task", on_done, on_error, on_progress):
+    def __init__(self, task: "Task", on_done, on_error, on_progress, owner=None):
         super().__init__()
         self.task, self.on_done, self.on_error, self.on_progress = task, on_done, on_error, on_progress
+        self.owner = owner
+
+    def _live(self) -> bool:
+        return self.owner is None or shiboken6.isValid(self.owner)
 
     @Slot(object)
     def done(self, result) -> None:
-        if self.on_done is not None:
+        if self.on_done is not None and self._live():
             self.on_done(result)
 
     @Slot(object)
     def failed(self, exc) -> None:
-        if self.on_error is not None:
+        if self.on_error is not None and self._live():
             self.on_error(exc)
 
     @Slot(int, int, str)
     def progress(self, d: int, t: int, s: str) -> None:
-        if self.on_progress is not None:
+        if self.on_progress is not None and self._live():
             self.on_progress(d, t, s)
 
     @Slot()
@@ -86,10 +92,10 @@ class Task(QRunnable):
         self.signals.finished.emit()
 
 
-def submit(fn: Callable, *args, on_done=None, on_error=None, on_progress=None, **kwargs) -> Task:
-    """Run ``fn`` in the GUI's thread pool; callbacks run on the GUI thread."""
+def submit(fn: Callable, *args, on_done=None, on_error=None, on_progress=None, owner=None, **kwargs) -> Task:
+    """Run ``fn`` in the GUI's thread pool; callbacks run on the GUI thread, if ``owner`` (a QObject) lives."""
     task = Task(fn, *args, with_progress=on_progress is not None, **kwargs)
-    relay = task.relay = _Relay(task, on_done, on_error, on_progress)
+    relay = task.relay = _Relay(task, on_done, on_error, on_progress, owner)
     task.signals.done.connect(relay.done)
     task.signals.failed.connect(relay.failed)
     task.signals.progress.connect(relay.progress)
