@@ -20,8 +20,10 @@ from PySide6.QtGui import QBrush, QColor, QFont
 from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QTableWidget, QTableWidgetItem, QVBoxLayout,
                                QWidget)
 
+from velab.fitting.friction import fitted_head
 from velab.gui import tasks
 from velab.gui.fit_rows import COLUMNS, criterion, model_rows
+from velab.model import phi
 
 PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf",
            "#7f7f7f", "#bcbd22", "#393b79", "#637939")
@@ -36,7 +38,6 @@ def fit_view_data(t, h, rig, result) -> dict:
     ``t`` (s from the trigger) and ``h`` (head perturbation, m) are the calibration
     window; the curves are evaluated on it, subsampled to at most a few thousand points.
     """
-    from velab.model import phi, valve_head
 
     t = np.asarray(t, dtype=float)
     h = np.asarray(h, dtype=float)
@@ -47,7 +48,7 @@ def fit_view_data(t, h, rig, result) -> dict:
     for f in result.models:
         mat = f.material()
         try:
-            curves[f.name] = valve_head(td, rig, mat)
+            curves[f.name] = fitted_head(td, rig, f)
         except Exception:  # a model the time grid cannot hold: leave it out of the plot
             continue
         if f.m:
