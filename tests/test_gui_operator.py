@@ -49,7 +49,7 @@ def _one_run(qtbot, tmp_path, clock: str) -> dict:
 @pytest.mark.parametrize("clock", ["realtime", "fast"])
 def test_connect_arm_trigger_as_soon_as_enabled_completes_10_of_10(qtbot, tmp_path, clock):
     """Acceptance (issue 16): 10 of 10 runs complete with their online fit; no press is lost or refused;
-    the GUI thread never stalls more than 250 ms."""
+    the GUI thread never blocks (STALL_LIMIT_S; the 250 ms figure is benchmarks/gui_latency.py's)."""
     runs, failures = [], []
     for i in range(REPEATS):
         r = _one_run(qtbot, tmp_path / f"run{i}", clock)

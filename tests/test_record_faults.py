@@ -159,7 +159,9 @@ def test_zero_flow_after_the_closure_is_not_a_fault(tmp_path):
     assert "flowmeter" not in run.status_reason
     with h5py.File(summary.path, "r") as fh:
         flow = fh["entry/instrument/flow/value"][()]
-    assert flow[0] > 3e-3 and np.count_nonzero(flow == 0.0) >= 3  # polled at zero flow several times
+    # flowing at the first poll (on a loaded host it may fall inside the 0.14 s closure), then polled
+    # at zero flow several times
+    assert flow[0] > 1e-3 and np.count_nonzero(flow == 0.0) >= 3
 
 
 def test_stuck_flowmeter_is_refused_by_the_readiness_check(tmp_path):
