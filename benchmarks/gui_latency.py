@@ -53,22 +53,6 @@ class Probe:
         self._last = now
 
 
-def wait_until(cond, timeout_s: float) -> bool:
-    """Run the Qt event loop (as app.exec does) until ``cond()`` or the deadline."""
-    from PySide6.QtCore import QEventLoop, QTimer
-
-    loop = QEventLoop()
-    deadline = time.perf_counter() + timeout_s
-    check = QTimer()
-    check.setInterval(5)
-    check.timeout.connect(lambda: loop.quit() if cond() or time.perf_counter() > deadline else None)
-    check.start()
-    if not cond():
-        loop.exec()
-    check.stop()
-    return bool(cond())
-
-
 def stats(xs):
     import numpy as np
 
@@ -88,6 +72,7 @@ def main(argv=None) -> int:
 
     from velab.gui.app import ensure_app, recorder_factory
     from velab.gui.main_window import MainWindow, make_settings
+    from velab.gui.eventloop import wait_until
 
     app = ensure_app()
     tmp = tempfile.mkdtemp(prefix="velab-gui-latency-")

@@ -22,28 +22,11 @@ import argparse
 import os
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 OUT = Path(__file__).resolve().parent / "img"
 SIZES = {"": (1366, 768), "-1920": (1920, 1080)}
-
-
-def wait_until(cond, timeout_s: float) -> bool:
-    """Run the Qt event loop until ``cond()`` or the deadline."""
-    from PySide6.QtCore import QEventLoop, QTimer
-
-    loop = QEventLoop()
-    deadline = time.perf_counter() + timeout_s
-    check = QTimer()
-    check.setInterval(10)
-    check.timeout.connect(lambda: loop.quit() if cond() or time.perf_counter() > deadline else None)
-    check.start()
-    if not cond():
-        loop.exec()
-    check.stop()
-    return bool(cond())
 
 
 def main(argv=None) -> int:
@@ -55,6 +38,7 @@ def main(argv=None) -> int:
 
     from velab.gui.app import ensure_app, recorder_factory
     from velab.gui.main_window import MainWindow, make_settings
+    from velab.gui.eventloop import wait_until
 
     app = ensure_app()
     tmp = tempfile.mkdtemp(prefix="velab-shots-")

@@ -13,7 +13,9 @@ from PySide6.QtCore import Qt
 from PySide6.QtWidgets import QComboBox, QDoubleSpinBox, QSpinBox
 
 
-class DoubleSpinBox(QDoubleSpinBox):
+class _WheelOnlyWhenFocused:
+    """Mixed in before the Qt field class: StrongFocus, and the wheel goes to the parent unless focused."""
+
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.setFocusPolicy(Qt.StrongFocus)
@@ -25,25 +27,13 @@ class DoubleSpinBox(QDoubleSpinBox):
             event.ignore()
 
 
-class SpinBox(QSpinBox):
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.setFocusPolicy(Qt.StrongFocus)
-
-    def wheelEvent(self, event) -> None:
-        if self.hasFocus():
-            super().wheelEvent(event)
-        else:
-            event.ignore()
+class DoubleSpinBox(_WheelOnlyWhenFocused, QDoubleSpinBox):
+    pass
 
 
-class ComboBox(QComboBox):
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.setFocusPolicy(Qt.StrongFocus)
+class SpinBox(_WheelOnlyWhenFocused, QSpinBox):
+    pass
 
-    def wheelEvent(self, event) -> None:
-        if self.hasFocus():
-            super().wheelEvent(event)
-        else:
-            event.ignore()
+
+class ComboBox(_WheelOnlyWhenFocused, QComboBox):
+    pass
