@@ -7,8 +7,8 @@
 1. steady head: mean of the finite head samples in the last ``STEADY_HEAD_S`` before the
    trigger (the recorder keeps that much before the trigger; the rig's steady head if none);
 2. window: samples with trigger - dt/2 <= t < trigger + window - dt/2, time from the trigger;
-3. anti-alias decimation to the fit rate: q = floor(record rate / (FIT_RATE_PER_BAND x the
-   manoeuvre's band)), zero-phase FIR (scipy.signal.firwin, Hamming, 20 q + 1 taps, the
+3. anti-alias decimation to the fit rate: q = the largest whole divisor of the record rate
+   with record rate / q >= FIT_RATE_PER_BAND x the manoeuvre's band, zero-phase FIR (scipy.signal.firwin, Hamming, 20 q + 1 taps, the
    filter of scipy.signal.decimate) applied by polyphase resampling with the window's ends
    extended linearly. At the reference rig (band 31 Hz) a 1 kHz record is fitted as it is
    and a 10 kHz record at 1 kHz: the model's head has no content above the band, so the
@@ -68,7 +68,14 @@ class PreparedRecord:
 def fit_decimation(rig: Rig, record_rate_hz: float) -> int:
     """q: the record is fitted at record_rate / q >= FIT_RATE_PER_BAND x the manoeuvre's band."""
     target = FIT_RATE_PER_BAND * manoeuvre_band_hz(rig)
-    return max(1, int(math.floor(record_rate_hz / target * (1 + 1e-9))))
+    qmax = max(1, int(math.floor(record_rate_hz / target * (1 + 1e-9))))
+    whole = round(record_rate_hz)
+    if abs(record_rate_hz - whole) < 1e-9 * record_rate_hz:
+        # a whole fit rate (50 kHz -> 1 kHz, not 943.4 Hz): the largest q below qmax that divides the rate
+        for q in range(qmax, 0, -1):
+            if whole % q == 0:
+                return q
+    return qmax
 
 
 def anti_alias_filter(q: int) -> str:
@@ -140,6 +147,8 @@ def prepare_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float
 def fit_prepared(rec: PreparedRecord, rig: Rig, **sweep_options) -> SweepResult:
     """``fit_sweep`` on a prepared record; the preparation goes into the result."""
     result = fit_sweep(rec.t, rec.h, rig, window_s=None, **sweep_options)
+    # the rates as the record states them (fit_sweep measures its step from the time axis)
+    result.sample_rate_hz = rec.fit_rate_hz
     result.record_rate_hz = rec.record_rate_hz
     result.anti_alias_filter = rec.filter
     result.settings["record"] = rec.describe()
