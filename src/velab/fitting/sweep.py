@@ -43,7 +43,7 @@ from velab.fitting.friction import EquivalentFriction, TimeDomainModel, anderson
 from velab.fitting.params import FitBounds, ParamMap, creep_const, derive_bounds
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
 from velab.fitting.solvers import Sol, Stage
-from velab.fitting.starts import nested_starts, reduced_then_full, scan_wave_speed, split_all, tau_grids
+from velab.fitting.starts import nested_starts, race_starts, reduced_then_full, scan_wave_speed, split_all, tau_grids
 from velab.fitting.nesting import hand_back
 from velab.fitting.summary import summarise
 from velab.model import manoeuvre_band_hz
@@ -55,6 +55,9 @@ MAX_M = 6
 REFRESH_TOL = 0.01
 REFRESH_MIN_GAIN = 0.05
 MAX_REFRESH = 8
+# the ridge crawl and the polish stop when 10 evaluations gain less than this in n ln F (AIC is
+# reported to 0.01): on the flat J-tau ridge of S4-S6 they went on for tens of full-band evaluations
+STALL_GAIN = 0.002
 
 __all__ = ["fit_sweep", "parse_models", "METHODS", "MAX_M", "prepare_window", "lowpass_decimate"]
 
@@ -189,7 +192,8 @@ class _Sweep:
 
     def local(self, stage: Stage, pm: ParamMap, x0, fine: bool) -> Sol:
         if fine:
-            return stage.lsq(pm, x0, max_nfev=40, ftol=1e-10)
+            stall = (self.d.size, STALL_GAIN) if pm.m and pm.tau_free else None
+            return stage.lsq(pm, x0, max_nfev=40, ftol=1e-10, stall=stall)
         if self.method == "nelder-mead":
             return stage.nelder_mead(pm, x0, maxfev=1000)
         return stage.lsq(pm, x0, max_nfev=80, ftol=1e-10)
@@ -244,12 +248,14 @@ class _Sweep:
         if self.method == "evolution" and pm.size > 1:
             s = stage.evolution(pm, self.seed + m, maxiter=60, x0=cands[0] if cands else None)
             sols.append(stage.lsq(pm, s.x, max_nfev=80, ftol=1e-10))
-        for x0 in cands:
-            sols.append(self.local(stage, pm, x0, fine=False))
+        if self.method == "nelder-mead":
+            sols.extend(self.local(stage, pm, x0, fine=False) for x0 in cands)
+        else:
+            sols.extend(race_starts(stage, pm, cands, 80))
         sols.sort(key=lambda s: s.F)
         if pm.size > 1 and self.method != "nelder-mead":
             # the winner continues on the cheap objective until it stops moving along the ridge
-            sols[0] = stage.lsq(pm, sols[0].x, max_nfev=400, ftol=1e-13)
+            sols[0] = stage.lsq(pm, sols[0].x, max_nfev=400, ftol=1e-13, stall=(self.d.size, STALL_GAIN))
         if self.stage_f is None:
             best = sols[0]
         else:
