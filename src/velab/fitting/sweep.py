@@ -55,8 +55,10 @@ MAX_M = 6
 REFRESH_TOL = 0.01
 REFRESH_MIN_GAIN = 0.05
 MAX_REFRESH = 8
-# the ridge crawl and the polish stop when 10 evaluations gain less than this in n ln F (AIC is
-# reported to 0.01): on the flat J-tau ridge of S4-S6 they went on for tens of full-band evaluations
+# the full-band polish stops when 10 evaluations gain less than this in n ln F (AIC is reported to
+# 0.01): on the flat J-tau ridge of S4-S6 it went on for tens of full-band evaluations. (Not the
+# coarse crawl: cheap, and where it ends decides the next model's nested starts; stopping it early
+# sent S3 of the Brunone truth into a worse basin.)
 STALL_GAIN = 0.002
 
 __all__ = ["fit_sweep", "parse_models", "METHODS", "MAX_M", "prepare_window", "lowpass_decimate"]
@@ -255,7 +257,7 @@ class _Sweep:
         sols.sort(key=lambda s: s.F)
         if pm.size > 1 and self.method != "nelder-mead":
             # the winner continues on the cheap objective until it stops moving along the ridge
-            sols[0] = stage.lsq(pm, sols[0].x, max_nfev=400, ftol=1e-13, stall=(self.d.size, STALL_GAIN))
+            sols[0] = stage.lsq(pm, sols[0].x, max_nfev=400, ftol=1e-13)
         if self.stage_f is None:
             best = sols[0]
         else:
