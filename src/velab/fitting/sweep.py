@@ -55,11 +55,12 @@ MAX_M = 6
 REFRESH_TOL = 0.01
 REFRESH_MIN_GAIN = 0.05
 MAX_REFRESH = 8
-# the full-band polish stops when 10 evaluations gain less than this in n ln F (AIC is reported to
-# 0.01): on the flat J-tau ridge of S4-S6 it went on for tens of full-band evaluations. (Not the
-# coarse crawl: cheap, and where it ends decides the next model's nested starts; stopping it early
-# sent S3 of the Brunone truth into a worse basin.)
+# the full-band polish of S4-S6 stops when 10 evaluations gain less than this in n ln F (AIC is
+# reported to 0.01): on their flat J-tau ridge it went on for tens of full-band evaluations. Not
+# below S4, and not the coarse crawl: where a smaller model ends decides the next one's nested
+# starts (stopping S2 early sent S3 of the Brunone truth, tests/test_fit_truths.py, to a worse basin).
 STALL_GAIN = 0.002
+STALL_FROM_M = 4
 
 __all__ = ["fit_sweep", "parse_models", "METHODS", "MAX_M", "prepare_window", "lowpass_decimate"]
 
@@ -194,7 +195,7 @@ class _Sweep:
 
     def local(self, stage: Stage, pm: ParamMap, x0, fine: bool) -> Sol:
         if fine:
-            stall = (self.d.size, STALL_GAIN) if pm.m and pm.tau_free else None
+            stall = (self.d.size, STALL_GAIN) if pm.m >= STALL_FROM_M and pm.tau_free else None
             return stage.lsq(pm, x0, max_nfev=40, ftol=1e-10, stall=stall)
         if self.method == "nelder-mead":
             return stage.nelder_mead(pm, x0, maxfev=1000)
