@@ -16,6 +16,11 @@ printed (issue 10: at most 3).
     python benchmarks/fit_sweep.py --no-baseline  # sweep only (the baseline takes minutes)
     python benchmarks/fit_sweep.py --no-quadratic # skip the quadratic-friction sweep
 
+The previous sweep (before issue 13: every coarse start run to the full budget, tau-grid starts
+solved with 25 evaluations, no stall test on the ridge crawl and the polish) is timed in the
+same run, interleaved with the current one, and its speed-up over the baseline printed beside
+the current one (issue 13: at least twice the previous speed-up; --no-previous skips it).
+
 Prints the sweep time (median of the repeats, and each repeat), the baseline time, the
 speed-up, the model evaluations of both, and F per model for both. Exit code 1 if the
 sweep's F is above the baseline's (relative 1e-9) for any model, or if the repeated
@@ -25,6 +30,7 @@ sweeps do not give identical results. Timings depend on the load: check `uptime`
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import platform
 import statistics
@@ -35,7 +41,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from velab.config import load_material, load_rig
-from velab.fitting import fit_sweep
+from velab.fitting import fit_sweep, starts as fit_starts, sweep as fit_sweep_module
 from velab.fitting.engine import HeadEvaluator
 from velab.fitting.params import ParamMap, derive_bounds
 from velab.model import creep_scale, valve_head
@@ -82,6 +88,17 @@ def baseline(t, h, rig, m: int):
     return float(2 * r.cost), ev.evaluations
 
 
+@contextlib.contextmanager
+def previous_sweep():
+    """The sweep as it was before issue 13 (same code, the new limits switched off)."""
+    saved = fit_starts.RACE_KEEP, fit_starts.REDUCED_NFEV, fit_sweep_module.STALL_GAIN
+    fit_starts.RACE_KEEP, fit_starts.REDUCED_NFEV, fit_sweep_module.STALL_GAIN = 10**6, 25, -1.0
+    try:
+        yield
+    finally:
+        fit_starts.RACE_KEEP, fit_starts.REDUCED_NFEV, fit_sweep_module.STALL_GAIN = saved
+
+
 def _signature(r):
     return tuple((f.name, f.F, f.wave_speed_m_s, f.E_pa, f.eta_pa_s, f.evaluations) for f in r.models)
 
@@ -93,6 +110,7 @@ def main(argv=None):
     ap.add_argument("--no-baseline", action="store_true", help="skip the baseline (about 3 minutes)")
     ap.add_argument("--threads", type=int, default=None, help="fit_sweep(threads=...) (default: auto)")
     ap.add_argument("--no-quadratic", action="store_true", help="skip the quadratic-friction sweep")
+    ap.add_argument("--no-previous", action="store_true", help="skip the previous sweep (before issue 13)")
     args = ap.parse_args(argv)
 
     t, h, rig = load(args.run)
@@ -101,14 +119,20 @@ def main(argv=None):
     print(f"record: n = {h.size} samples, window 20 s, models EL..S6")
     fit_sweep(t[:2000], h[:2000], rig, models="1", window_s=None)  # warm-up (FFT plans, imports)
 
-    times, sigs = [], set()
-    r = None
-    for _ in range(max(1, args.repeat)):
+    times, sigs, ptimes = [], set(), []
+    r = rp = None
+    for _ in range(max(1, args.repeat)):  # interleaved with the previous sweep: both see the same load
         t0 = time.perf_counter()
         r = fit_sweep(t, h, rig, models=range(7), window_s=20.0, threads=args.threads)
         times.append(time.perf_counter() - t0)
         sigs.add(_signature(r))
+        if not args.no_previous:
+            with previous_sweep():
+                t0 = time.perf_counter()
+                rp = fit_sweep(t, h, rig, models=range(7), window_s=20.0, threads=args.threads)
+                ptimes.append(time.perf_counter() - t0)
     t_sweep = statistics.median(times)
+    t_prev = statistics.median(ptimes) if ptimes else None
     n_jac = sum(f.jacobians for f in r.models)
     print()
     print(f"velab sweep EL..S6:  {t_sweep:7.2f} s  median of {len(times)} "
@@ -116,6 +140,16 @@ def main(argv=None):
     print(f"  model evaluations: {r.evaluations} ({n_jac} with the analytic Jacobian)")
     print(f"  repeated sweeps identical: {'yes' if len(sigs) == 1 else 'NO'}")
     ok = len(sigs) == 1
+    if rp is not None:
+        print(f"previous sweep (before issue 13): {t_prev:7.2f} s  median of {len(ptimes)} "
+              f"({', '.join(f'{v:.2f}' for v in ptimes)} s), {rp.evaluations} model evaluations")
+        print(f"  current / previous: {t_sweep / t_prev:.2f} (speed-up over the previous sweep {t_prev / t_sweep:.2f} x; "
+              f"issue 13: >= 2)")
+        worse = [f.name for f, g in zip(r.models, rp.models) if f.F > g.F * (1 + 1e-9)]
+        print(f"  F no worse than the previous sweep for every model: {'yes' if not worse else 'NO: ' + ', '.join(worse)}")
+        print(f"  best model {r.best.name} (previous {rp.best.name}), a = {r.best.wave_speed_m_s:.3f} m/s "
+              f"(previous {rp.best.wave_speed_m_s:.3f})")
+        ok &= not worse
 
     if not args.no_quadratic:
         tq, hq, rq = quadratic_record()
@@ -145,7 +179,7 @@ def main(argv=None):
         t_base = time.perf_counter() - t0
         print(f"baseline (least_squares, finite differences, full band): {t_base:7.2f} s (one run)")
         print(f"  model evaluations: {n_base}")
-        print(f"speed-up: {t_base / t_sweep:.1f} x")
+        print(f"speed-up: {t_base / t_sweep:.1f} x" + (f" (previous sweep: {t_base / t_prev:.1f} x)" if t_prev else ""))
 
     print()
     if base:

@@ -95,17 +95,17 @@ def _plot_path(template: str, run_path: str, many: bool) -> str:
 
 def fit_file(path: str, opts: dict, many: bool = False, progress=None):
     """Fit one run file; returns (SweepResult, fit group name or None). Raises VelabError."""
+    from velab.fitting.prepare import fit_run
     from velab.fitting.store import save_fit
-    from velab.fitting.sweep import fit_sweep
     from velab.runfile import RunStillOpen, read_run
 
     run = read_run(path)
-    t, h = run.fit_window(opts["window_s"])
-    result = fit_sweep(t, h, run.rig, models=opts["models"], window_s=None, method=opts["method"],
-                       reduced=opts["reduced"], starts=opts["starts"], polish=opts["polish"],
-                       progress=progress, tau_min_s=opts["tau_min_s"], tau_max_s=opts["tau_max_s"],
-                       selection=opts["selection"], friction=opts["friction"],
-                       friction_unsteady=opts["friction_unsteady"])
+    # the one fit path (velab.fitting.prepare): window, steady head, decimation to the fit rate
+    result = fit_run(run, opts["window_s"], models=opts["models"], method=opts["method"],
+                     reduced=opts["reduced"], starts=opts["starts"], polish=opts["polish"],
+                     progress=progress, tau_min_s=opts["tau_min_s"], tau_max_s=opts["tau_max_s"],
+                     selection=opts["selection"], friction=opts["friction"],
+                     friction_unsteady=opts["friction_unsteady"])
     result.settings["window_s_requested"] = opts["window_s"]
     name = None
     if opts["save"]:
@@ -120,6 +120,7 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
         from velab.fitting.plots import report_figure
 
         figure = _plot_path(opts["plot"], path, many)
+        t, h = run.fit_window(opts["window_s"])
         try:
             report_figure(t, h, run.rig, result, figure)
         except OSError as exc:

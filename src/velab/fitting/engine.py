@@ -25,8 +25,6 @@ the frequency domain (``ValveHeadModel.sums_to_time``).
 
 from __future__ import annotations
 
-from collections import OrderedDict
-
 import numpy as np
 
 from velab.config import GRAVITY_M_S2, Rig
@@ -50,7 +48,7 @@ class HeadEvaluator:
     read-only model. Returned arrays are fresh unless ``out`` is passed.
     """
 
-    _WORK_SLOTS = 4
+    _MAX_M = 6  # the work buffers are sized for this many elements (S6) at the first evaluation
 
     def __init__(self, rig: Rig, t_s=None, *, band_hz="auto", extra_impedance=None,
                  _model: ValveHeadModel | None = None):
@@ -75,7 +73,7 @@ class HeadEvaluator:
         self._nspec = vm.spec.size
         self._mq = -vm.spec_sum  # -(flow-increment spectrum) / (exp(s dt) - 1)
         self._q2 = vm.spec_sum / 2.0
-        self._work: OrderedDict = OrderedDict()
+        self._work: dict | None = None
         self.evaluations = 0
         self.jacobians = 0
 
@@ -87,20 +85,25 @@ class HeadEvaluator:
 
     # ---------------------------------------------------------------- core
     def _buffers(self, m: int, rows: int) -> dict:
-        key = (m, rows)
-        ws = self._work.get(key)
-        if ws is None:
+        """Views of the work buffers for m elements and ``rows`` output rows. Sized once, for the
+        largest model (``_MAX_M`` elements and every Jacobian row), so that memory is bounded and
+        reused whatever sequence of models is evaluated."""
+        ws = self._work
+        if ws is None or m > ws["m"] or rows > ws["rows"]:
+            mm = max(m, self._MAX_M, ws["m"] if ws else 0)
+            rr = max(rows, 2 + 2 * mm)
             nb = self._nb
-            ws = {"im": np.empty((m, nb)), "den": np.empty((m, nb)), "Ju": np.empty((m, nb), dtype=complex),
-                  "buf": np.zeros((rows, self._nspec), dtype=complex), "w": np.empty((rows, self.model.n_fft))}
+            ws = {"m": mm, "rows": rr, "im": np.empty((mm, nb)), "den": np.empty((mm, nb)),
+                  "Ju": np.empty((mm, nb), dtype=complex), "buf": np.zeros((rr, self._nspec), dtype=complex),
+                  "w": np.empty((rr, self.model.n_fft))}
             for name in ("phi", "Y", "mu", "g", "th", "zc", "v"):
                 ws[name] = np.empty(nb, dtype=complex)
-            self._work[key] = ws
-            while len(self._work) > self._WORK_SLOTS:
-                self._work.popitem(last=False)
-        else:
-            self._work.move_to_end(key)
-        return ws
+            self._work = ws
+        view = dict(ws)
+        for name in ("im", "den", "Ju"):
+            view[name] = ws[name][:m]
+        view["buf"], view["w"] = ws["buf"][:rows], ws["w"][:rows]
+        return view
 
     def _eval(self, a: float, J_rel: np.ndarray, tau: np.ndarray, jac: bool, tau_free: bool,
               out: np.ndarray | None = None) -> np.ndarray:

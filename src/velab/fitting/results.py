@@ -238,6 +238,13 @@ class SweepResult:
     evaluations: int = 0  # head-model evaluations over the whole sweep
     notes: list[str] = field(default_factory=list)
     selection: str = "ar1"  # "ar1" (default) or "white" (the paper's AIC)
+    # the record's own rate and the anti-alias filter that took it to the fit rate (sample_rate_hz)
+    record_rate_hz: float = math.nan
+    anti_alias_filter: str = "none"
+
+    @property
+    def fit_rate_hz(self) -> float:
+        return self.sample_rate_hz
 
     @property
     def best(self) -> ModelFit:
@@ -271,6 +278,8 @@ class SweepResult:
             "n": self.n,
             "window": self.window_s,
             "sample_rate_hz": self.sample_rate_hz,
+            "record_rate_hz": self.record_rate_hz if math.isfinite(self.record_rate_hz) else self.sample_rate_hz,
+            "anti_alias_filter": self.anti_alias_filter,
             "method": self.method,
             "selection": self.selection,
             "settings": self.settings,
@@ -291,6 +300,8 @@ class SweepResult:
             settings=dict(d.get("settings") or {}), models=[ModelFit.from_dict(m) for m in d.get("models") or []],
             duration_s=float(d.get("duration_s") or 0.0), evaluations=int(d.get("evaluations") or 0),
             notes=list(d.get("notes") or []), selection=sel if sel in SELECTIONS else "white",
+            record_rate_hz=float(d.get("record_rate_hz") or d.get("sample_rate_hz") or math.nan),
+            anti_alias_filter=str(d.get("anti_alias_filter") or "none"),
         )
         return r
 

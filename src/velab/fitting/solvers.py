@@ -12,6 +12,10 @@ from velab.fitting.engine import HeadEvaluator, gram, sumsq
 from velab.fitting.params import ParamMap
 
 
+# the stall test of Stage.lsq: the gain over this many evaluations
+STALL_EVALS = 10
+
+
 @dataclass
 class Sol:
     x: np.ndarray
@@ -42,7 +46,7 @@ class Stage:
         x = pm.project(x)
         return Sol(x, self.F(pm, x), pm)
 
-    def lsq(self, pm: ParamMap, x0, *, max_nfev: int, ftol: float) -> Sol:
+    def lsq(self, pm: ParamMap, x0, *, max_nfev: int, ftol: float, stall: tuple[int, float] | None = None) -> Sol:
         """Bounded Levenberg-Marquardt on F with the analytic Jacobian (normal equations).
 
         The Jacobian has n rows but only k <= 13 columns: working with the k x k
@@ -56,6 +60,10 @@ class Stage:
         one Gram product [r; J] [r; J]^T gives J^T r and J^T J; the current and the
         trial point live in two buffers that are swapped on acceptance. The result is
         never worse than the start (only steps that lower F are accepted).
+
+        ``stall = (n_aic, gain)``: also stop when the last STALL_EVALS evaluations together lowered
+        n_aic ln F by less than ``gain`` (the crawl along the flat J-tau ridge no longer changes
+        the AIC at the precision it is reported to).
         """
         x = pm.project(x0)
         n = self.d.size
@@ -72,6 +80,7 @@ class Stage:
             return sumsq(b[0]) / n
 
         F = evaluate(cur, x)
+        history = [F]  # F after each evaluation (the stall test)
         lam = 1e-3
         nu = 2.0
         nfev = 1
@@ -112,6 +121,12 @@ class Stage:
                     break
                 Ft = evaluate(1 - cur, xt)
                 nfev += 1
+                if stall is not None:
+                    history.append(min(Ft, F))
+                    if len(history) > STALL_EVALS and stall[0] * math.log(history[-1 - STALL_EVALS] / max(history[-1], 1e-300)) < stall[1]:
+                        if Ft < F:
+                            x, F = xt, Ft
+                        return Sol(x, F, pm)
                 if Ft < F:
                     # predicted decrease of the linear model: -(|r + J dx|^2 - |r|^2)/n
                     pred = -(2 * np.dot(g, dx) + dx @ A @ dx) / n

@@ -39,6 +39,10 @@ def tau_grids(m: int, lo: float, hi: float) -> list[np.ndarray]:
     return [base, base * r**0.25, np.geomspace(lo * 3, hi / 3, m), base * r**-0.25]
 
 
+# a tau-grid start solves (a, J') with tau fixed first: a start, not a result (it then races)
+REDUCED_NFEV = 12
+
+
 def reduced_then_full(stage: Stage, pm: ParamMap, tau, a: float, method: str) -> np.ndarray:
     """Start on a tau grid: solve for (a, J') with tau fixed, then return the full x."""
     m = len(tau)
@@ -49,7 +53,7 @@ def reduced_then_full(stage: Stage, pm: ParamMap, tau, a: float, method: str) ->
         if method == "nelder-mead":
             s = stage.nelder_mead(pr, x0, maxfev=300)
         else:
-            s = stage.lsq(pr, x0, max_nfev=25, ftol=1e-8)
+            s = stage.lsq(pr, x0, max_nfev=REDUCED_NFEV, ftol=1e-8)
         if best is None or s.F < best.F:
             best = s
     a1, J, _ = pr.unpack(best.x)
@@ -96,6 +100,23 @@ def nested_starts(ref: Sol, pm: ParamMap, bounds: FitBounds, lo: float, hi: floa
     # the exact embedding: S(j) plus vanished elements
     out.append(pm.embed(ref.pm, ref.x))
     return out
+
+
+# the race of the coarse starts: every start gets RACE_NFEV evaluations, the RACE_KEEP best distinct ones
+# go on to the full budget (most starts of S4-S6 end in one of a few basins; finishing them all was
+# 60 % of the coarse stage)
+RACE_NFEV = 12
+RACE_KEEP = 3
+
+
+def race_starts(stage: Stage, pm: ParamMap, starts: list[np.ndarray], max_nfev: int) -> list[Sol]:
+    """Coarse local solutions from ``starts``: all briefly, the best few distinct ones to ``max_nfev``."""
+    if len(starts) <= RACE_KEEP:
+        return [stage.lsq(pm, x0, max_nfev=max_nfev, ftol=1e-10) for x0 in starts]
+    short = sorted((stage.lsq(pm, x0, max_nfev=RACE_NFEV, ftol=1e-10) for x0 in starts), key=lambda s: s.F)
+    kept = distinct([s.x for s in short], RACE_KEEP)
+    out = [stage.lsq(pm, x, max_nfev=max_nfev - RACE_NFEV, ftol=1e-10) for x in kept]
+    return out + [s for s in short if not any(s.x is x for x in kept)]
 
 
 def distinct(xs: list[np.ndarray], k: int, tol: float = 0.05) -> list[np.ndarray]:

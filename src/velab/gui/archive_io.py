@@ -75,7 +75,7 @@ class RefitOutcome:
 
 def refit(path, opts: RefitOptions, progress=None) -> RefitOutcome:
     """Calibrate the run at ``path`` again; save the fit group unless the run is still being written."""
-    from velab.fitting import fit_sweep, parse_models
+    from velab.fitting import fit_run, parse_models
     from velab.fitting.store import save_fit
     from velab.runfile import read_run
 
@@ -85,8 +85,9 @@ def refit(path, opts: RefitOptions, progress=None) -> RefitOutcome:
         raise DataError(f"{path}: window {window:g} s is longer than the record after the trigger "
                         f"({run.duration_after_trigger_s:.3f} s)")
     t, h = run.fit_window(window)
-    result = fit_sweep(t, h, run.rig, models=parse_models(opts.models), window_s=None, method=opts.method,
-                       reduced=opts.reduced, starts=opts.starts, polish=opts.polish, progress=progress)
+    # the one fit path (velab.fitting.prepare), as velab fit and the recorder's online fit
+    result = fit_run(run, window, models=parse_models(opts.models), method=opts.method,
+                     reduced=opts.reduced, starts=opts.starts, polish=opts.polish, progress=progress)
     result.settings["window_s_requested"] = window
     saved, note = None, ""
     if opts.save:

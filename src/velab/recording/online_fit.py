@@ -1,7 +1,7 @@
 """The online fit: the recorded window -> the fitter, on its own thread, with intermediate fits.
 
-``fit_record`` is the one thin call into the fitter (decimation to the fit rate, then
-``fit_sweep``); everything else here is scheduling: intermediate quick fits on the growing
+``fit_record`` is the one thin call into the fitter (velab.fitting.prepare.fit_record, the
+fit path ``velab fit`` and the GUI's re-fit take too); everything else here is scheduling: intermediate quick fits on the growing
 window while the fitter is idle, cancelled when the final fit starts; the final fit as soon
 as the window closes; the latency from the window closing to the result.
 """
@@ -24,23 +24,18 @@ class _Cancelled(Exception):
     pass
 
 
-def fit_record(t_s: np.ndarray, h_m: np.ndarray, rig: Rig, *, models, window_s: float, method: str,
-               sample_rate_hz: float, fit_rate_hz: float, quick: bool = False, progress=None):
-    """Fit a recorded head record (time from the trigger, head perturbation) -> SweepResult.
+def fit_record(t_s: np.ndarray, head_m: np.ndarray, trigger_time_s: float, rig: Rig, *, models, window_s: float,
+               method: str, sample_rate_hz: float, quick: bool = False, progress=None):
+    """Fit a recorded head record (the run's axis, absolute head, from before the trigger) -> SweepResult.
 
-    Records above ``fit_rate_hz`` are decimated (zero-phase FIR) first; ``quick`` = no polish,
-    2 starts (intermediate fits). The one place the recorder calls the fitter.
+    The one fit path (velab.fitting.prepare: steady head, window, anti-alias decimation to the fit
+    rate), as ``velab fit`` of the run file takes it; ``quick`` = no polish, 2 starts (intermediate fits).
     """
-    from velab.fitting import fit_sweep
+    from velab.fitting.prepare import fit_record as fit_path  # scipy: only when a fit runs
 
-    q = max(1, int(sample_rate_hz // fit_rate_hz))
-    if q > 1:
-        from scipy.signal import decimate
-
-        h_m = decimate(h_m, q, ftype="fir", zero_phase=True)
-        t_s = t_s[::q][: h_m.size]
     kw = {"polish": False, "starts": 2} if quick else {}
-    return fit_sweep(t_s, h_m, rig, models=list(models), window_s=window_s, method=method, progress=progress, **kw)
+    return fit_path(t_s, head_m, trigger_time_s, rig, window_s, record_rate_hz=sample_rate_hz, models=list(models),
+                    method=method, progress=progress, **kw)
 
 
 class OnlineFit:
@@ -70,8 +65,8 @@ class OnlineFit:
     def final_started(self) -> bool:
         return self._final is not None
 
-    def start(self, t: np.ndarray, h: np.ndarray, window_s: float, *, final: bool) -> None:
-        """Start a fit of (t, h) over ``window_s`` (a quick one is skipped while another runs)."""
+    def start(self, t: np.ndarray, h: np.ndarray, trigger_time_s: float, window_s: float, *, final: bool) -> None:
+        """Start a fit of (t, h) over ``window_s`` after the trigger (a quick one is skipped while another runs)."""
         if final:
             if self._final is not None:
                 return
@@ -82,7 +77,7 @@ class OnlineFit:
         else:
             self._cancel_quick.clear()
         self._busy.set()
-        th = threading.Thread(target=self._work, args=(t, h, window_s, final), daemon=True,
+        th = threading.Thread(target=self._work, args=(t, h, trigger_time_s, window_s, final), daemon=True,
                               name="velab-recorder-fit" + ("" if final else "-quick"))
         if final:
             self._final = th
@@ -95,14 +90,14 @@ class OnlineFit:
             self.error = why
             self.message(why)
 
-    def _work(self, t, h, window_s, final) -> None:
+    def _work(self, t, h, trigger_time_s, window_s, final) -> None:
         def progress(done, total, name):
             if self._cancel_all.is_set() or (not final and self._cancel_quick.is_set()):
                 raise _Cancelled()
 
         try:
-            r = fit_record(t, h, self.rig, models=self.s.fit_models, window_s=window_s, method=self.s.fit_method,
-                           sample_rate_hz=self.fs, fit_rate_hz=self.s.fit_rate_hz, quick=not final, progress=progress)
+            r = fit_record(t, h, trigger_time_s, self.rig, models=self.s.fit_models, window_s=window_s,
+                           method=self.s.fit_method, sample_rate_hz=self.fs, quick=not final, progress=progress)
             if final:
                 self.result = r
                 self.latency_s = time.perf_counter() - self._closed_at

@@ -250,7 +250,7 @@ class RunControl:
         if final and ending in (P.ABORTED, P.FAILED):
             return  # the end decides (no fit of an aborted or failed run)
         try:
-            t, h, w, note = tl.fit_window(window_s, tl.steady_head(self._steady))
+            t, h, trigger, w, note = tl.fit_window(window_s)
         except ValueError as exc:
             if final:
                 fit.refuse(str(exc))
@@ -258,7 +258,7 @@ class RunControl:
         if note and final:
             self._message(note)
         if final or (not fit.busy and w >= window_s):
-            fit.start(t, h, w, final=final)
+            fit.start(t, h, trigger, w, final=final)
 
     def _safe_valve(self, ask: bool = True) -> None:
         valve = self.devices.get(self.roles.get("valve", ""))

@@ -44,7 +44,6 @@ class RecordSettings:
     ceiling_head_m: float | None = None  # None -> 95 % of the limiting pressure, as head
     flow_tolerance: float = 0.05  # steady flow within this fraction of the rig's Q0, and stable
     flush_interval_s: float = 0.25
-    fit_rate_hz: float = 1000.0  # the fit runs on data decimated (zero-phase FIR) to at most this rate
     intermediate_fits: bool = True
     run_number: int = 1
     head_range: tuple = (0.5, 1.5)  # steady head accepted as this range x the rig's steady head
@@ -60,7 +59,7 @@ class RecordSettings:
         except (TypeError, ValueError):
             raise VelabError(f"fit_models and head_range must be numbers, got {self.fit_models!r}, "
                              f"{self.head_range!r}") from None
-        for name in ("duration_s", "sample_rate_hz", "fit_window_s", "flush_interval_s", "fit_rate_hz",
+        for name in ("duration_s", "sample_rate_hz", "fit_window_s", "flush_interval_s",
                      "stall_timeout_s"):
             _finite(name, getattr(self, name), 0.0, strict_lo=True)
         _finite("pretrigger_s", self.pretrigger_s, 0.05)

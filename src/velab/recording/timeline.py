@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections import deque
 from dataclasses import replace
 
 import numpy as np
@@ -20,6 +21,10 @@ from velab.drivers.blocks import QUALITY_CODE, QUALITY_CODES
 from velab.drivers.base import Quality
 from velab.recording.online_fit import MIN_FIT_WINDOW_S
 from velab.recording.safety import OK, ceiling_crossing, describe_codes, finite_max
+
+# samples kept from before the trigger is marked, for the fit's steady head: the fit path takes the
+# mean over the last velab.fitting.prepare.STEADY_HEAD_S (1 s) before the (measured) trigger
+PRE_TRIGGER_KEPT_S = 3.0
 
 
 def trigger_from_position(t: np.ndarray, pos_pct: np.ndarray, beta: float, gamma: float, end_pct: float) -> float | None:
@@ -75,6 +80,7 @@ class Timeline:
         self._pos_v: list = []
         self._fit_t = self._fit_h = None
         self._fit_n = 0
+        self._pre_blocks: deque = deque()  # (axis time, head) blocks before the trigger was marked
         self.clean_until: float | None = None  # first flagged / lost instant after the trigger
         self.window_closed = False
         self.ended = False  # no more samples are taken (end requested)
@@ -204,6 +210,8 @@ class Timeline:
             self._pre_n += int(okh.size)
         if self.trigger_idx is not None:
             self._after_trigger(t, head, pos, p_codes)
+        else:
+            self._keep_pre(t, head)
         self.hooks.emit("samples", {"time_s": t, "head_m": head, "valve_position": pos, "lost": int(b.lost_before),
                                     "quality": p_codes})
         i = ceiling_crossing(head, p_codes, self.ceiling)
@@ -269,6 +277,12 @@ class Timeline:
                 self._quick_next += 1
                 self.on_window_closed(fractions[self._quick_next - 1] * s.fit_window_s, final=False)
 
+    def _keep_pre(self, t, head) -> None:
+        pb = self._pre_blocks
+        pb.append((t.copy(), np.array(head, dtype=float)))
+        while len(pb) > 1 and pb[1][0][0] < float(t[-1]) - PRE_TRIGGER_KEPT_S:
+            pb.popleft()
+
     def _reached(self, t_axis: float) -> bool:
         return self.now_axis >= t_axis - 0.5 / self.fs
 
@@ -278,6 +292,8 @@ class Timeline:
         if not self.window_closed and self._reached(self.trigger_time + self.s.fit_window_s):
             if not self.trigger_measured and self.vch:
                 self._measure_trigger()
+        # (again: the measured trigger may be later than the commanded one, the window then closes later)
+        if not self.window_closed and self._reached(self.trigger_time + self.s.fit_window_s):
             self.window_closed = True
             self.hooks.emit("message", f"fit window closed ({self.s.fit_window_s:g} s after the trigger)")
             if self.s.fit and self.s.online_fit:
@@ -286,8 +302,10 @@ class Timeline:
             self.hooks.request_end("completed", "")
 
     # ---------------------------------------------------------------- the fit's data
-    def fit_window(self, window_s: float, steady: float | None) -> tuple[np.ndarray, np.ndarray, float, str]:
-        """(t from the trigger, head perturbation, window used, note) of the clean part of the window.
+    def fit_window(self, window_s: float) -> tuple[np.ndarray, np.ndarray, float, float, str]:
+        """(t on the run's axis, absolute head, trigger time, window used, note): the record the fit
+        path (velab.fitting.prepare) takes, the same samples as in the run file, from a few seconds
+        before the trigger to the end of the clean part of the window.
 
         Flagged or lost samples inside the window shorten it to the clean part before them (if at
         least 2 s); otherwise ValueError says why there is no fit.
@@ -302,8 +320,8 @@ class Timeline:
                 window_s = math.floor(avail * self.fs) / self.fs
                 note = f"fit window shortened to {window_s:.2f} s: flagged or lost samples after it"
         n = self._fit_n
-        t = self._fit_t[:n] - self.trigger_time
-        h = self._fit_h[:n] - (steady or 0.0)
         dt = 1.0 / self.fs
-        sel = (t >= -0.5 * dt) & (t < window_s - 0.5 * dt)
-        return t[sel], h[sel], window_s, note
+        end = int(np.searchsorted(self._fit_t[:n], self.trigger_time + window_s - 0.5 * dt))
+        t = np.concatenate([b[0] for b in self._pre_blocks] + [self._fit_t[:end]])
+        h = np.concatenate([b[1] for b in self._pre_blocks] + [self._fit_h[:end]])
+        return t, h, float(self.trigger_time), window_s, note

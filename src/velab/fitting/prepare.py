@@ -1,0 +1,171 @@
+"""One fit path: a recorded head record -> the calibration data (window, steady head, fit rate).
+
+``prepare_record`` is the single place where a record becomes what the fitter calibrates on;
+``velab fit``, the recorder's online fit and the GUI archive's re-fit all call it (through
+``fit_record``), so an offline re-fit of a recorded run reproduces its online fit exactly:
+
+1. steady head: mean of the finite head samples in the last ``STEADY_HEAD_S`` before the
+   trigger (the recorder keeps that much before the trigger; the rig's steady head if none);
+2. window: samples with trigger - dt/2 <= t < trigger + window - dt/2, time from the trigger;
+3. anti-alias decimation to the fit rate: q = the largest whole divisor of the record rate
+   with record rate / q >= FIT_RATE_PER_BAND x the manoeuvre's band, zero-phase FIR (scipy.signal.firwin, Hamming, 20 q + 1 taps, the
+   filter of scipy.signal.decimate) applied by polyphase resampling with the window's ends
+   extended linearly. At the reference rig (band 31 Hz) a 1 kHz record is fitted as it is
+   and a 10 kHz record at 1 kHz: the model's head has no content above the band, so the
+   calibration sees the same signal and 1/q of the out-of-band noise.
+
+The full-rate data stay in the run file; the rate, the filter and the steady head used are
+in the fit's settings (``settings["record"]``) and in ``SweepResult.record_rate_hz`` /
+``anti_alias_filter``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.signal import firwin, resample_poly
+
+from velab.config import Rig
+from velab.errors import DataError
+from velab.fitting.results import SweepResult
+from velab.fitting.sweep import fit_sweep
+from velab.model import manoeuvre_band_hz
+
+# the fit rate is at least this multiple of the manoeuvre's band (the frequency above which the
+# sigmoid's flow spectrum is below 1e-8 of its DC value): 930 Hz at the reference rig
+FIT_RATE_PER_BAND = 30.0
+STEADY_HEAD_S = 1.0  # the steady head is the mean over this long before the trigger
+FIR_TAPS_PER_Q = 20
+
+
+@dataclass(frozen=True)
+class PreparedRecord:
+    """The calibration data of one record: what the fitter sees, and how it was made."""
+
+    t: np.ndarray  # s from the trigger, at the fit rate
+    h: np.ndarray  # head perturbation (m), anti-alias filtered and decimated
+    window_s: float
+    trigger_time_s: float
+    steady_head_m: float
+    record_rate_hz: float
+    decimation: int
+    filter: str
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def fit_rate_hz(self) -> float:
+        return self.record_rate_hz / self.decimation
+
+    def describe(self) -> dict:
+        """The preparation, as stored with the fit (``settings["record"]``)."""
+        return {"record_rate_hz": self.record_rate_hz, "fit_rate_hz": self.fit_rate_hz, "decimation": self.decimation,
+                "anti_alias_filter": self.filter, "trigger_time_s": self.trigger_time_s,
+                "steady_head_m": self.steady_head_m, "window_s": self.window_s, "samples": int(self.h.size)}
+
+
+def fit_decimation(rig: Rig, record_rate_hz: float) -> int:
+    """q: the record is fitted at record_rate / q >= FIT_RATE_PER_BAND x the manoeuvre's band."""
+    target = FIT_RATE_PER_BAND * manoeuvre_band_hz(rig)
+    qmax = max(1, int(math.floor(record_rate_hz / target * (1 + 1e-9))))
+    whole = round(record_rate_hz)
+    if abs(record_rate_hz - whole) < 1e-9 * record_rate_hz:
+        # a whole fit rate (50 kHz -> 1 kHz, not 943.4 Hz): the largest q below qmax that divides the rate
+        for q in range(qmax, 0, -1):
+            if whole % q == 0:
+                return q
+    return qmax
+
+
+def anti_alias_filter(q: int) -> str:
+    if q <= 1:
+        return "none"
+    return (f"zero-phase FIR low-pass at {1.0 / q:.6g} x Nyquist (firwin, Hamming, {FIR_TAPS_PER_Q * q + 1} taps), "
+            f"polyphase decimation by {q}, linear end extension")
+
+
+def decimate_head(h: np.ndarray, q: int) -> np.ndarray:
+    """Anti-alias filtered h sampled at every q-th sample (sample i of the result is at input i q)."""
+    if q <= 1:
+        return np.array(h, dtype=float)
+    b = firwin(FIR_TAPS_PER_Q * q + 1, 1.0 / q, window="hamming")
+    return resample_poly(np.asarray(h, dtype=float), 1, q, window=b, padtype="line")
+
+
+def steady_head(t: np.ndarray, head: np.ndarray, trigger_time_s: float, fallback: float) -> float:
+    """Mean of the finite head samples in [trigger - STEADY_HEAD_S, trigger)."""
+    i0, i1 = np.searchsorted(t, [trigger_time_s - STEADY_HEAD_S, trigger_time_s])
+    pre = head[i0:i1]
+    pre = pre[np.isfinite(pre)]
+    return float(pre.mean()) if pre.size else float(fallback)
+
+
+def prepare_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | None, *,
+                   record_rate_hz: float) -> PreparedRecord:
+    """The calibration data of a record: ``t_s`` on the run's axis (s, increasing), ``head_m`` the
+    absolute head there (before and after the trigger), ``window_s`` after the trigger (None: all).
+
+    Raises DataError (one line) for a window longer than the record, NaN in it, a non-uniform axis."""
+    t = np.asarray(t_s, dtype=float)
+    head = np.asarray(head_m, dtype=float)
+    if t.ndim != 1 or head.shape != t.shape:
+        raise DataError(f"time and head must be 1-D arrays of equal length (got {t.shape} and {head.shape})")
+    if not (record_rate_hz > 0 and math.isfinite(record_rate_hz)):
+        raise DataError(f"sample rate must be positive, got {record_rate_hz!r} Hz")
+    if not math.isfinite(trigger_time_s):
+        raise DataError("trigger time is not a number")
+    dt = 1.0 / record_rate_hz
+    steady = steady_head(t, head, trigger_time_s, rig.steady_head_m)
+    i0 = int(np.searchsorted(t, trigger_time_s - 0.5 * dt))
+    avail = (float(t[-1]) - trigger_time_s + dt) if t.size and i0 < t.size else 0.0
+    if window_s is None:
+        window_s = avail
+    if not window_s > 0:
+        raise DataError(f"fit window must be positive, got {window_s:g} s")
+    if window_s > avail + 0.5 * dt:
+        raise DataError(f"fit window {window_s:g} s is longer than the record after the trigger ({avail:.6g} s)")
+    i1 = int(np.searchsorted(t, trigger_time_s + window_s - 0.5 * dt))
+    tw = t[i0:i1] - trigger_time_s
+    if tw.size < 16:
+        raise DataError(f"window too short to calibrate ({tw.size} samples after the trigger)")
+    steps = np.diff(tw)
+    if np.abs(steps - dt).max() > 1e-3 * dt + 1e-9:
+        raise DataError("time axis is not uniform in the fit window (lost samples?)")
+    hw = head[i0:i1] - steady
+    bad = ~np.isfinite(hw)
+    if bad.any():
+        j = int(np.argmax(bad))
+        raise DataError(f"head is NaN/inf at t = {tw[j]:.6g} s in the fit window ({int(bad.sum())} samples)")
+    q = fit_decimation(rig, record_rate_hz)
+    hd = decimate_head(hw, q)
+    td = tw[::q][: hd.size]
+    return PreparedRecord(td, hd[: td.size], float(window_s), float(trigger_time_s), steady, float(record_rate_hz), q,
+                          anti_alias_filter(q))
+
+
+def fit_prepared(rec: PreparedRecord, rig: Rig, **sweep_options) -> SweepResult:
+    """``fit_sweep`` on a prepared record; the preparation goes into the result."""
+    result = fit_sweep(rec.t, rec.h, rig, window_s=None, **sweep_options)
+    # the rates as the record states them (fit_sweep measures its step from the time axis)
+    result.sample_rate_hz = rec.fit_rate_hz
+    result.record_rate_hz = rec.record_rate_hz
+    result.anti_alias_filter = rec.filter
+    result.settings["record"] = rec.describe()
+    result.notes.extend(rec.notes)
+    return result
+
+
+def fit_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | None, *, record_rate_hz: float,
+               **sweep_options) -> SweepResult:
+    """Prepare a record (``prepare_record``) and calibrate on it: the one fit path of velab."""
+    rec = prepare_record(t_s, head_m, trigger_time_s, rig, window_s, record_rate_hz=record_rate_hz)
+    return fit_prepared(rec, rig, **sweep_options)
+
+
+def fit_run(run, window_s: float | None, **sweep_options) -> SweepResult:
+    """``fit_record`` on a run read back from its file (velab.runfile.Run): what ``velab fit`` and the
+    GUI archive's re-fit call. Lost samples inside the window are refused (a gap cannot be fitted)."""
+    run.fit_window(window_s)  # the reader's own checks of the window (gaps, NaN), with the file's name
+    return fit_record(run.time_s, run.head_m, run.trigger_time_s, run.rig, window_s,
+                      record_rate_hz=run.sample_rate_hz, **sweep_options)
