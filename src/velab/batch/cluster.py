@@ -47,8 +47,9 @@ def connect(address: str):
     try:
         client = distributed.Client(address, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
     except (OSError, TimeoutError) as exc:
+        why = "" if "timed out" in str(exc).lower() else f": {one_line(exc)}"
         raise UnavailableError(f"--scheduler {address}: cannot connect within {CONNECT_TIMEOUT_S:g} s "
-                               f"(is `dask scheduler` running there?): {one_line(exc)}") from None
+                               f"(is `dask scheduler` running there?){why}") from None
     try:
         try:
             client.wait_for_workers(1, timeout=WORKERS_TIMEOUT_S)
@@ -76,7 +77,7 @@ def connect(address: str):
 def outcomes(compute, paths: list[str], opts: dict, address: str) -> Iterator[dict]:
     """The outcome of every run of ``paths`` fitted on the cluster, in the order they complete."""
     distributed = import_distributed()
-    quiet = _quiet_distributed_logs()
+    _quiet_distributed_logs()
     client = connect(address)
     batch = uuid.uuid4().hex[:12]
     futures = {}
@@ -86,7 +87,7 @@ def outcomes(compute, paths: list[str], opts: dict, address: str) -> Iterator[di
             fut = client.submit(fit_one, compute, os.path.abspath(p), opts, key=f"velab-fit-{batch}-{i}",
                                 pure=False, retries=0)
             futures[fut] = p
-        for fut in distributed.as_completed(list(futures)):
+        for fut in distributed.as_completed(list(futures), loop=client.loop):
             yield _outcome(fut, futures[fut], distributed)
     finally:
         if futures:
@@ -95,7 +96,6 @@ def outcomes(compute, paths: list[str], opts: dict, address: str) -> Iterator[di
             except Exception:  # the scheduler is gone: nothing left to cancel
                 pass
         client.close(timeout=CONNECT_TIMEOUT_S)
-        quiet()
 
 
 def _outcome(fut, path: str, distributed) -> dict:
@@ -119,13 +119,12 @@ def _outcome(fut, path: str, distributed) -> dict:
         return failure(path, "scheduler lost", f"the fit could not be fetched: {type(exc).__name__}: {exc}")
 
 
-def _quiet_distributed_logs():
-    """distributed logs connection trouble as multi-line records; velab reports it per run instead."""
-    logger = logging.getLogger("distributed")
-    level = logger.level
-    if not logging.getLogger("velab").isEnabledFor(logging.DEBUG):
-        logger.setLevel(logging.CRITICAL)
-
-    def restore():
-        logger.setLevel(level)
-    return restore
+def _quiet_distributed_logs() -> None:
+    """distributed logs connection trouble as multi-line tracebacks, from its own thread and until the
+    process ends; velab reports it per run instead (``-vv`` keeps them)."""
+    if logging.getLogger("velab").isEnabledFor(logging.DEBUG):
+        return
+    # dask's logging config gives some children their own level (distributed.client: warning)
+    for name in ["distributed", *logging.root.manager.loggerDict]:
+        if name == "distributed" or name.startswith("distributed."):
+            logging.getLogger(name).setLevel(logging.CRITICAL)

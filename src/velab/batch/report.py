@@ -20,16 +20,17 @@ def exit_code(batch: Batch) -> ExitCode:
 def _row(o: dict) -> str:
     name = Path(o["path"]).name
     name = name if len(name) <= 32 else name[:29] + "..."
-    t = o.get("seconds", math.nan)
+    t = o.get("seconds")
+    t = f"{t:>9.2f}" if isinstance(t, (int, float)) else f"{'-':>9}"  # no time: the fit never came back
     if not o["ok"]:
-        return f"{name:<32} {'FAILED ' + o['reason']:<16}{'-':>5}{'-':>10}{'-':>13}{'-':>5}{'-':>8}{t:>9.2f}"
+        return f"{name:<32} {'FAILED ' + o['reason']:<16}{'-':>5}{'-':>10}{'-':>13}{'-':>5}{'-':>8}{t}"
     fit = o["fit"]
     models = fit.get("models") or []
     best = next((m for m in models if m.get("name") == fit.get("best")), {})
     others = sorted((m for m in models if m is not best), key=lambda m: _num(m.get("delta_aic")))
     second = others[0] if others else {}
     return (f"{name:<32} {o['status']:<16}{fit.get('best', '-'):>5}{_num(best.get('wave_speed')):>10.2f}"
-            f"{_num(best.get('F')):>13.5e}{second.get('name', '-'):>5}{_num(second.get('delta_aic')):>8.2f}{t:>9.2f}")
+            f"{_num(best.get('F')):>13.5e}{second.get('name', '-'):>5}{_num(second.get('delta_aic')):>8.2f}{t}")
 
 
 def _num(v) -> float:

@@ -28,7 +28,7 @@ class Batch:
     seconds: float
     where: str  # "local, 2 processes" | "dask tcp://host:8786"
     scheduler: str | None = None
-    jobs: int = 1
+    jobs: int | None = 1  # None on a cluster
     extra: dict = field(default_factory=dict)
 
 
@@ -63,7 +63,7 @@ def run_batch(compute, paths: list[str], opts: dict, *, jobs: int = 1, scheduler
             progress.update(_bar(len(done), len(paths), failed, o["path"]), force=True)
     outcomes = [done.get(i) or failure(p, "scheduler lost", "no outcome came back for this run")
                 for i, p in enumerate(paths)]
-    return Batch(outcomes, time.perf_counter() - t0, where, scheduler, jobs)
+    return Batch(outcomes, time.perf_counter() - t0, where, scheduler, None if scheduler else jobs)
 
 
 def _save(o: dict, opts: dict) -> dict:
