@@ -3,7 +3,8 @@
 Everything Dask runs in subprocesses: the cluster (a real ``distributed.LocalCluster``, two
 worker processes, loopback, ephemeral ports) and the ``velab fit --scheduler`` client, as a
 lab runs them; so this test process never holds Dask's threads when other tests fork.
-The runs are short (3 s at 200 Hz, EL and S1, one start) so that 50 fits cost seconds.
+The runs are short (3 s at 200 Hz, EL and S1, one start): a fit takes under 0.1 s; the
+reader's probe of each file in a child process (velab.runfiles.probe, ~0.3 s) costs more.
 """
 
 from __future__ import annotations
@@ -141,6 +142,7 @@ def _stored(p: Path) -> dict:
 # ------------------------------------------------------------------- the acceptance test
 
 
+@pytest.mark.timeout(900)  # 100 fits, each run probed in a child process first (velab.runfiles.probe)
 def test_fifty_runs_on_a_local_cluster_give_the_local_fits(sources, tmp_path, cluster):
     local = _archive(sources, tmp_path / "local")
     remote = _archive(sources, tmp_path / "cluster")
@@ -328,7 +330,7 @@ def test_lost_scheduler_fails_the_rest_and_leaves_no_half_written_file(sources, 
     """The scheduler dies mid-batch: the fits that came back are saved, whole; the others are
     'scheduler lost' failures and their runs are byte-identical; exit code 5."""
     _need_dask()
-    runs = _archive(sources, tmp_path / "lost", n=40)
+    runs = _archive(sources, tmp_path / "lost", n=16)
     before = {p: _digest(p) for p in runs}
     proc, address = _start_cluster()
     try:
