@@ -276,14 +276,15 @@ def test_table_and_progress(sources, tmp_path, capsys):
 
 def test_scheduler_address_is_checked_before_anything(sources, tmp_path, capsys):
     assert parse_scheduler_address("tcp://10.0.0.5:8786") == "tcp://10.0.0.5:8786"
-    assert parse_scheduler_address("node7.lab:9000") == "tcp://node7.lab:9000"
+    assert parse_scheduler_address("TCP://node7.lab:9000") == "tcp://node7.lab:9000"
     assert parse_scheduler_address("tls://[::1]") == "tls://[::1]:8786"
     run = tmp_path / "a.h5"
     shutil.copy(sources[0], run)
     before = _digest(run)
     for bad, why in (("udp://x:1", "protocol"), ("tcp://x:0", "port"), ("tcp://x:70000", "port"),
                      ("tcp://h:1/path", "HOST:PORT"), ("tcp://u@h:1", "HOST:PORT"), ("::1:8786", "brackets"),
-                     ("tcp://:8786", "no host"), ("tcp://bad_host!:1", "host name"), ("", "empty")):
+                     ("tcp://:8786", "no host"), ("tcp://bad_host!:1", "host name"), ("", "empty"),
+                     ("perugia", "no protocol"), ("10.0.0.5:8786", "no protocol")):
         capsys.readouterr()
         with pytest.raises(SystemExit) as e:
             main(["fit", str(run), "--scheduler", bad])

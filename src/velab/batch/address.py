@@ -2,9 +2,9 @@
 
 A Dask scheduler address is ``PROTOCOL://HOST:PORT``: protocol ``tcp`` or ``tls``, a host
 name, an IPv4 address or a bracketed IPv6 address, and a port (Dask's default 8786 when
-left out). ``HOST:PORT`` alone means ``tcp://HOST:PORT``, as it does for Dask. Anything else
-(a path, a user name, a query, spaces) is refused with a one-line message naming the part
-that is wrong. Standard library only: the CLI parser uses it while ``velab --help`` builds.
+left out). The protocol is required (Dask itself reads a bare ``HOST:PORT`` as tcp): a bare
+word must not become a connection to a host of that name. Anything else (a path, a user
+name, a query, spaces) is refused with a one-line message naming the part that is wrong. Standard library only: the CLI parser uses it while ``velab --help`` builds.
 
 velab listens on loopback unless told otherwise (docs/cli.md); connecting to a scheduler the
 user names is that explicit choice, so any host is accepted here.
@@ -28,7 +28,7 @@ def parse_scheduler_address(text: str) -> str:
         raise ValueError("empty address")
     proto, sep, rest = s.partition("://")
     if not sep:
-        proto, rest = "tcp", s
+        raise ValueError("no protocol: write tcp://HOST:PORT or tls://HOST:PORT")
     proto = proto.lower()
     if proto not in PROTOCOLS:
         raise ValueError(f"protocol {proto!r} is not supported (use {' or '.join(p + '://' for p in PROTOCOLS)})")
