@@ -282,7 +282,7 @@ def test_scheduler_address_is_checked_before_anything(sources, tmp_path, capsys)
     shutil.copy(sources[0], run)
     before = _digest(run)
     for bad, why in (("udp://x:1", "protocol"), ("tcp://x:0", "port"), ("tcp://x:70000", "port"),
-                     ("tcp://h:1/path", "HOST:PORT"), ("tcp://u@h:1", "HOST:PORT"), ("::1:8786", "brackets"),
+                     ("tcp://h:1/path", "HOST:PORT"), ("tcp://u@h:1", "HOST:PORT"), ("tcp://::1:8786", "brackets"),
                      ("tcp://:8786", "no host"), ("tcp://bad_host!:1", "host name"), ("", "empty"),
                      ("perugia", "no protocol"), ("10.0.0.5:8786", "no protocol")):
         capsys.readouterr()
@@ -358,3 +358,35 @@ def test_lost_scheduler_fails_the_rest_and_leaves_no_half_written_file(sources, 
             assert _digest(p) == before[p]
     assert not [f for f in os.listdir(tmp_path / "lost") if f.startswith(".")]
     assert "Traceback" not in err and f"velab: FAILED {lost[0]['path']} (scheduler lost): " in err
+
+
+# ------------------------------------------------------------------- a worker process that dies
+
+
+def _fit_or_die(path, opts, many=False):
+    """The real fit, except that the process fitting a run named crash*.h5 dies (as a segfault would)."""
+    from velab.commands.fit import fit_file
+
+    if Path(path).name.startswith("crash"):
+        os._exit(70)
+    return fit_file(path, opts, many=many)
+
+
+def test_a_dying_worker_process_fails_only_its_run(sources, tmp_path):
+    from velab.batch.runner import run_batch
+    from velab.cli import build_parser
+    from velab.commands.fit import _options
+
+    files = _archive(sources, tmp_path / "die", n=5)
+    crash = files[2].with_name("crash.h5")
+    files[2].rename(crash)
+    files[2] = crash
+    before = _digest(crash)
+    opts = _options(build_parser().parse_args(["fit", "x.h5", *FIT]))
+    batch = run_batch(_fit_or_die, [str(p) for p in files], opts, jobs=2)
+    by = {Path(o["path"]).name: o for o in batch.outcomes}
+    assert by["crash.h5"]["reason"] == "worker lost" and by["crash.h5"]["exit_code"] == 5
+    assert _digest(crash) == before
+    for p in files:
+        if p != crash:  # the runs the broken pool took down were fitted again
+            assert by[p.name]["status"] == "saved" and FIT_NAME in _fits(p)
