@@ -3,15 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import math
-import os
-import sys
-import time
 from pathlib import Path
 
-from velab.commands.common import (ProgressLine, add_json_option, check_output_path, float_range, int_range, one_line,
-                                   write_json)
-from velab.errors import DataError, ExitCode, VelabError
+from velab.batch.address import scheduler_address
+from velab.commands.common import ProgressLine, add_json_option, check_output_path, float_range, int_range, write_json
+from velab.errors import DataError, ExitCode
 
 # velab.fitting.sweep.METHODS, named here so that building the parser does not import the
 # fitter (scipy); run() checks the option against the fitter's own list.
@@ -60,6 +56,10 @@ def register(sub) -> None:
                    "(default: from method and window)")
     p.add_argument("--no-save", action="store_true", help="do not write the fit into the run file")
     p.add_argument("--jobs", type=int_range(1, 256), default=1, help="runs fitted in parallel (processes; default 1)")
+    p.add_argument("--scheduler", type=scheduler_address, default=None, metavar="ADDRESS",
+                   help="fit the runs on a Dask cluster, e.g. tcp://10.0.0.5:8786 (needs the velab[cluster] extra; "
+                   "the runs on storage every worker mounts at the same path; this client writes the fits; "
+                   "docs/cluster.md)")
     p.set_defaults(func=run)
 
 
@@ -128,20 +128,9 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
     return result, name
 
 
-def _worker(path: str, opts: dict) -> dict:
-    t0 = time.perf_counter()
-    try:
-        result, name = fit_file(path, opts, many=True)
-    except VelabError as exc:
-        return {"path": path, "error": str(exc)}
-    except Exception as exc:  # one bad file must not stop the others
-        return {"path": path, "error": f"{path}: {type(exc).__name__}: {exc}"}
-    return {"path": path, "result": result, "fit_name": name, "seconds": time.perf_counter() - t0}
-
-
 def run(args: argparse.Namespace) -> int:
     opts = _options(args)
-    if len(args.runs) == 1:
+    if len(args.runs) == 1 and not args.scheduler:
         path = args.runs[0]
         with ProgressLine.for_args(args) as progress:
             def cb(done, total, name):
@@ -156,54 +145,19 @@ def run(args: argparse.Namespace) -> int:
             if name:
                 print(f"saved as /entry/fits/{name}")
         return ExitCode.OK
-    return _run_many(args.runs, opts, args.jobs, args.json, ProgressLine.for_args(args))
+    return _run_batch(args, opts)
 
 
-def _run_many(paths: list[str], opts: dict, jobs: int, as_json: bool, progress: ProgressLine) -> int:
-    outcomes: dict[str, dict] = {}
+def _run_batch(args, opts: dict) -> int:
+    """Many runs, or any run on a cluster: velab.batch (table, failures, exit code)."""
+    from velab.batch import report
+    from velab.batch.runner import run_batch
 
-    def advance(p):
-        progress.update(f"velab fit: {len(outcomes)}/{len(paths)} runs, last {Path(p).name}", force=True)
-
-    with progress:
-        if jobs == 1:
-            for p in paths:
-                outcomes[p] = _worker(p, opts)
-                advance(p)
-        else:
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
-            with ProcessPoolExecutor(max_workers=min(jobs, len(paths), os.cpu_count() or 1)) as ex:
-                futs = {ex.submit(_worker, p, opts): p for p in paths}
-                for fut in as_completed(futs):
-                    p = futs[fut]
-                    try:
-                        outcomes[p] = fut.result()
-                    except Exception as exc:  # a crashed worker process
-                        outcomes[p] = {"path": p, "error": f"{p}: worker failed: {exc}"}
-                    advance(p)
-    failed = [o for o in outcomes.values() if "error" in o]
-    if as_json:
-        doc = {"runs": []}
-        for p in paths:
-            o = outcomes[p]
-            if "error" in o:
-                doc["runs"].append({"path": p, "error": o["error"]})
-            else:
-                doc["runs"].append({"path": p, "fit_name": o["fit_name"], **o["result"].to_dict()})
-        write_json(doc)
+    with ProgressLine.for_args(args) as progress:
+        batch = run_batch(fit_file, args.runs, opts, jobs=args.jobs, scheduler=args.scheduler, progress=progress)
+    if args.json:
+        write_json(report.json_doc(batch))
     else:
-        print(f"{'run':<40}{'best':>6}{'F (m^2)':>13}{'a (m/s)':>10}{'2nd':>6}{'dAIC':>8}{'time (s)':>10}")
-        for p in paths:
-            o = outcomes[p]
-            if "error" in o:
-                print(f"{Path(p).name:<40}  FAILED (see below)")
-                continue
-            r = o["result"]
-            ranked = sorted(r.models, key=lambda f: f.aic)
-            second = ranked[1] if len(ranked) > 1 else None
-            print(f"{Path(p).name:<40}{r.best.name:>6}{r.best.F:>13.5e}{r.best.wave_speed_m_s:>10.2f}"
-                  f"{(second.name if second else '-'):>6}{(second.delta_aic if second else math.nan):>8.2f}{o['seconds']:>10.2f}")
-    for o in failed:
-        print(f"velab: {one_line(o['error'])}", file=sys.stderr)
-    return ExitCode.BAD_INPUT if failed else ExitCode.OK
+        print(report.table(batch))
+    report.print_failures(batch)
+    return report.exit_code(batch)
