@@ -17,7 +17,8 @@ printed (issue 10: at most 3).
     python benchmarks/fit_sweep.py --no-quadratic # skip the quadratic-friction sweep
 
 The previous sweep (before issue 13: every coarse start run to the full budget, tau-grid starts
-solved with 25 evaluations, no stall test on the ridge crawl and the polish) is timed in the
+solved with 25 evaluations, no stall test on the ridge crawl and the polish, tau-grid starts for
+every model, full-band evaluations and coarse starts in one thread) is timed in the
 same run, interleaved with the current one, and its speed-up over the baseline printed beside
 the current one (issue 13: at least twice the previous speed-up; --no-previous skips it).
 
@@ -91,12 +92,16 @@ def baseline(t, h, rig, m: int):
 @contextlib.contextmanager
 def previous_sweep():
     """The sweep as it was before issue 13 (same code, the new limits switched off)."""
-    saved = fit_starts.RACE_KEEP, fit_starts.REDUCED_NFEV, fit_sweep_module.STALL_GAIN
-    fit_starts.RACE_KEEP, fit_starts.REDUCED_NFEV, fit_sweep_module.STALL_GAIN = 10**6, 25, -1.0
+    sw = fit_sweep_module
+    saved = (fit_starts.RACE_KEEP, fit_starts.REDUCED_NFEV, sw.STALL_GAIN, sw.SATURATION, sw.SPLIT_FULL_BAND,
+             sw.PARALLEL_STARTS)
+    (fit_starts.RACE_KEEP, fit_starts.REDUCED_NFEV, sw.STALL_GAIN, sw.SATURATION, sw.SPLIT_FULL_BAND,
+     sw.PARALLEL_STARTS) = 10**6, 25, -1.0, False, False, False
     try:
         yield
     finally:
-        fit_starts.RACE_KEEP, fit_starts.REDUCED_NFEV, fit_sweep_module.STALL_GAIN = saved
+        (fit_starts.RACE_KEEP, fit_starts.REDUCED_NFEV, sw.STALL_GAIN, sw.SATURATION, sw.SPLIT_FULL_BAND,
+         sw.PARALLEL_STARTS) = saved
 
 
 def _signature(r):

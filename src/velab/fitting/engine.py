@@ -28,7 +28,12 @@ from __future__ import annotations
 import numpy as np
 
 from velab.config import GRAVITY_M_S2, Rig
+from velab.fitting.parallel import both
 from velab.model import ValveHeadModel, series_impedance
+
+# an evaluation with at least this many bins is worth splitting over two threads (``workers=2``):
+# the full band of a 20 s, 1 kHz window has 20 251, the coarse grid about 1 300
+SPLIT_MIN_BINS = 4096
 
 
 class HeadEvaluator:
@@ -45,12 +50,14 @@ class HeadEvaluator:
     Work buffers are kept per instance and reused (allocating megabyte arrays on every
     evaluation costs more than the arithmetic): an instance must not be used by two
     threads at once. :meth:`fork` gives a worker thread its own instance on the same
-    read-only model. Returned arrays are fresh unless ``out`` is passed.
+    read-only model. Returned arrays are fresh unless ``out`` is passed. ``workers=2`` splits
+    an evaluation of at least ``SPLIT_MIN_BINS`` bins in two halves, one on the helper thread
+    of velab.fitting.parallel (bit-identical to ``workers=1``).
     """
 
     _MAX_M = 6  # the work buffers are sized for this many elements (S6) at the first evaluation
 
-    def __init__(self, rig: Rig, t_s=None, *, band_hz="auto", extra_impedance=None,
+    def __init__(self, rig: Rig, t_s=None, *, band_hz="auto", extra_impedance=None, workers: int = 1,
                  _model: ValveHeadModel | None = None):
         vm = _model if _model is not None else ValveHeadModel(rig, t_s, band_hz=band_hz)
         p = rig.pipe
@@ -74,14 +81,18 @@ class HeadEvaluator:
         self._mq = -vm.spec_sum  # -(flow-increment spectrum) / (exp(s dt) - 1)
         self._q2 = vm.spec_sum / 2.0
         self._work: dict | None = None
+        # 2: large evaluations run in two halves, one on velab.fitting.parallel's helper thread (same result)
+        self.workers = workers
         self.evaluations = 0
         self.jacobians = 0
 
-    def fork(self, extra_impedance=False) -> "HeadEvaluator":
+    def fork(self, extra_impedance=False, workers: int | None = None) -> "HeadEvaluator":
         """Same model and grid, own counters and buffers (for a worker thread); optionally another
-        linearised friction (``extra_impedance(s, rig)`` added to the series impedance; None: none)."""
+        linearised friction (``extra_impedance(s, rig)`` added to the series impedance; None: none)
+        or another number of ``workers``."""
         extra = self.extra_impedance if extra_impedance is False else extra_impedance
-        return HeadEvaluator(self.rig, extra_impedance=extra, _model=self.model)
+        return HeadEvaluator(self.rig, extra_impedance=extra, workers=self.workers if workers is None else workers,
+                             _model=self.model)
 
     # ---------------------------------------------------------------- core
     def _buffers(self, m: int, rows: int) -> dict:
@@ -111,6 +122,34 @@ class HeadEvaluator:
         m = J_rel.size
         rows = 1 + (1 + m + (m if tau_free else 0) if jac else 0)
         ws = self._buffers(m, rows)
+        nb = self._nb
+        self.evaluations += 1
+        if jac:
+            self.jacobians += 1
+        if self.workers < 2 or nb < SPLIT_MIN_BINS:
+            self._columns(ws, slice(0, nb), a, J_rel, tau, jac, tau_free)
+            return self.model.sums_to_time(ws["buf"], out=out, work=ws["w"])
+        # two halves: the bins, then the rows of the inverse FFT (each operation is per bin or per row)
+        half = nb // 2
+        both(lambda: self._columns(ws, slice(0, half), a, J_rel, tau, jac, tau_free),
+             lambda: self._columns(ws, slice(half, nb), a, J_rel, tau, jac, tau_free))
+        if out is None:
+            out = np.empty((rows, self.n_t))
+        if rows == 1:
+            return self.model.sums_to_time(ws["buf"], out=out, work=ws["w"])
+        r = (rows + 1) // 2
+        buf, w = ws["buf"], ws["w"]
+        both(lambda: self.model.sums_to_time(buf[:r], out=out[:r], work=w[:r]),
+             lambda: self.model.sums_to_time(buf[r:], out=out[r:], work=w[r:]))
+        return out
+
+    def _columns(self, ws: dict, sl: slice, a: float, J_rel: np.ndarray, tau: np.ndarray, jac: bool,
+                 tau_free: bool) -> None:
+        """Fill the half-spectrum rows of ``ws["buf"]`` on the bins ``sl``: Z times the summed flow
+        spectrum, then (if jac) the Jacobian columns. Touches only those bins of the work buffers."""
+        m = J_rel.size
+        ws = {k: (v[..., sl] if isinstance(v, np.ndarray) else v) for k, v in ws.items()}
+        omega, sgA, W, mq, q2 = self._omega[sl], self._sgA[sl], self.W[sl], self._mq[sl], self._q2[sl]
         Y = ws["Y"]
         c0 = 1.0 / a**2
         if m:
@@ -118,7 +157,7 @@ class HeadEvaluator:
             # (no complex temporaries); phi = sum_k J'_k u_k; Y = (s gA / a^2)(1 + phi)
             re = 1.0 + self._sigma * tau
             im, den, Ju = ws["im"], ws["den"], ws["Ju"]
-            np.multiply(self._omega[None, :], tau[:, None], out=im)
+            np.multiply(omega[None, :], tau[:, None], out=im)
             np.multiply(im, im, out=den)
             den += (re * re)[:, None]
             np.divide((re * J_rel)[:, None], den, out=Ju.real)
@@ -130,19 +169,19 @@ class HeadEvaluator:
             else:
                 np.sum(Ju, axis=0, out=phi)
             phi += 1.0
-            np.multiply(phi, self._sgA, out=Y)
+            np.multiply(phi, sgA, out=Y)
             Y *= c0
         else:
-            np.multiply(self._sgA, c0, out=Y)
+            np.multiply(sgA, c0, out=Y)
         mu, g, th, zc = ws["mu"], ws["g"], ws["th"], ws["zc"]
-        np.multiply(Y, self.W, out=mu)
+        np.multiply(Y, W, out=mu)
         np.sqrt(mu, out=mu)
         np.multiply(mu, self.L, out=g)
         np.tanh(g, out=th)
         np.divide(mu, Y, out=zc)  # Zc
-        b = ws["buf"][:, : self._nb]
+        b = ws["buf"]
         np.multiply(zc, th, out=b[0])
-        b[0] *= self._mq  # Z = -Zc tanh(mu L), times the summed flow spectrum
+        b[0] *= mq  # Z = -Zc tanh(mu L), times the summed flow spectrum
         if jac:
             # P = dZ/dY Y q = (Zc / 2)(tanh g - g sech^2 g) q
             v = ws["v"]
@@ -152,7 +191,7 @@ class HeadEvaluator:
             np.subtract(th, v, out=v)
             P = zc
             P *= v
-            P *= self._q2
+            P *= q2
             np.multiply(P, -2.0, out=b[1])  # dY/d ln a = -2 Y
             if m:
                 # dY/d ln J'_k = Y J'_k u_k / (1 + phi);  dY/d ln tau_k = -(dY/d ln J'_k) s tau_k u_k,
@@ -165,10 +204,6 @@ class HeadEvaluator:
                     np.divide(Ju, J_rel[:, None], out=ct)
                     ct -= 1.0
                     ct *= cJ
-        self.evaluations += 1
-        if jac:
-            self.jacobians += 1
-        return self.model.sums_to_time(ws["buf"], out=out, work=ws["w"])
 
     def head(self, a: float, J_rel, tau, out: np.ndarray | None = None) -> np.ndarray:
         """h(t) for wave speed a (m/s) and KV elements J'_k (dimensionless), tau_k (s)."""

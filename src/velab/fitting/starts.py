@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from velab.fitting.parallel import map_pair
 from velab.fitting.params import FitBounds, ParamMap
 from velab.fitting.solvers import Sol, Stage
 
@@ -109,13 +110,33 @@ RACE_NFEV = 12
 RACE_KEEP = 3
 
 
-def race_starts(stage: Stage, pm: ParamMap, starts: list[np.ndarray], max_nfev: int) -> list[Sol]:
-    """Coarse local solutions from ``starts``: all briefly, the best few distinct ones to ``max_nfev``."""
+def fan_out(stage: Stage, fn, items: list, parallel: bool) -> list:
+    """[fn(stage, item) for item in items], shared out over two threads if ``parallel``
+    (velab.fitting.parallel.map_pair), each on its own fork of the stage's evaluator; the
+    forks' evaluation counts are added to the stage's evaluator. Same results either way."""
+    forks: list[Stage] = []
+
+    def fork() -> Stage:
+        forks.append(Stage(stage.ev.fork(workers=1), stage.d))
+        return forks[-1]
+
+    out = map_pair(fn, items, fork, parallel)
+    for f in forks:
+        stage.ev.evaluations += f.ev.evaluations
+        stage.ev.jacobians += f.ev.jacobians
+    return out
+
+
+def race_starts(stage: Stage, pm: ParamMap, starts: list[np.ndarray], max_nfev: int,
+                parallel: bool = False) -> list[Sol]:
+    """Coarse local solutions from ``starts``: all briefly, the best few distinct ones to ``max_nfev``
+    (each start on its own, in two threads if ``parallel``: the same solutions)."""
     if len(starts) <= RACE_KEEP:
-        return [stage.lsq(pm, x0, max_nfev=max_nfev, ftol=1e-10) for x0 in starts]
-    short = sorted((stage.lsq(pm, x0, max_nfev=RACE_NFEV, ftol=1e-10) for x0 in starts), key=lambda s: s.F)
+        return fan_out(stage, lambda st, x0: st.lsq(pm, x0, max_nfev=max_nfev, ftol=1e-10), starts, parallel)
+    short = fan_out(stage, lambda st, x0: st.lsq(pm, x0, max_nfev=RACE_NFEV, ftol=1e-10), starts, parallel)
+    short.sort(key=lambda s: s.F)
     kept = distinct([s.x for s in short], RACE_KEEP)
-    out = [stage.lsq(pm, x, max_nfev=max_nfev - RACE_NFEV, ftol=1e-10) for x in kept]
+    out = fan_out(stage, lambda st, x: st.lsq(pm, x, max_nfev=max_nfev - RACE_NFEV, ftol=1e-10), kept, parallel)
     return out + [s for s in short if not any(s.x is x for x in kept)]
 
 

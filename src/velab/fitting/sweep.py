@@ -9,7 +9,8 @@ Default method ``"auto"`` (see docs/fitting.md):
    solver (velab.fitting.solvers) with the analytic Jacobian, in the variables
    (ln a, ln J'_k, ln tau_k) of velab.fitting.params.
 2. Fine stage ("polish"): the best distinct coarse solutions are refined on the full-band
-   model against every sample of the window (two candidates at once in two threads).
+   model against every sample of the window (two candidates at once in two threads, or one
+   with each evaluation split over two threads).
 3. Friction (velab.fitting.friction): with a quadratic steady friction the fitted head is the
    frequency model plus a time-domain correction, refreshed at the model's optimum until it
    stops moving.
@@ -43,7 +44,8 @@ from velab.fitting.friction import EquivalentFriction, TimeDomainModel, anderson
 from velab.fitting.params import FitBounds, ParamMap, creep_const, derive_bounds
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
 from velab.fitting.solvers import Sol, Stage
-from velab.fitting.starts import nested_starts, race_starts, reduced_then_full, scan_wave_speed, split_all, tau_grids
+from velab.fitting.starts import (fan_out, nested_starts, race_starts, reduced_then_full, scan_wave_speed, split_all,
+                                  tau_grids)
 from velab.fitting.nesting import hand_back
 from velab.fitting.summary import summarise
 from velab.model import manoeuvre_band_hz
@@ -61,6 +63,15 @@ MAX_REFRESH = 8
 # starts (stopping S2 early sent S3 of the Brunone truth, tests/test_fit_truths.py, to a worse basin).
 STALL_GAIN = 0.002
 STALL_FROM_M = 4
+# S(m) is searched from S(m-1) only when S(m-1)'s element gained less than this in n ln F over
+# S(m-2) (its AIC price): see _Sweep.saturated
+SATURATION = True
+SATURATED_GAIN = 4.0
+# with two threads: full-band evaluations split over both (HeadEvaluator workers=2), coarse starts
+# shared out over both (velab.fitting.starts.fan_out); same results either way. (Switches for
+# benchmarks/fit_sweep.py's "previous sweep", which had neither.)
+SPLIT_FULL_BAND = True
+PARALLEL_STARTS = True
 
 __all__ = ["fit_sweep", "parse_models", "METHODS", "MAX_M", "prepare_window", "lowpass_decimate"]
 
@@ -112,18 +123,21 @@ class _Sweep:
         self.t, self.d, self.rig, self.bounds = t, d, rig, bounds
         self.method, self.polish, self.seed, self.initial = method, polish, seed, initial
         self.threads = threads
+        self.parallel_starts = threads > 1 and PARALLEL_STARTS
         self.max_starts = 1 if method == "least-squares" else starts
         dt = float(t[1] - t[0])
         self.band = manoeuvre_band_hz(rig)
         self.q = q = max(1, int((1.0 / dt) // (3.0 * self.band)))
         self.stage_c = Stage(HeadEvaluator(rig, t[::q], band_hz="auto"), lowpass_decimate(d, q))
         self.time_model = TimeDomainModel(rig, t)
-        full = HeadEvaluator(rig, t, band_hz=None) if polish or self.time_model.active else None
+        # full-band evaluations are large numpy/FFT operations that release the GIL: with two threads,
+        # each is split in two halves (HeadEvaluator workers=2), or two candidates are polished at once
+        # on a pair of single-threaded evaluators (same model, own buffers); the result is the same
+        workers = min(threads, 2) if SPLIT_FULL_BAND else 1
+        full = HeadEvaluator(rig, t, band_hz=None, workers=workers) if polish or self.time_model.active else None
         self.stage_f = Stage(full, d) if polish else None
         self.ev_full = full  # the full-band model the friction correction is taken against
-        # a second full-band evaluator (same model, own buffers) polishes a second candidate in a
-        # worker thread: full-band evaluations are large numpy/FFT operations that release the GIL
-        self.ev_f2 = full.fork() if polish and threads > 1 else None
+        self.ev_pair = (full.fork(workers=1), full.fork(workers=1)) if polish and threads > 1 else None
         self._counted = (0, 0)
         self.frictions: list[EquivalentFriction] = []
         self.brunone = self.time_model.unsteady == "brunone"
@@ -151,8 +165,8 @@ class _Sweep:
         self.ev_full = self.ev_full.fork(eq)
         if self.stage_f is not None:
             self.stage_f = Stage(self.ev_full, self.stage_f.d)
-        if self.ev_f2 is not None:
-            self.ev_f2 = self.ev_full.fork()
+        if self.ev_pair is not None:
+            self.ev_pair = (self.ev_full.fork(workers=1), self.ev_full.fork(workers=1))
         self.frictions.append(eq)
 
     def with_time_head(self, pm: ParamMap, x, h_time) -> _Final:
@@ -181,7 +195,7 @@ class _Sweep:
 
     @property
     def evaluators(self):
-        evs = (self.stage_c.ev, self.ev_full, self.ev_f2)
+        evs = (self.stage_c.ev, self.ev_full) + (self.ev_pair or ())
         return [e for e in evs if e is not None]
 
     def counts(self):
@@ -254,7 +268,7 @@ class _Sweep:
         if self.method == "nelder-mead":
             sols.extend(self.local(stage, pm, x0, fine=False) for x0 in cands)
         else:
-            sols.extend(race_starts(stage, pm, cands, 80))
+            sols.extend(race_starts(stage, pm, cands, 80, parallel=self.parallel_starts))
         sols.sort(key=lambda s: s.F)
         if pm.size > 1 and self.method != "nelder-mead":
             # the winner continues on the cheap objective until it stops moving along the ridge
@@ -265,10 +279,10 @@ class _Sweep:
             fstage = self.final_stage(corr)
             pol = [sols[0].x] + [s.x for s in sols[1:2] if s.F < sols[0].F * (1 + 1e-5)
                                  and np.max(np.abs(s.x - sols[0].x)) > 0.05]
-            if len(pol) > 1 and self.ev_f2 is not None:
+            if len(pol) > 1 and self.ev_pair is not None:
                 with ThreadPoolExecutor(max_workers=1, thread_name_prefix="velab-polish") as pool:
-                    fut = pool.submit(self.local, Stage(self.ev_f2, fstage.d), pm, pol[1], True)
-                    fsols = [self.local(fstage, pm, pol[0], fine=True), fut.result()]
+                    fut = pool.submit(self.local, Stage(self.ev_pair[1], fstage.d), pm, pol[1], True)
+                    fsols = [self.local(Stage(self.ev_pair[0], fstage.d), pm, pol[0], fine=True), fut.result()]
             else:
                 fsols = [self.local(fstage, pm, x0, fine=True) for x0 in pol]
             best = min(fsols, key=lambda s: s.F)
@@ -310,11 +324,23 @@ class _Sweep:
             # every search ends above S(m-1)), then tau grids solved with tau fixed first
             if base.pm.m:
                 cands.extend(nested_starts(base, pm, self.bounds, self.tau_lo, self.tau_hi)[:-1])
-            for grid in tau_grids(m, self.tau_lo, self.tau_hi):
-                cands.append(reduced_then_full(stage, pm, grid, a_base, self.method))
+            if not self.saturated(m):
+                cands.extend(fan_out(stage, lambda st, grid: reduced_then_full(st, pm, grid, a_base, self.method),
+                                     tau_grids(m, self.tau_lo, self.tau_hi), self.parallel_starts))
         if self.max_starts is not None:
             cands = cands[: max(1, self.max_starts)]
         return cands
+
+    def saturated(self, m: int) -> bool:
+        """S(m-1)'s element did not pay for itself: n ln(F(S(m-2)) / F(S(m-1))) < SATURATED_GAIN (the
+        AIC price of its two parameters). The data then hold no structure for one more element, and
+        S(m) is searched from S(m-1)'s nested starts only (no tau-grid starts)."""
+        if not SATURATION or m < 3:
+            return False
+        f1, f2 = self.final.get((m - 1, False)), self.final.get((m - 2, False))
+        if f1 is None or f2 is None:
+            return False
+        return self.d.size * math.log(f2.sol.F / f1.sol.F) < SATURATED_GAIN
 
     def refresh(self, pm: ParamMap, best: Sol, corr: np.ndarray) -> _Final:
         """Refresh the friction correction at the optimum and re-polish until it stops moving."""
