@@ -132,3 +132,31 @@ def test_reduced_models_nest():
     assert any(s5.negligible) or F["S5r"] < F["S4r"]
     if any(s5.negligible):
         assert "negligible" in s5.note
+
+
+def test_models_past_the_first_element_that_does_not_pay_are_not_searched(monkeypatch):
+    """Forward selection stops at the first element that does not pay its AIC price (n ln F < 4):
+    on a two-element truth S3 does not, so S4 and S5 are S3 plus vanished elements, not searched.
+    A search of S4 and S5 (the rule switched off) finds nothing that changes the AIC table at the
+    precision it is reported to (0.01), nor the best model."""
+    from velab.fitting import sweep
+
+    truth = Material(353.7, (KelvinVoigt(4.0e10, 4.0e10 * 0.05), KelvinVoigt(5.0e10, 5.0e10 * 1.5)), "two")
+    t = np.arange(20000) / 1000.0
+    h = valve_head(t, PERUGIA, truth) + np.random.default_rng(7).normal(0.0, 0.05, t.size)
+    r = fit_sweep(t, h, PERUGIA, models=range(6))
+    gain = r.n * math.log(r["S2"].F / r["S3"].F)
+    assert gain < sweep.SATURATED_GAIN
+    assert r.settings["not_searched"] == ["S4", "S5"]
+    assert r["S4"].equivalent_to == "S3" and r["S5"].equivalent_to == "S3"
+    assert r["S4"].starts == 0 and r["S5"].evaluations < 20
+    assert any("S4, S5: not searched" in note for note in r.notes)
+    assert not _chain_ok(r.models)
+
+    monkeypatch.setattr(sweep, "NOTHING_LEFT", False)
+    searched = fit_sweep(t, h, PERUGIA, models=range(6))
+    assert searched.settings["not_searched"] == []
+    assert searched.best.name == r.best.name == "S2"
+    for a, b in zip(r.models, searched.models):
+        assert abs(a.aic - b.aic) < 0.01, (a.name, a.aic, b.aic)
+    assert searched.evaluations > r.evaluations + 500

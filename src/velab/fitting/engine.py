@@ -97,12 +97,15 @@ class HeadEvaluator:
     # ---------------------------------------------------------------- core
     def _buffers(self, m: int, rows: int) -> dict:
         """Views of the work buffers for m elements and ``rows`` output rows. Sized once, for the
-        largest model (``_MAX_M`` elements and every Jacobian row), so that memory is bounded and
-        reused whatever sequence of models is evaluated."""
+        largest model (``_MAX_M`` elements and every Jacobian row; one row until a Jacobian is
+        asked for), so that memory is bounded and reused whatever sequence of models is evaluated."""
         ws = self._work
         if ws is None or m > ws["m"] or rows > ws["rows"]:
             mm = max(m, self._MAX_M, ws["m"] if ws else 0)
-            rr = max(rows, 2 + 2 * mm)
+            # with a Jacobian: every row of the largest model at once; head only (a probe, e.g. the
+            # friction fit's evaluators, velab.fitting.friction): one row (a 14-row buffer of the full
+            # band is 9 MB of fresh pages, more than the evaluation itself)
+            rr = max(rows, 2 + 2 * mm) if rows > 1 else 1
             nb = self._nb
             ws = {"m": mm, "rows": rr, "im": np.empty((mm, nb)), "den": np.empty((mm, nb)),
                   "Ju": np.empty((mm, nb), dtype=complex), "buf": np.zeros((rr, self._nspec), dtype=complex),

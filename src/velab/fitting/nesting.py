@@ -12,7 +12,14 @@ the forward guard then runs again over the family.
 
 from __future__ import annotations
 
+import math
+
 from velab.fitting.starts import reduce_starts
+
+# a start handed back must fit better than the smaller model by more than this in n ln F: below it,
+# the difference is rounding (an S(m) that is S(m-1) plus a vanished element hands S(m-1) back
+# 1e-15 relative "better", and polishing and refreshing that cost a second on a low-noise record)
+MIN_GAIN = 1e-6
 
 
 def hand_back(sw, family: list[tuple[int, bool]], spent: dict) -> None:
@@ -32,7 +39,7 @@ def hand_back(sw, family: list[tuple[int, bool]], spent: dict) -> None:
         starts = sorted(((stage.F(pm, x0), i, x0) for i, x0 in enumerate(reduce_starts(big.sol, pm))),
                         key=lambda c: c[:2])
         for F0, _, x0 in starts[:2]:
-            if not F0 < small.sol.F:
+            if not sw.d.size * math.log(small.sol.F / F0) > MIN_GAIN:
                 break
             cand = sw.refresh(pm, sw.polish_final(stage, pm, x0), big.corr)
             if cand.sol.F < small.sol.F:

@@ -67,6 +67,8 @@ STALL_FROM_M = 4
 # S(m-2) (its AIC price): see _Sweep.saturated
 SATURATION = True
 SATURATED_GAIN = 4.0
+# from S4 on, a saturated S(m) is not searched at all: it is S(m-1) plus a vanished element (_Sweep.nothing_left)
+NOTHING_LEFT = True
 # with two threads: full-band evaluations split over both (HeadEvaluator workers=2), coarse starts
 # shared out over both (velab.fitting.starts.fan_out); same results either way. (Switches for
 # benchmarks/fit_sweep.py's "previous sweep", which had neither.)
@@ -145,6 +147,7 @@ class _Sweep:
         self.tau_lo = max(2 * dt * q, bounds.tau_min_s)
         self.tau_hi = min(max(window / 2.0, 4 * self.tau_lo), bounds.tau_max_s)
         self.final: dict[tuple[int, bool], _Final] = {}
+        self.not_searched: list[int] = []  # S(m) taken as S(m-1) plus a vanished element (nothing_left)
         self.pm0 = ParamMap(0, bounds)
         a_nom = rig.nominal_wave_speed_m_s
         corr = np.zeros_like(d)
@@ -236,6 +239,9 @@ class _Sweep:
         fixed = tuple(REDUCED_RETARDATION_TIMES_S[:m]) if red and m else None
         pm = ParamMap(m, self.bounds, fixed)
         ref = self.reference(m, red)
+        if ref is not None and not red and self.nothing_left(m):
+            self.not_searched.append(m)
+            return self.embedded(pm, ref), 0
         start = ref if ref is not None else self.start0
         if self.time_model.active:
             # the linear friction closest to the time-domain model at the reference parameters
@@ -341,6 +347,24 @@ class _Sweep:
         if f1 is None or f2 is None:
             return False
         return self.d.size * math.log(f2.sol.F / f1.sol.F) < SATURATED_GAIN
+
+    def nothing_left(self, m: int) -> bool:
+        """From S4 on: S(m-1)'s element did not pay its AIC price (``saturated``), so S(m) is not searched.
+
+        Forward selection stops at the first element that does not pay: S(m) could only be chosen
+        by AIC if its own element gained more than its price (n ln F > 4) where S(m-1)'s, searched
+        from every placement of one more element below, between and above S(m-2)'s, splits of them
+        and tau grids, did not; S(m)'s starts would be S(m-1)'s again plus a vanished element. S(m)
+        is then S(m-1) plus a vanished element (the table says so and the result's notes name
+        the models). On the reference records S5 and S6 always ended there after a search that
+        took a third to a half of the sweep. A lone model (``models=[5]``) is always searched."""
+        return NOTHING_LEFT and m >= STALL_FROM_M and self.saturated(m)
+
+    def embedded(self, pm: ParamMap, ref: _Final) -> _Final:
+        """``ref`` plus vanished elements, as a model ``pm`` (same head, same MOC head)."""
+        cur = self.current(ref)
+        emb = self.final_stage(cur.corr).sol(pm, pm.embed(ref.sol.pm, ref.sol.x))
+        return _Final(emb, cur.corr, ref.h_time, ref.refreshes, 0.0)
 
     def refresh(self, pm: ParamMap, best: Sol, corr: np.ndarray) -> _Final:
         """Refresh the friction correction at the optimum and re-polish until it stops moving."""
@@ -485,6 +509,7 @@ def fit_sweep(
         "decimation": sw.q, "coarse_band_hz": sw.band, "tau_start_range_s": [sw.tau_lo, sw.tau_hi],
         "tau_min_s": tau_min_s, "tau_max_s": tau_max_s, "bounds": bounds.to_dict(), "selection": selection,
         "warm_start": initial is not None,
+        "not_searched": [model_name(m, False) for m in sw.not_searched],
         "friction": {"steady": sw.time_model.steady, "unsteady": sw.time_model.unsteady,
                      "time_domain": sw.time_model.active, "moc_runs": sw.time_model.runs,
                      "moc_seconds": sw.time_model.seconds, "text": sw.time_model.describe(sw.frictions[1:])},
@@ -493,6 +518,12 @@ def fit_sweep(
         n=fits[0].n if fits else n, window_s=window, sample_rate_hz=1.0 / dt, method=method, settings=settings,
         models=fits, duration_s=time.perf_counter() - t0, evaluations=sw.counts()[0], selection=selection,
     )
+    if sw.not_searched:
+        names = ", ".join(model_name(m, False) for m in sw.not_searched)
+        first = sw.not_searched[0]
+        result.notes.append(f"{names}: not searched, {model_name(first - 1, False)} plus vanished elements "
+                            f"({model_name(first - 1, False)}'s element did not pay its AIC price: n ln F gained "
+                            f"< {SATURATED_GAIN:g} over {model_name(first - 2, False)})")
     if not polish:
         result.notes.append(f"no full-band polish: F on the low-passed data decimated by {sw.q}")
     return result
