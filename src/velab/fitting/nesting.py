@@ -39,7 +39,7 @@ def hand_back(sw, family: list[tuple[int, bool]], spent: dict) -> None:
         starts = sorted(((stage.F(pm, x0), i, x0) for i, x0 in enumerate(reduce_starts(big.sol, pm))),
                         key=lambda c: c[:2])
         for F0, _, x0 in starts[:2]:
-            if not sw.d.size * math.log(small.sol.F / F0) > MIN_GAIN:
+            if not F0 < small.sol.F * math.exp(-MIN_GAIN / sw.d.size):  # n ln(F_small / F0) > MIN_GAIN
                 break
             cand = sw.refresh(pm, sw.polish_final(stage, pm, x0), big.corr)
             if cand.sol.F < small.sol.F:

@@ -241,7 +241,7 @@ class _Sweep:
         ref = self.reference(m, red)
         if ref is not None and not red and self.nothing_left(m):
             self.not_searched.append(m)
-            return self.embedded(pm, ref), 0
+            return self.embedded(pm, self.current(ref), ref.refreshes), 0
         start = ref if ref is not None else self.start0
         if self.time_model.active:
             # the linear friction closest to the time-domain model at the reference parameters
@@ -360,11 +360,11 @@ class _Sweep:
         took a third to a half of the sweep. A lone model (``models=[5]``) is always searched."""
         return NOTHING_LEFT and m >= STALL_FROM_M and self.saturated(m)
 
-    def embedded(self, pm: ParamMap, ref: _Final) -> _Final:
-        """``ref`` plus vanished elements, as a model ``pm`` (same head, same MOC head)."""
-        cur = self.current(ref)
-        emb = self.final_stage(cur.corr).sol(pm, pm.embed(ref.sol.pm, ref.sol.x))
-        return _Final(emb, cur.corr, ref.h_time, ref.refreshes, 0.0)
+    def embedded(self, pm: ParamMap, ref: _Final, refreshes: int) -> _Final:
+        """``ref`` (with its correction under the current linear resistance) plus vanished elements,
+        as a model ``pm``: its head and its MOC head are ``ref``'s."""
+        emb = self.final_stage(ref.corr).sol(pm, pm.embed(ref.sol.pm, ref.sol.x))
+        return _Final(emb, ref.corr, ref.h_time, refreshes, 0.0)
 
     def refresh(self, pm: ParamMap, best: Sol, corr: np.ndarray) -> _Final:
         """Refresh the friction correction at the optimum and re-polish until it stops moving."""
@@ -413,9 +413,8 @@ class _Sweep:
             cand_fin = _Final(cand, ref.corr)
         if cand_fin.sol.F <= ref.sol.F and cand_fin.sol.F < fin.sol.F:
             return cand_fin
-        # S(m-1) plus a vanished element: its head (and its MOC head) are S(m-1)'s
-        emb = stage.sol(pm, x_emb)
-        return _Final(emb, ref.corr, ref.h_time, fin.refreshes, 0.0) if emb.F < fin.sol.F else fin
+        emb = self.embedded(pm, ref, fin.refreshes)
+        return emb if emb.sol.F < fin.sol.F else fin
 
 
 def _pack_fit(pm: ParamMap, old: ModelFit, rig: Rig) -> np.ndarray:
