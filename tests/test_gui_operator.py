@@ -37,7 +37,8 @@ def _one_run(qtbot, tmp_path, clock: str) -> dict:
     out = dict(summary=summary, status=status, reason=reason, best=best, stall=stall, trigger_phase=trigger_phase,
                presses=list(op.presses), worst=probe.worst, events=run.events, errors=win.log.texts("error"),
                warnings=win.log.texts("warning"), axis=list(op.axis_labels), op=op,
-               offset=win.live.offset_s, queued_shown=any("Trigger queued" in st.indicator()[1] for st in op.states))
+               offset=win.live.offset_s,
+               queued_logged=any(t.startswith("Trigger queued") for t in win.log.texts()))
     # what the window showed in each phase: the buttons follow the engine's allowed commands
     out["shown"] = {ph: op.shown_while(ph) for ph in ("connecting", "ready", "armed", "triggerable", "recording",
                                                        "fitting", "completed")}
@@ -67,8 +68,15 @@ def test_connect_arm_trigger_as_soon_as_enabled_completes_10_of_10(qtbot, tmp_pa
         # each press acted: the trigger was commanded once and the run's axis is the measured trigger's
         assert sum(1 for k, m in ev if k == "operator" and m.startswith("trigger commanded")) == 1
         assert r["offset"] == pytest.approx(r["summary"].trigger_time_s)
-        if r["trigger_phase"] == "armed":  # pressed while the baseline filled: queued, shown, carried out
-            assert r["queued_shown"] and any(k == "operator" and "trigger queued" in m for k, m in ev)
+        # pressed while the baseline filled: queued, shown, carried out. The window's phase lags the
+        # engine's by up to a timer tick, so a press shown as "armed" may reach the engine after the
+        # baseline is in (at the fast clock the baseline lasts 42 ms): the engine's event log says
+        # whether it was queued, and then the window must have said so: its message comes from the engine's
+        # event (the control bar's "Trigger queued" state can last less than a tick; the 3 s baseline
+        # test below checks it)
+        queued = any(k == "operator" and "trigger queued" in m for k, m in ev)
+        assert queued <= (r["trigger_phase"] == "armed")  # never queued once the window showed triggerable
+        assert queued == r["queued_logged"]
         shown = r["shown"]
         assert shown["connecting"] == set() and shown["fitting"] == set()
         assert shown["recording"] <= {"stop", "abort"} and "trigger" not in shown["recording"]

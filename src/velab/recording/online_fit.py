@@ -4,6 +4,12 @@
 fit path ``velab fit`` and the GUI's re-fit take too); everything else here is scheduling: intermediate quick fits on the growing
 window while the fitter is idle, cancelled when the final fit starts; the final fit as soon
 as the window closes; the latency from the window closing to the result.
+
+With ``settings.fit_process`` (the default) the fits run in a worker process of their own
+(velab.fit_worker), started when the run is armed so that its imports are done by the time
+the window closes: the recorder's threads and the fit then do not take turns for one interpreter
+lock. The worker runs the same ``fit_record`` with the same arguments, so the result is the same
+bit for bit. If the worker cannot start or dies, the fit runs here instead, and the run says so.
 """
 
 from __future__ import annotations
@@ -11,10 +17,12 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from concurrent.futures import TimeoutError as FutureTimeout
 
 import numpy as np
 
 from velab.config import Rig
+from velab import fit_worker
 
 log = logging.getLogger(__name__)
 MIN_FIT_WINDOW_S = 2.0
@@ -24,18 +32,28 @@ class _Cancelled(Exception):
     pass
 
 
+class FitError(Exception):
+    """The fit raised, in the worker process ("Type: message")."""
+
+
+def fit_arguments(t_s: np.ndarray, head_m: np.ndarray, trigger_time_s: float, rig: Rig, *, models, window_s: float,
+                  method: str, sample_rate_hz: float, quick: bool = False) -> dict:
+    """The arguments of velab.fitting.prepare.fit_record for a recorded head record (the run's axis,
+    absolute head, from before the trigger): the one fit path, as ``velab fit`` of the run file takes
+    it; ``quick`` = no polish, 2 starts (intermediate fits)."""
+    kw = {"polish": False, "starts": 2} if quick else {}
+    return dict(t_s=t_s, head_m=head_m, trigger_time_s=trigger_time_s, rig=rig, window_s=window_s,
+                record_rate_hz=sample_rate_hz, models=list(models), method=method, **kw)
+
+
 def fit_record(t_s: np.ndarray, head_m: np.ndarray, trigger_time_s: float, rig: Rig, *, models, window_s: float,
                method: str, sample_rate_hz: float, quick: bool = False, progress=None):
-    """Fit a recorded head record (the run's axis, absolute head, from before the trigger) -> SweepResult.
-
-    The one fit path (velab.fitting.prepare: steady head, window, anti-alias decimation to the fit
-    rate), as ``velab fit`` of the run file takes it; ``quick`` = no polish, 2 starts (intermediate fits).
-    """
+    """Fit a recorded head record in this process -> SweepResult (see ``fit_arguments``)."""
     from velab.fitting.prepare import fit_record as fit_path  # scipy: only when a fit runs
 
-    kw = {"polish": False, "starts": 2} if quick else {}
-    return fit_path(t_s, head_m, trigger_time_s, rig, window_s, record_rate_hz=sample_rate_hz, models=list(models),
-                    method=method, progress=progress, **kw)
+    return fit_path(progress=progress, **fit_arguments(t_s, head_m, trigger_time_s, rig, models=models,
+                                                       window_s=window_s, method=method,
+                                                       sample_rate_hz=sample_rate_hz, quick=quick))
 
 
 class OnlineFit:
@@ -56,6 +74,13 @@ class OnlineFit:
         self._cancel_quick = threading.Event()
         self._cancel_all = threading.Event()
         self._closed_at: float | None = None
+        # the worker process, started now (at arm) so that its imports are done when the window closes
+        self._proc = None
+        if getattr(settings, "fit_process", False) and settings.fit:
+            try:
+                self._proc = fit_worker.acquire()
+            except OSError as exc:  # no interpreter to start: fit here
+                log.warning("no fit process (%s): the fit runs in the recorder's process", exc)
 
     @property
     def busy(self) -> bool:
@@ -90,14 +115,60 @@ class OnlineFit:
             self.error = why
             self.message(why)
 
-    def _work(self, t, h, trigger_time_s, window_s, final) -> None:
+    def _cancelled(self, final: bool) -> bool:
+        return self._cancel_all.is_set() or (not final and self._cancel_quick.is_set())
+
+    def _fit(self, t, h, trigger_time_s, window_s, final):
+        """The fit, in the worker process if there is a live one, else here; raises _Cancelled."""
+        kw = fit_arguments(t, h, trigger_time_s, self.rig, models=self.s.fit_models, window_s=window_s,
+                           method=self.s.fit_method, sample_rate_hz=self.fs, quick=not final)
+        proc = self._proc
+        if proc is not None and not proc.alive and final:
+            self.message("fit process lost before the final fit: fitting in the recorder's process")
+            self._proc, proc = None, None
+        if proc is not None:
+            job, fut = proc.submit(**kw)
+            asked = False
+            while True:
+                try:
+                    return fut.result(timeout=0.05)
+                except FutureTimeout:
+                    pass
+                except fit_worker.Cancelled:
+                    raise _Cancelled() from None
+                except fit_worker.WorkerDied as exc:
+                    if self._cancelled(final):
+                        raise _Cancelled() from None
+                    if not final:
+                        raise
+                    # the final fit is not lost with its process: it runs here
+                    self.message(f"fit process lost ({exc}): fitting in the recorder's process")
+                    break
+                except RuntimeError as exc:  # the fit's own error, as the child named it
+                    raise FitError(str(exc)) from None
+                if self._cancel_all.is_set():
+                    proc.kill("halted")  # halt = stop now, not at the fit's next model
+                elif not asked and self._cancelled(final):
+                    proc.cancel(job)  # overtaken by the final fit: ends at its next model
+                    asked = True
+
         def progress(done, total, name):
-            if self._cancel_all.is_set() or (not final and self._cancel_quick.is_set()):
+            if self._cancelled(final):
                 raise _Cancelled()
 
+        from velab.fitting.prepare import fit_record as fit_path  # scipy: only when a fit runs
+
+        return fit_path(progress=progress, **kw)
+
+    def close(self) -> None:
+        """Give the worker process back (kept for the next run if idle; ended if a fit still runs)."""
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            fit_worker.release(proc)
+
+    def _work(self, t, h, trigger_time_s, window_s, final) -> None:
         try:
-            r = fit_record(t, h, trigger_time_s, self.rig, models=self.s.fit_models, window_s=window_s,
-                           method=self.s.fit_method, sample_rate_hz=self.fs, quick=not final, progress=progress)
+            r = self._fit(t, h, trigger_time_s, window_s, final)
             if final:
                 self.result = r
                 self.latency_s = time.perf_counter() - self._closed_at
@@ -105,6 +176,10 @@ class OnlineFit:
         except _Cancelled:
             if final:
                 self.error = "fit cancelled (halt)"
+        except FitError as exc:
+            if final:
+                self.error = f"fit failed: {exc}"
+                self.message(self.error)
         except Exception as exc:  # noqa: BLE001 - reported as the run's fit error
             log.debug("fit failed", exc_info=True)
             if final:

@@ -353,6 +353,7 @@ class RunControl:
             if not fit.wait(FIT_WAIT_S):
                 fit.cancel()
                 fit.refuse(f"no fit: the final fit did not finish within {FIT_WAIT_S:g} s")
+            fit.close()  # the fit process back to the pool (or ended, if a fit still runs in it)
             result, error, latency = fit.result, fit.error, fit.latency_s
             if result is not None and self.path is not None:
                 try:

@@ -45,6 +45,9 @@ class RecordSettings:
     flow_tolerance: float = 0.05  # steady flow within this fraction of the rig's Q0, and stable
     flush_interval_s: float = 0.25
     intermediate_fits: bool = True
+    # the online fits run in a worker process of their own (velab.fit_worker), started at arm;
+    # False: in the recorder's process (same result, but it takes turns with the recorder's threads)
+    fit_process: bool = True
     run_number: int = 1
     head_range: tuple = (0.5, 1.5)  # steady head accepted as this range x the rig's steady head
     # bounds on waiting (engine); per-sample quality (stuck counts, NE43 limits) is the drivers', from their profiles
