@@ -1,11 +1,12 @@
-"""The fit in a process of its own: ``python -m velab.fit_worker`` serves fit jobs over its pipes.
+"""The fit in a process of its own: this module, run as ``__main__``, serves fit jobs over its pipes.
 
 Why: the recorder's fit shares two cores with the acquisition, writer and GUI threads. In the
 recorder's process the fit's Python-level work (the coarse stage: thousands of small evaluations)
-takes turns with those threads for the interpreter lock; a process of its own takes that
-contention away (about 0.2-0.3 s of a 2 s fit, docs/performance.md) and a fit can never starve
-the acquisition threads. The child is a plain ``sys.executable -m velab.fit_worker`` (not
-multiprocessing): a lab script without an ``if __name__ == "__main__"`` guard must not re-run itself.
+takes turns with those threads for the interpreter lock; a process of its own, at a lower priority
+(``NICENESS``), takes that contention away and can never starve the acquisition threads (what it
+does to the latency is measured by benchmarks/online_fit_latency.py, docs/performance.md). The
+child is ``sys.executable -c`` lowering its priority, then running this module (``_LAUNCH``), not
+multiprocessing: a lab script without an ``if __name__ == "__main__"`` guard must not re-run itself.
 
 Frames on the child's stdin/stdout: an 8-byte big-endian length, then a pickle (parent and child
 are the same program of the same user).
@@ -139,7 +140,7 @@ def main() -> int:
 # The child lowers its priority before it imports anything: the recorder's acquisition and writer
 # threads (and a GUI) come first on a busy machine, the fit takes what they leave (they need a
 # fraction of a core; the fit's latency barely moves). Its start-up (imports, about 1 s of CPU) then
-# never delays a trigger or a sample.
+# never delays a trigger or a sample (it did, at the fast clock, before).
 NICENESS = 5
 _LAUNCH = ("import os, runpy\n"
            f"if hasattr(os, 'nice'):\n    os.nice({NICENESS})\n"

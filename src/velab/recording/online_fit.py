@@ -1,14 +1,14 @@
 """The online fit: the recorded window -> the fitter, on its own thread, with intermediate fits.
 
-``fit_record`` is the one thin call into the fitter (velab.fitting.prepare.fit_record, the
+``fit_arguments`` makes the one call into the fitter (velab.fitting.prepare.fit_record, the
 fit path ``velab fit`` and the GUI's re-fit take too); everything else here is scheduling: intermediate quick fits on the growing
 window while the fitter is idle, cancelled when the final fit starts; the final fit as soon
 as the window closes; the latency from the window closing to the result.
 
 With ``settings.fit_process`` (the default) the fits run in a worker process of their own
-(velab.fit_worker), started when the run is armed so that its imports are done by the time
-the window closes: the recorder's threads and the fit then do not take turns for one interpreter
-lock. The worker runs the same ``fit_record`` with the same arguments, so the result is the same
+(velab.fit_worker), started when the manoeuvre is commanded so that its imports are done by the
+time the window closes: the recorder's threads and the fit then do not take turns for one interpreter
+lock, and at its lower priority the fit never starves them. The worker runs the same ``fit_record`` with the same arguments, so the result is the same
 bit for bit. If the worker cannot start or dies, the fit runs here instead, and the run says so.
 """
 
@@ -26,6 +26,9 @@ from velab import fit_worker
 
 log = logging.getLogger(__name__)
 MIN_FIT_WINDOW_S = 2.0
+
+
+HALTED = "no fit: the run was halted"  # whichever of the fit thread and the run's end says it first
 
 
 class _Cancelled(Exception):
@@ -46,16 +49,6 @@ def fit_arguments(t_s: np.ndarray, head_m: np.ndarray, trigger_time_s: float, ri
                 record_rate_hz=sample_rate_hz, models=list(models), method=method, **kw)
 
 
-def fit_record(t_s: np.ndarray, head_m: np.ndarray, trigger_time_s: float, rig: Rig, *, models, window_s: float,
-               method: str, sample_rate_hz: float, quick: bool = False, progress=None):
-    """Fit a recorded head record in this process -> SweepResult (see ``fit_arguments``)."""
-    from velab.fitting.prepare import fit_record as fit_path  # scipy: only when a fit runs
-
-    return fit_path(progress=progress, **fit_arguments(t_s, head_m, trigger_time_s, rig, models=models,
-                                                       window_s=window_s, method=method,
-                                                       sample_rate_hz=sample_rate_hz, quick=quick))
-
-
 class OnlineFit:
     """Runs fits of the recorded window; publishes ``fit`` events through ``emit``; thread-safe."""
 
@@ -74,13 +67,18 @@ class OnlineFit:
         self._cancel_quick = threading.Event()
         self._cancel_all = threading.Event()
         self._closed_at: float | None = None
-        # the worker process, started now (at arm) so that its imports are done when the window closes
-        self._proc = None
-        if getattr(settings, "fit_process", False) and settings.fit:
-            try:
-                self._proc = fit_worker.acquire()
-            except OSError as exc:  # no interpreter to start: fit here
-                log.warning("no fit process (%s): the fit runs in the recorder's process", exc)
+        self._proc = None  # the worker process (start_process)
+
+    def start_process(self) -> None:
+        """Start (or take from the pool) the fit process, when the manoeuvre has been commanded: its
+        imports (about 1 s of CPU) are done long before the window closes, and never compete with
+        the baseline and the trigger (at the fast clock they delayed a trigger by a tenth of a second)."""
+        if self._proc is not None or not (self.s.fit_process and self.s.fit):
+            return
+        try:
+            self._proc = fit_worker.acquire()
+        except OSError as exc:  # no interpreter to start: fit here
+            log.warning("no fit process (%s): the fit runs in the recorder's process", exc)
 
     @property
     def busy(self) -> bool:
@@ -175,7 +173,7 @@ class OnlineFit:
             self.emit("fit", {"result": r, "final": final, "window_s": window_s})
         except _Cancelled:
             if final:
-                self.error = "fit cancelled (halt)"
+                self.error = HALTED
         except FitError as exc:
             if final:
                 self.error = f"fit failed: {exc}"

@@ -16,7 +16,7 @@ from velab.errors import VelabError
 from velab.recording import phases as P
 from velab.recording.devices import check_steady_flow, check_steady_head
 from velab.recording.layout import bench_snapshot, commanded_rig, create_run_file, run_file_name
-from velab.recording.online_fit import OnlineFit
+from velab.recording.online_fit import HALTED, OnlineFit
 from velab.recording.pressure import PressureSource
 from velab.recording.safety import ceiling_head, check_output_dir, predict_surge
 from velab.recording.slow import SlowChannels
@@ -188,6 +188,8 @@ class RunControl:
                         remaining_s=self.settings.fit_window_s)
         if estimate_kept:
             self._emit("trigger", {"trigger_time_s": t_est, "measured": False})
+        if self._fit is not None:
+            self._fit.start_process()  # after the trigger: its start-up never delays the trigger
         return t_est
 
     def _trigger_failed(self, message: str, ask_valve: bool):
@@ -330,7 +332,7 @@ class RunControl:
             return
         if self._halted:
             fit.cancel()
-            fit.refuse("no fit: the run was halted")
+            fit.refuse(HALTED)
             return
         if fit.final_started or fit.error:
             return

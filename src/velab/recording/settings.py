@@ -45,7 +45,7 @@ class RecordSettings:
     flow_tolerance: float = 0.05  # steady flow within this fraction of the rig's Q0, and stable
     flush_interval_s: float = 0.25
     intermediate_fits: bool = True
-    # the online fits run in a worker process of their own (velab.fit_worker), started at arm;
+    # the online fits run in a worker process of their own (velab.fit_worker), started at the trigger;
     # False: in the recorder's process (same result, but it takes turns with the recorder's threads)
     fit_process: bool = True
     run_number: int = 1
