@@ -19,7 +19,9 @@ printed (issue 10: at most 3).
 The previous sweep (before issue 13: every coarse start run to the full budget, tau-grid starts
 solved with 25 evaluations, no stall test on the ridge crawl and the polish, tau-grid starts for
 every model, every model searched, every better start handed back however small the gain, full-band
-evaluations and coarse starts in one thread) is timed in the
+evaluations and coarse starts in one thread; and before the fifth round: EL solved by Gauss-Newton,
+the equivalent linear friction matched on the full band, the hand-back also tried from models that
+are a smaller one plus a vanished element) is timed in the
 same run, interleaved with the current one, and its speed-up over the baseline printed beside
 the current one (issue 13: at least twice the previous speed-up; --no-previous skips it).
 
@@ -43,7 +45,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from velab.config import load_material, load_rig
-from velab.fitting import fit_sweep, nesting as fit_nesting, starts as fit_starts, sweep as fit_sweep_module
+from velab.fitting import fit_sweep, nesting as fit_nesting, solvers as fit_solvers, starts as fit_starts, sweep as fit_sweep_module
 from velab.fitting.engine import HeadEvaluator
 from velab.fitting.params import ParamMap, derive_bounds
 from velab.model import creep_scale, valve_head
@@ -94,15 +96,18 @@ def baseline(t, h, rig, m: int):
 def previous_sweep():
     """The sweep as it was before issue 13 (same code, the new limits switched off)."""
     sw = fit_sweep_module
-    saved = (fit_starts.RACE_KEEP, fit_starts.REDUCED_NFEV, sw.STALL_GAIN, sw.SATURATION, sw.SPLIT_FULL_BAND,
-             sw.PARALLEL_STARTS, sw.NOTHING_LEFT, fit_nesting.MIN_GAIN)
-    (fit_starts.RACE_KEEP, fit_starts.REDUCED_NFEV, sw.STALL_GAIN, sw.SATURATION, sw.SPLIT_FULL_BAND,
-     sw.PARALLEL_STARTS, sw.NOTHING_LEFT, fit_nesting.MIN_GAIN) = 10**6, 25, -1.0, False, False, False, False, 0.0
+    switches = [(fit_starts, "RACE_KEEP", 10**6), (fit_starts, "REDUCED_NFEV", 25), (sw, "STALL_GAIN", -1.0),
+                (sw, "SATURATION", False), (sw, "SPLIT_FULL_BAND", False), (sw, "PARALLEL_STARTS", False),
+                (sw, "NOTHING_LEFT", False), (fit_nesting, "MIN_GAIN", 0.0), (fit_nesting, "SKIP_EMBEDDED", False),
+                (fit_solvers, "SECANT_1D", False), (sw, "COARSE_EQUIVALENT", False)]
+    saved = [getattr(mod, name) for mod, name, _ in switches]
+    for mod, name, value in switches:
+        setattr(mod, name, value)
     try:
         yield
     finally:
-        (fit_starts.RACE_KEEP, fit_starts.REDUCED_NFEV, sw.STALL_GAIN, sw.SATURATION, sw.SPLIT_FULL_BAND,
-         sw.PARALLEL_STARTS, sw.NOTHING_LEFT, fit_nesting.MIN_GAIN) = saved
+        for (mod, name, _), value in zip(switches, saved):
+            setattr(mod, name, value)
 
 
 def _signature(r):

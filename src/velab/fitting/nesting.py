@@ -14,12 +14,17 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from velab.fitting.starts import reduce_starts
 
 # a start handed back must fit better than the smaller model by more than this in n ln F: below it,
 # the difference is rounding (an S(m) that is S(m-1) plus a vanished element hands S(m-1) back
 # 1e-15 relative "better", and polishing and refreshing that cost a second on a low-noise record)
 MIN_GAIN = 1e-6
+# S(m) = S(m-1) plus a vanished element is not tried (its reduced starts are S(m-1) itself and what
+# S(m-1) hands to S(m-2)); a switch for benchmarks/fit_sweep.py's "previous sweep"
+SKIP_EMBEDDED = True
 
 
 def hand_back(sw, family: list[tuple[int, bool]], spent: dict) -> None:
@@ -32,8 +37,8 @@ def hand_back(sw, family: list[tuple[int, bool]], spent: dict) -> None:
     for small_job, big_job in reversed(list(zip(jobs[:-1], jobs[1:]))):
         small, big = sw.final[small_job], sw.current(sw.final[big_job])
         pm = small.sol.pm
-        if big.sol.pm.m != pm.m + 1:
-            continue
+        if big.sol.pm.m != pm.m + 1 or SKIP_EMBEDDED and np.array_equal(big.sol.x, big.sol.pm.embed(pm, small.sol.x)):
+            continue  # (S(m) = S(m-1) plus a vanished element has nothing S(m-1) lacks to hand back)
         before = sw.counts()
         stage = sw.final_stage(big.corr)
         starts = sorted(((stage.F(pm, x0), i, x0) for i, x0 in enumerate(reduce_starts(big.sol, pm))),

@@ -74,6 +74,8 @@ NOTHING_LEFT = True
 # benchmarks/fit_sweep.py's "previous sweep", which had neither.)
 SPLIT_FULL_BAND = True
 PARALLEL_STARTS = True
+# the equivalent linear friction is matched on the coarse grid (_Sweep.equivalent)
+COARSE_EQUIVALENT = True
 
 __all__ = ["fit_sweep", "parse_models", "METHODS", "MAX_M", "prepare_window", "lowpass_decimate"]
 
@@ -153,13 +155,24 @@ class _Sweep:
         corr = np.zeros_like(d)
         if self.time_model.active:
             h0 = self.time_model.head(a_nom, [], [])
-            self.set_friction(equivalent_friction(full, (a_nom, [], []), h0, self.brunone))
+            self.set_friction(self.equivalent((a_nom, [], []), h0))
             corr = h0 - full.head(a_nom, [], [])
         self.a0 = scan_wave_speed(self.stage_c.with_data(lowpass_decimate(d - corr, q)), self.pm0, a_nom)
         x0 = self.pm0.pack(self.a0, [])
         self.start0 = _Final(Sol(x0, math.nan, self.pm0), corr, None)
         if self.time_model.active:
             self.start0 = self.with_time_head(self.pm0, x0, self.time_model.head(self.a0, [], []))
+
+    def equivalent(self, params, h_time: np.ndarray) -> EquivalentFriction:
+        """The linear friction closest to the time-domain head ``h_time`` at ``params``, compared on the
+        coarse grid (the low-passed MOC head against the band-limited model): the damping it matches is
+        the envelope's, well inside the band, and a comparison costs a tenth of a full-band one. It only
+        sets how fast the friction refresh converges, not where (the fitted head is the MOC's)."""
+        if not COARSE_EQUIVALENT or self.brunone:
+            # (Brunone's friction acts on the flow's acceleration, at the wave fronts: the coarse grid
+            # lacks them, and its multiple of the Vardy-Brown resistance is matched on the full band)
+            return equivalent_friction(self.ev_full, params, h_time, self.brunone)
+        return equivalent_friction(self.stage_c.ev, params, lowpass_decimate(h_time, self.q), self.brunone)
 
     def set_friction(self, eq: EquivalentFriction) -> None:
         """The frequency model's linear friction for the next model (all stages; counters carried over)."""
@@ -246,7 +259,7 @@ class _Sweep:
         if self.time_model.active:
             # the linear friction closest to the time-domain model at the reference parameters
             px = start.sol.pm.unpack(start.sol.x)
-            self.set_friction(equivalent_friction(self.ev_full, px, start.h_time, self.brunone))
+            self.set_friction(self.equivalent(px, start.h_time))
             start = self.with_time_head(start.sol.pm, start.sol.x, start.h_time)
         base = start.sol if ref is not None else Sol(start.sol.x, math.nan, start.sol.pm)
         best, n_starts = self.calibrate(pm, red, base, start.corr, model_name(m, red))
