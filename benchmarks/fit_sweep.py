@@ -45,7 +45,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from velab.config import load_material, load_rig
-from velab.fitting import fit_sweep, nesting as fit_nesting, solvers as fit_solvers, starts as fit_starts, sweep as fit_sweep_module
+from velab.fitting import fit_sweep, nesting as fit_nesting, solvers as fit_solvers, starts as fit_starts
+from velab.fitting import sweep as fit_sweep_module
 from velab.fitting.engine import HeadEvaluator
 from velab.fitting.params import ParamMap, derive_bounds
 from velab.model import creep_scale, valve_head

@@ -35,10 +35,11 @@ def hand_back(sw, family: list[tuple[int, bool]], spent: dict) -> None:
         return
     changed = False
     for small_job, big_job in reversed(list(zip(jobs[:-1], jobs[1:]))):
-        small, big = sw.final[small_job], sw.current(sw.final[big_job])
+        small, big = sw.final[small_job], sw.final[big_job]
         pm = small.sol.pm
         if big.sol.pm.m != pm.m + 1 or SKIP_EMBEDDED and np.array_equal(big.sol.x, big.sol.pm.embed(pm, small.sol.x)):
             continue  # (S(m) = S(m-1) plus a vanished element has nothing S(m-1) lacks to hand back)
+        big = sw.current(big)  # its correction under the current friction (a full-band evaluation)
         before = sw.counts()
         stage = sw.final_stage(big.corr)
         starts = sorted(((stage.F(pm, x0), i, x0) for i, x0 in enumerate(reduce_starts(big.sol, pm))),
