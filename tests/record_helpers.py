@@ -95,3 +95,16 @@ def run_bounded(rec: Recorder, faults: list | None = None, deadline_s: float = D
     assert not hung, f"no outcome within {deadline_s} s (phase {phase})"
     assert not closer.is_alive(), "close() did not return"
     return Outcome(box.get("summary"), box.get("error"), elapsed, valve_state, triggers)
+
+
+def assert_halted_fit(summary, halt_s: float, busy: list) -> None:
+    """A halt during a fit: the run aborted "halted" with no fit and a named fit error, the halt
+    returned within seconds, and the fit processes that were computing are gone (killed, not left
+    computing) within 5 s."""
+    assert summary.status == "aborted" and "halted" in summary.reason
+    assert summary.fit is None and "halted" in summary.fit_error
+    assert halt_s < 6.0
+    end = time.monotonic() + 5
+    while any(w.alive for w in busy) and time.monotonic() < end:
+        time.sleep(0.02)
+    assert busy and not any(w.alive for w in busy)

@@ -11,7 +11,8 @@ multiprocessing: a lab script without an ``if __name__ == "__main__"`` guard mus
 Frames on the child's stdin/stdout: an 8-byte big-endian length, then a pickle (parent and child
 are the same program of the same user).
 
-    parent -> child   ("fit", job, kwargs)     fit_record(**kwargs) (velab.fitting.prepare)
+    parent -> child   ("fit", job, call, kwargs)  fit_record(**kwargs) (call "record") or fit_lead(**kwargs)
+                                               ("lead"; velab.fitting.prepare)
                       ("cancel", job)          end that job at its next progress call
                       ("exit",)
     child -> parent   ("ready", pid)           imports done, the time-domain kernel loaded
@@ -84,7 +85,9 @@ def _warm_up() -> None:
 
 def serve(inp, out) -> int:
     """The child's loop: jobs one at a time; cancels read on a thread of their own."""
-    from velab.fitting.prepare import fit_record  # the one fit path
+    from velab.fitting.prepare import fit_lead, fit_record  # the one fit path
+
+    calls = {"record": fit_record, "lead": fit_lead}
 
     _warm_up()
     lock = threading.Lock()
@@ -108,7 +111,7 @@ def serve(inp, out) -> int:
         msg = jobs.get()
         if msg is None:
             return 0
-        _, job, kwargs = msg
+        _, job, call, kwargs = msg
         if job in cancelled:
             _write(out, lock, ("cancelled", job))
             continue
@@ -118,7 +121,7 @@ def serve(inp, out) -> int:
                 raise Cancelled()
 
         try:
-            result = fit_record(progress=progress, **kwargs)
+            result = calls[call](progress=progress, **kwargs)
             reply = ("done", job, result)
         except Cancelled:
             reply = ("cancelled", job)
@@ -184,9 +187,10 @@ class FitProcess:
         return self._ready.wait(timeout) and self.alive
 
     # ---------------------------------------------------------------- jobs
-    def submit(self, **kwargs) -> tuple[int, Future]:
-        """Queue ``fit_record(**kwargs)``; (job id, Future). The Future fails with WorkerDied if the
-        process dies, Cancelled if the job is cancelled, RuntimeError with the fit's own error."""
+    def submit(self, call: str = "record", **kwargs) -> tuple[int, Future]:
+        """Queue ``fit_record(**kwargs)`` (``call`` "record") or ``fit_lead(**kwargs)`` ("lead"); (job
+        id, Future). The Future fails with WorkerDied if the process dies, Cancelled if the job is
+        cancelled, RuntimeError with the fit's own error."""
         fut: Future = Future()
         with self._lock:
             if self._dead is not None:
@@ -196,7 +200,7 @@ class FitProcess:
             job = self._next
             self._jobs[job] = fut
         try:
-            _write(self._proc.stdin, self._wlock, ("fit", job, kwargs))
+            _write(self._proc.stdin, self._wlock, ("fit", job, call, kwargs))
         except (OSError, ValueError):
             self._died(f"the fit process could not be reached ({self._exit_text()})")
         return job, fut

@@ -172,7 +172,7 @@ class _Progress:
             self.line(f"warning: {d}")
         elif k == "fit":
             r = d["result"]
-            tag = "final" if d["final"] else "intermediate"
+            tag = "final" if d["final"] else "lead" if d.get("lead") else "intermediate"
             self.line(f"fit ({tag}, {d['window_s']:g} s window): best {r.best.name}, a = {r.best.wave_speed_m_s:.2f} m/s")
 
     def _loop(self) -> None:

@@ -15,9 +15,28 @@ One fit path for recorded runs (velab fit, the recorder's online fit, the GUI re
 See docs/fitting.md for the method, the JSON schema and the fit-group layout.
 """
 
-from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, support_category
-from velab.fitting.sweep import METHODS, fit_sweep, parse_models
-from velab.fitting.prepare import PreparedRecord, fit_record, fit_run, prepare_record
+from __future__ import annotations
 
-__all__ = ["fit_sweep", "ModelFit", "SweepResult", "METHODS", "SELECTIONS", "parse_models", "support_category",
-           "PreparedRecord", "prepare_record", "fit_record", "fit_run"]
+import importlib
+
+# the public names and their modules, imported on first use (PEP 562): the recorder reads the fit
+# path's policy (velab.fitting.lead) without loading scipy, which only the fit itself needs
+_EXPORTS = {
+    "SELECTIONS": "results", "ModelFit": "results", "SweepResult": "results", "support_category": "results",
+    "METHODS": "sweep", "fit_sweep": "sweep", "parse_models": "sweep",
+    "PreparedRecord": "prepare", "prepare_record": "prepare", "fit_record": "prepare", "fit_lead": "prepare",
+    "fit_run": "prepare",
+}
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_EXPORTS))

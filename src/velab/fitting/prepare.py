@@ -29,6 +29,7 @@ from scipy.signal import firwin, resample_poly
 
 from velab.config import Rig
 from velab.errors import DataError
+from velab.fitting.lead import lead_window_s, matches, options_key
 from velab.fitting.results import SweepResult
 from velab.fitting.sweep import fit_sweep
 from velab.model import manoeuvre_band_hz
@@ -157,10 +158,52 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, **sweep_options) -> SweepResult:
 
 
 def fit_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | None, *, record_rate_hz: float,
-               **sweep_options) -> SweepResult:
-    """Prepare a record (``prepare_record``) and calibrate on it: the one fit path of velab."""
+               lead: bool | SweepResult = True, **sweep_options) -> SweepResult:
+    """Prepare a record (``prepare_record``) and calibrate on it: the one fit path of velab.
+
+    The default sweep of a long enough window runs as a lead fit on its first part and a
+    continuation on the whole (velab.fitting.lead). ``lead``: True (compute it here), a SweepResult
+    (the recorder's, computed while the window's last part was being recorded: used if it is the
+    lead this call would compute, else computed again), or False (one step; not the fit path's
+    result, for comparisons)."""
     rec = prepare_record(t_s, head_m, trigger_time_s, rig, window_s, record_rate_hz=record_rate_hz)
-    return fit_prepared(rec, rig, **sweep_options)
+    lw = lead_window_s(rig, rec.window_s, sweep_options) if lead is not False else None
+    if lw is None:
+        return fit_prepared(rec, rig, **sweep_options)
+    progress = sweep_options.pop("progress", None)
+    rec_lead = prepare_record(t_s, head_m, trigger_time_s, rig, lw, record_rate_hz=record_rate_hz)
+    computed = not matches(lead, rec.window_s, sweep_options, rec_lead.describe())
+    if computed:
+        lead = fit_prepared(rec_lead, rig, progress=_stage_progress(progress, 0, f" (lead fit, {lw:.6g} s)"),
+                            **sweep_options)
+        lead.settings["lead_for"] = options_key(rec.window_s, sweep_options)
+    result = fit_prepared(rec, rig, lead=lead, progress=_stage_progress(progress, 1, ""), **sweep_options)
+    result.settings["lead"]["computed_in_this_fit"] = computed
+    if computed:
+        result.duration_s += lead.duration_s  # this call's time: both steps
+    return result
+
+
+def fit_lead(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float, *, record_rate_hz: float,
+             **sweep_options) -> SweepResult | None:
+    """The lead fit of a ``window_s`` fit of this record (None if it has none): what ``fit_record``
+    computes first, for the recorder to run as soon as the lead's part of the window is in. ``t_s``
+    and ``head_m`` need only reach the end of that part."""
+    lw = lead_window_s(rig, window_s, sweep_options)
+    if lw is None:
+        return None
+    rec_lead = prepare_record(t_s, head_m, trigger_time_s, rig, lw, record_rate_hz=record_rate_hz)
+    lead = fit_prepared(rec_lead, rig, **sweep_options)
+    sweep_options.pop("progress", None)
+    lead.settings["lead_for"] = options_key(window_s, sweep_options)
+    return lead
+
+
+def _stage_progress(progress, stage: int, suffix: str):
+    """progress(done, total, name) of one of the two steps, counted over both."""
+    if progress is None:
+        return None
+    return lambda done, total, name: progress(stage * total + done, 2 * total, name + suffix)
 
 
 def fit_run(run, window_s: float | None, **sweep_options) -> SweepResult:

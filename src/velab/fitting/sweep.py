@@ -123,9 +123,9 @@ class _Sweep:
     """State shared by the models of one sweep: stages, bounds, friction, calibrated models."""
 
     def __init__(self, t, d, rig: Rig, bounds: FitBounds, method: str, polish: bool, starts, seed: int,
-                 threads: int, initial: SweepResult | None):
+                 threads: int, initial: SweepResult | None, lead: SweepResult | None = None):
         self.t, self.d, self.rig, self.bounds = t, d, rig, bounds
-        self.method, self.polish, self.seed, self.initial = method, polish, seed, initial
+        self.method, self.polish, self.seed, self.initial, self.lead = method, polish, seed, initial, lead
         self.threads = threads
         self.parallel_starts = threads > 1 and PARALLEL_STARTS
         self.max_starts = 1 if method == "least-squares" else starts
@@ -150,6 +150,7 @@ class _Sweep:
         self.tau_hi = min(max(window / 2.0, 4 * self.tau_lo), bounds.tau_max_s)
         self.final: dict[tuple[int, bool], _Final] = {}
         self.not_searched: list[int] = []  # S(m) taken as S(m-1) plus a vanished element (nothing_left)
+        self.as_in_lead: list[int] = []  # S(m) taken as S(m-1) plus a vanished element, as the lead fit found
         self.pm0 = ParamMap(0, bounds)
         a_nom = rig.nominal_wave_speed_m_s
         corr = np.zeros_like(d)
@@ -255,6 +256,9 @@ class _Sweep:
         if ref is not None and not red and self.nothing_left(m):
             self.not_searched.append(m)
             return self.embedded(pm, self.current(ref), ref.refreshes), 0
+        if ref is not None and not red and self.vanished_in_lead(m):
+            self.as_in_lead.append(m)
+            return self.embedded(pm, self.current(ref), ref.refreshes), 0
         start = ref if ref is not None else self.start0
         if self.time_model.active:
             # the linear friction closest to the time-domain model at the reference parameters
@@ -324,6 +328,11 @@ class _Sweep:
     def starts(self, pm: ParamMap, red: bool, base: Sol, stage: Stage, name: str) -> list[np.ndarray]:
         m = pm.m
         cands: list[np.ndarray] = []
+        if self.lead is not None:
+            # a continuation: the lead fit searched this record's first part, this one starts at its optimum
+            old = self.lead.get(name)
+            if old is not None and old.m == m and old.reduced == red:
+                return [pm.clip(_pack_fit(pm, old, self.rig))]
         if self.initial is not None:
             old = self.initial.get(name)
             if old is not None and old.m == m and old.reduced == red:
@@ -372,6 +381,13 @@ class _Sweep:
         the models). On the reference records S5 and S6 always ended there after a search that
         took a third to a half of the sweep. A lone model (``models=[5]``) is always searched."""
         return NOTHING_LEFT and m >= STALL_FROM_M and self.saturated(m)
+
+    def vanished_in_lead(self, m: int) -> bool:
+        """In the lead fit, S(m) ended as a smaller model plus vanished (or split) elements: its search over
+        the record's first part found no use for one more element, and the rest of the window (the
+        transient's most damped part) holds less of the structure an element would fit."""
+        old = self.lead.get(model_name(m, False)) if self.lead is not None else None
+        return old is not None and bool(old.equivalent_to)
 
     def embedded(self, pm: ParamMap, ref: _Final, refreshes: int) -> _Final:
         """``ref`` (with its correction under the current linear resistance) plus vanished elements,
@@ -457,6 +473,7 @@ def fit_sweep(
     selection: str = "ar1",
     friction: str | None = None,
     friction_unsteady: str | None = None,
+    lead: SweepResult | None = None,
 ) -> SweepResult:
     """Calibrate EL/Sm models on a head record and rank them.
 
@@ -472,6 +489,9 @@ def fit_sweep(
     ``[fit]`` table, else derived from the data, velab.fitting.params.derive_bounds).
     ``selection``: "ar1" (default; AIC of an AR(1) likelihood of the residuals) or "white"
     (the paper's AIC). ``friction``/``friction_unsteady`` override the rig's friction laws.
+    ``lead``: the sweep of this record's first part (velab.fitting.lead): each model is then
+    calibrated from the lead's optimum alone (no multi-start search), and a model that ended there
+    as a smaller one plus a vanished element is that again here.
     Pure computation: no I/O, no shared state; safe to call from worker threads.
     """
     if method not in METHODS:
@@ -488,7 +508,7 @@ def fit_sweep(
     bounds = derive_bounds(rig, dt, window, tau_min_s=tau_min_s, tau_max_s=tau_max_s)
     if threads is None:
         threads = min(2, os.cpu_count() or 1)
-    sw = _Sweep(t, d, rig, bounds, method, polish, starts, seed, threads, initial)
+    sw = _Sweep(t, d, rig, bounds, method, polish, starts, seed, threads, initial, lead)
 
     jobs = [(m, False) for m in ms]
     if reduced:
@@ -521,6 +541,9 @@ def fit_sweep(
         "decimation": sw.q, "coarse_band_hz": sw.band, "tau_start_range_s": [sw.tau_lo, sw.tau_hi],
         "tau_min_s": tau_min_s, "tau_max_s": tau_max_s, "bounds": bounds.to_dict(), "selection": selection,
         "warm_start": initial is not None,
+        "lead": None if lead is None else {"window_s": lead.window_s, "best": lead.best.name if lead.models else "",
+                                           "evaluations": lead.evaluations, "duration_s": lead.duration_s},
+        "as_in_lead": [model_name(m, False) for m in sw.as_in_lead],
         "not_searched": [model_name(m, False) for m in sw.not_searched],
         "friction": {"steady": sw.time_model.steady, "unsteady": sw.time_model.unsteady,
                      "time_domain": sw.time_model.active, "moc_runs": sw.time_model.runs,
@@ -536,6 +559,11 @@ def fit_sweep(
         result.notes.append(f"{names}: not searched, {model_name(first - 1, False)} plus vanished elements "
                             f"({model_name(first - 1, False)}'s element did not pay its AIC price: n ln F gained "
                             f"< {SATURATED_GAIN:g} over {model_name(first - 2, False)})")
+    if sw.as_in_lead:
+        names = ", ".join(model_name(m, False) for m in sw.as_in_lead)
+        smaller = model_name(sw.as_in_lead[0] - 1, False)
+        result.notes.append(f"{names}: {smaller} plus vanished elements, as in the lead fit of the first "
+                            f"{lead.window_s:.6g} s (its search there found no use for one more element)")
     if not polish:
         result.notes.append(f"no full-band polish: F on the low-passed data decimated by {sw.q}")
     return result

@@ -2,8 +2,11 @@
 
 ``fit_arguments`` makes the one call into the fitter (velab.fitting.prepare.fit_record, the
 fit path ``velab fit`` and the GUI's re-fit take too); everything else here is scheduling: intermediate quick fits on the growing
-window while the fitter is idle, cancelled when the final fit starts; the final fit as soon
-as the window closes; the latency from the window closing to the result.
+window while the fitter is idle, cancelled when the lead or the final fit starts; the fit path's
+lead fit (velab.fitting.lead: the sweep of the window's first part) as soon as that part is in,
+while the rest is being recorded; the final fit as soon as the window closes, continuing from
+the lead (or computing it, if it failed or does not match); the latency from the window closing
+to the result.
 
 With ``settings.fit_process`` (the default) the fits run in a worker process of their own
 (velab.fit_worker), started when the manoeuvre is commanded so that its imports are done by the
@@ -63,7 +66,10 @@ class OnlineFit:
         self.latency_s: float | None = None
         self.window_s: float | None = None
         self._final: threading.Thread | None = None
-        self._busy = threading.Event()
+        self._lead: threading.Thread | None = None
+        self._lead_result = None  # the lead fit (velab.fitting.lead), when it has ended
+        self._running = 0  # fits running (quick, lead, final)
+        self._running_lock = threading.Lock()
         self._cancel_quick = threading.Event()
         self._cancel_all = threading.Event()
         self._closed_at: float | None = None
@@ -82,7 +88,7 @@ class OnlineFit:
 
     @property
     def busy(self) -> bool:
-        return self._busy.is_set()
+        return self._running > 0
 
     @property
     def final_started(self) -> bool:
@@ -95,17 +101,29 @@ class OnlineFit:
                 return
             self._closed_at = time.perf_counter()
             self._cancel_quick.set()  # the final fit gets the CPU
-        elif self._busy.is_set():
+        elif self.busy:
             return
         else:
             self._cancel_quick.clear()
-        self._busy.set()
-        th = threading.Thread(target=self._work, args=(t, h, trigger_time_s, window_s, final), daemon=True,
-                              name="velab-recorder-fit" + ("" if final else "-quick"))
-        if final:
+        self._spawn("final" if final else "quick", t, h, trigger_time_s, window_s)
+
+    def start_lead(self, t: np.ndarray, h: np.ndarray, trigger_time_s: float, window_s: float) -> None:
+        """Start the lead fit of a ``window_s`` fit: (t, h) reach the end of the lead's part of the window."""
+        if self._lead is not None or self._final is not None:
+            return
+        self._cancel_quick.set()  # a quick fit still running gives way
+        self._lead = self._spawn("lead", t, h, trigger_time_s, window_s)
+
+    def _spawn(self, kind: str, t, h, trigger_time_s: float, window_s: float) -> threading.Thread:
+        with self._running_lock:
+            self._running += 1
+        th = threading.Thread(target=self._work, args=(t, h, trigger_time_s, window_s, kind), daemon=True,
+                              name="velab-recorder-fit" + ("" if kind == "final" else "-" + kind))
+        if kind == "final":
             self._final = th
             self.window_s = window_s
         th.start()
+        return th
 
     def refuse(self, why: str) -> None:
         """No final fit, and why (the run's summary and the CLI say it)."""
@@ -113,19 +131,33 @@ class OnlineFit:
             self.error = why
             self.message(why)
 
-    def _cancelled(self, final: bool) -> bool:
-        return self._cancel_all.is_set() or (not final and self._cancel_quick.is_set())
+    def _cancelled(self, kind: str) -> bool:
+        return self._cancel_all.is_set() or (kind == "quick" and self._cancel_quick.is_set())
 
-    def _fit(self, t, h, trigger_time_s, window_s, final):
+    def _lead_for_final(self):
+        """The lead fit for the final one: waits for a running lead (a halt ends the wait); True (the
+        fit path computes it) if there is none."""
+        th = self._lead
+        while th is not None and th.is_alive():
+            if self._cancel_all.is_set():
+                raise _Cancelled()
+            th.join(0.05)
+        return self._lead_result if self._lead_result is not None else True
+
+    def _fit(self, t, h, trigger_time_s, window_s, kind):
         """The fit, in the worker process if there is a live one, else here; raises _Cancelled."""
+        final = kind == "final"
         kw = fit_arguments(t, h, trigger_time_s, self.rig, models=self.s.fit_models, window_s=window_s,
-                           method=self.s.fit_method, sample_rate_hz=self.fs, quick=not final)
+                           method=self.s.fit_method, sample_rate_hz=self.fs, quick=kind == "quick")
+        if final:
+            kw["lead"] = self._lead_for_final()
+        call = "lead" if kind == "lead" else "record"
         proc = self._proc
         if proc is not None and not proc.alive and final:
             self.message("fit process lost before the final fit: fitting in the recorder's process")
             self._proc, proc = None, None
         if proc is not None:
-            job, fut = proc.submit(**kw)
+            job, fut = proc.submit(call, **kw)
             asked = False
             while True:
                 try:
@@ -135,7 +167,7 @@ class OnlineFit:
                 except fit_worker.Cancelled:
                     raise _Cancelled() from None
                 except fit_worker.WorkerDied as exc:
-                    if self._cancelled(final):
+                    if self._cancelled(kind):
                         raise _Cancelled() from None
                     if not final:
                         raise
@@ -146,17 +178,17 @@ class OnlineFit:
                     raise FitError(str(exc)) from None
                 if self._cancel_all.is_set():
                     proc.kill("halted")  # halt = stop now, not at the fit's next model
-                elif not asked and self._cancelled(final):
+                elif not asked and self._cancelled(kind):
                     proc.cancel(job)  # overtaken by the final fit: ends at its next model
                     asked = True
 
         def progress(done, total, name):
-            if self._cancelled(final):
+            if self._cancelled(kind):
                 raise _Cancelled()
 
-        from velab.fitting.prepare import fit_record as fit_path  # scipy: only when a fit runs
+        from velab.fitting import prepare  # scipy: only when a fit runs
 
-        return fit_path(progress=progress, **kw)
+        return (prepare.fit_lead if kind == "lead" else prepare.fit_record)(progress=progress, **kw)
 
     def close(self) -> None:
         """Give the worker process back (kept for the next run if idle; ended if a fit still runs)."""
@@ -164,13 +196,19 @@ class OnlineFit:
         if proc is not None:
             fit_worker.release(proc)
 
-    def _work(self, t, h, trigger_time_s, window_s, final) -> None:
+    def _work(self, t, h, trigger_time_s, window_s, kind) -> None:
+        final = kind == "final"
         try:
-            r = self._fit(t, h, trigger_time_s, window_s, final)
+            r = self._fit(t, h, trigger_time_s, window_s, kind)
             if final:
                 self.result = r
                 self.latency_s = time.perf_counter() - self._closed_at
-            self.emit("fit", {"result": r, "final": final, "window_s": window_s})
+            elif kind == "lead":
+                self._lead_result = r
+                if r is None:
+                    return  # (this window has no lead fit)
+            self.emit("fit", {"result": r, "final": final, "window_s": r.window_s if kind == "lead" else window_s,
+                              "lead": kind == "lead"})
         except _Cancelled:
             if final:
                 self.error = HALTED
@@ -178,14 +216,16 @@ class OnlineFit:
             if final:
                 self.error = f"fit failed: {exc}"
                 self.message(self.error)
+            elif kind == "lead":
+                log.info("lead fit failed (%s): the final fit computes it", exc)
         except Exception as exc:  # noqa: BLE001 - reported as the run's fit error
             log.debug("fit failed", exc_info=True)
             if final:
                 self.error = f"fit failed: {type(exc).__name__}: {exc}"
                 self.message(self.error)
         finally:
-            if final or not self._cancel_quick.is_set() or self._final is None:
-                self._busy.clear()
+            with self._running_lock:
+                self._running -= 1
 
     def cancel(self) -> None:
         self._cancel_all.set()

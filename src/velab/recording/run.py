@@ -13,6 +13,7 @@ import time
 from velab.drivers.base import TriggerNotStarted, TriggerUnknown
 from velab.drivers.valve import ValveState
 from velab.errors import VelabError
+from velab.fitting.lead import lead_window_s
 from velab.recording import phases as P
 from velab.recording.devices import check_steady_flow, check_steady_head
 from velab.recording.layout import bench_snapshot, commanded_rig, create_run_file, run_file_name
@@ -116,7 +117,8 @@ class RunControl:
         self._fit = OnlineFit(commanded_rig(self.rig, beta, gamma), s, fs, self._emit, self._message)
         self._timeline = Timeline(s, fs, (beta, gamma, end), ceiling, source.pressure_channel, source.valve_channel,
                                   self.hooks, self._writer.put, self._window_closed,
-                                  on_baseline=lambda: self._submit(lambda: None))
+                                  on_baseline=lambda: self._submit(lambda: None),
+                                  lead_window_s=self._lead_window(), on_lead=self._lead_ready)
         valve = self.devices[self.roles["valve"]]
         self._slow = SlowChannels(valve, self.roles["valve"], self.devices[self.roles["flowmeter"]], self.hooks,
                                   self._writer.put, lambda: self._timeline.now_axis,
@@ -242,6 +244,25 @@ class RunControl:
                 return
             self._end_request = (status, reason)
         self._submit(lambda: self._do_end(status, reason))
+
+    def _lead_window(self) -> float | None:
+        """The fit path's lead part of the window (velab.fitting.lead), if the online fit has one."""
+        s = self.settings
+        if not (s.fit and s.online_fit) or self._fit is None:
+            return None
+        return lead_window_s(self._fit.rig, s.fit_window_s, {"method": s.fit_method})
+
+    def _lead_ready(self) -> None:
+        """From the acquisition thread: the lead's part of the window is in: its fit starts now,
+        while the rest is recorded (the final fit then continues from it)."""
+        fit, tl = self._fit, self._timeline
+        if fit is None or self._halted or self._end_request is not None or tl.lead_window_s is None:
+            return
+        try:
+            t, h, trigger, _, _ = tl.fit_window(tl.lead_window_s)
+        except ValueError:
+            return  # (the final fit says why there is no fit)
+        fit.start_lead(t, h, trigger, self.settings.fit_window_s)
 
     def _window_closed(self, window_s: float, final: bool) -> None:
         """From the acquisition thread: the fit window (or a quick fit's part of it) is in."""

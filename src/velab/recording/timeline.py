@@ -53,7 +53,7 @@ class Timeline:
 
     def __init__(self, settings, fs: float, manoeuvre: tuple[float, float, float], ceiling_m: float,
                  pressure_channel: str, valve_channel: str | None, hooks, write, on_window_closed,
-                 on_baseline=lambda: None):
+                 on_baseline=lambda: None, lead_window_s: float | None = None, on_lead=lambda: None):
         self.s = settings
         self.fs = fs
         self.beta, self.gamma, self.end_pct = manoeuvre
@@ -63,6 +63,10 @@ class Timeline:
         self.write = write  # write(op tuple) -> the writer stage
         self.on_window_closed = on_window_closed
         self.on_baseline = on_baseline  # wakes the control thread: a queued trigger goes out at once
+        # the fit's lead part of the window (velab.fitting.lead): on_lead() when it is in, clean
+        self.lead_window_s = lead_window_s
+        self.on_lead = on_lead
+        self._lead_sent = False
         self.n_pre = int(round(settings.pretrigger_s * fs))
         self.gidx = 0  # global index of the next sample (gaps included)
         self.n_written = 0
@@ -276,6 +280,10 @@ class Timeline:
             if self._quick_next < len(fractions) and after >= fractions[self._quick_next] * s.fit_window_s:
                 self._quick_next += 1
                 self.on_window_closed(fractions[self._quick_next - 1] * s.fit_window_s, final=False)
+        if self.lead_window_s is not None and not self._lead_sent and not self.window_closed and self.trigger_measured \
+                and self.clean_until is None and float(t[-1]) - self.trigger_time >= self.lead_window_s:
+            self._lead_sent = True
+            self.on_lead()
 
     def _keep_pre(self, t, head) -> None:
         pb = self._pre_blocks

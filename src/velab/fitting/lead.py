@@ -1,0 +1,60 @@
+"""The lead fit: the default sweep searches the window's first part, then continues on the whole window.
+
+A fit window of T seconds is calibrated in two steps (velab.fitting.prepare.fit_record):
+
+1. the *lead fit*: the full multi-start sweep (velab.fitting.sweep) on the first
+   (1 - LEAD_FRACTION) T seconds after the trigger, prepared like any record;
+2. the *continuation*: every model calibrated on the whole window from the lead's optimum alone
+   (coarse solve, full-band polish, friction refresh, nesting guard and hand-back as in any
+   sweep, no multi-start search); a model that ended in the lead as a smaller one plus a
+   vanished element is that again.
+
+The window's last part is the transient's most damped stretch: the search finds the same basins
+without it (on the time-domain truths of tests/test_fit_truths.py, two rigs, EL..S4, two noise
+seeds, the same best model in every case and F within 5e-6 of a one-step sweep). The point is
+*when* the work is done: the recorder starts the lead fit as soon as its part of the window is
+in, while the rest is still being recorded, so that only the continuation is left when the
+window closes (velab.recording.online_fit). Offline, ``velab fit`` runs both steps on the same
+samples; the online fit's lead is checked against what the offline one would compute
+(``matches``) and recomputed if it differs, so a re-fit reproduces the online fit exactly.
+
+This module is light (no scipy): the recorder reads ``lead_window_s`` to know when to start the
+lead. The lead applies to the default sweep (method "auto", polish on, all starts, no warm start) of a
+window whose first part holds at least MIN_LEAD_PERIODS wave periods 4L/a: a shorter one is
+fitted in one step.
+"""
+
+from __future__ import annotations
+
+from velab.config import Rig
+
+LEAD_FRACTION = 0.2  # the lead fit leaves out this fraction of the window (its last part)
+MIN_LEAD_PERIODS = 5.0  # the lead's part must hold this many wave periods 4 L / a (nominal)
+# sweep options under which a fit has a lead (the default sweep); anything else is fitted in one step
+_DEFAULTS = {"method": "auto", "polish": True, "starts": None, "initial": None}
+
+
+def lead_window_s(rig: Rig, window_s: float, options: dict) -> float | None:
+    """The lead fit's window (s after the trigger) for a fit of ``window_s`` with these sweep
+    options, or None (fitted in one step)."""
+    if any(options.get(k, v) != v for k, v in _DEFAULTS.items()):
+        return None
+    lead = window_s * (1.0 - LEAD_FRACTION)
+    period = 4.0 * rig.pipe.length_m / rig.nominal_wave_speed_m_s
+    return lead if lead >= MIN_LEAD_PERIODS * period else None
+
+
+def options_key(window_s: float, options: dict) -> str:
+    """What a lead fit was made for: the final window and the sweep options (stored with the lead as
+    ``settings["lead_for"]``; a lead made for anything else is not used)."""
+    kept = sorted((k, v) for k, v in options.items() if k not in ("progress", "threads", "lead"))
+    return repr((float(window_s), kept))
+
+
+def matches(lead: object, window_s: float, options: dict, record: dict) -> bool:
+    """``lead`` is the lead fit of a ``window_s`` fit with these options, on the samples that
+    ``record`` (the lead window's preparation, PreparedRecord.describe()) names: trigger, steady
+    head, rates, window and sample count."""
+    settings = getattr(lead, "settings", None)  # (a SweepResult; True/None: no lead given)
+    return (isinstance(settings, dict) and settings.get("lead_for") == options_key(window_s, options)
+            and settings.get("record") == record)
