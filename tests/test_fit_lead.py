@@ -7,6 +7,7 @@ lead ends the run with a named outcome."""
 
 from __future__ import annotations
 
+import copy
 import os
 import signal
 import threading
@@ -15,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from record_helpers import assert_halted_fit, run_bounded
+from record_helpers import CWF, assert_halted_fit, fast_sim, recorder, run_bounded
 from test_fit_truths import SIGMA, _record as truth_record
 from velab import fit_worker as worker
 from velab.commands.fit import fit_file
@@ -28,6 +29,7 @@ from velab.recording import Recorder, RecordSettings
 from velab.recording.online_fit import HALTED
 from velab.runfile import read_run
 from velab.runfiles.summary import read_fits
+from velab.simulators.bench import load_sim_config
 
 WINDOW_S = 8.0  # the reference rig's period is 1.16 s: the lead's 6.4 s hold 5.5 periods
 MODELS = [0, 1, 2, 3]
@@ -195,3 +197,29 @@ def test_a_lead_lost_with_its_process_is_computed_by_the_final_fit(tmp_path):
     online = SweepResult.from_dict(read_fits(s.path)["online"])
     assert online.settings["lead"]["computed_in_this_fit"] is True  # the lead died with its process
     _same(fit_run(read_run(s.path), 12.0, models=MODELS), online)
+
+
+def test_a_fault_after_the_lead_started_shortens_the_window_and_the_lead_is_made_again(tmp_path):
+    """A stuck transducer 11 s after the trigger, once the lead (made for 12 s: its first 9.6 s) has
+    started: the final window is the clean 11 s before it, the recorder's lead is not that fit's, and
+    the final fit computes its own; the run is marked, and velab fit of the file over the window the
+    online fit used reproduces it."""
+    _, doc = load_sim_config("default")
+    doc = copy.deepcopy(dict(doc))
+    doc["faults"] = {"schedule": [{"device": "rig", "fault": {"stuck_channels": [0]}, "at": "trigger+11.0",
+                                   "duration_s": 0.3}]}
+    s = _settings(tmp_path, 1000.0, duration_s=12.5, fit_window_s=12.0, intermediate_fits=False)
+    rec = recorder(fast_sim(doc), s)
+    fits = []
+    rec.add_listener(lambda ev: fits.append(ev.data) if ev.kind == "fit" else None)
+    out = run_bounded(rec, deadline_s=120)
+    summary = out.summary
+    assert summary.status == CWF, (summary.status, summary.reason)
+    assert summary.fit is not None, summary.fit_error
+    assert [f["window_s"] for f in fits if f.get("lead")] == [pytest.approx(9.6)]  # the lead ran, for 12 s
+    online = SweepResult.from_dict(read_fits(summary.path)["online"])
+    w = online.settings["record"]["window_s"]
+    assert 10.5 < w < 11.5  # shortened to the clean part before the stuck samples
+    assert online.settings["lead"]["computed_in_this_fit"] is True
+    assert online.settings["lead"]["window_s"] == pytest.approx(w * (1 - LEAD_FRACTION))
+    _same(fit_run(read_run(summary.path), w, models=MODELS), online)
