@@ -11,7 +11,7 @@ Quadratic friction: material A on the reference rig made by the time-domain mode
 printed (issue 10: at most 3).
 
     python benchmarks/fit_sweep.py                # synthesises the run in memory (seed 2018)
-    python benchmarks/fit_sweep.py RUN.h5         # or uses a run file
+    python benchmarks/fit_sweep.py RUN.h5         # or a run file, prepared as the fit path does (decimated to the fit rate)
     python benchmarks/fit_sweep.py --repeat 5     # sweep timings to take the median of (default 3)
     python benchmarks/fit_sweep.py --no-baseline  # sweep only (the baseline takes minutes)
     python benchmarks/fit_sweep.py --no-quadratic # skip the quadratic-friction sweep
@@ -55,11 +55,14 @@ from velab.moc import moc_head
 
 def load(path):
     if path:
+        from velab.fitting import prepare_record
         from velab.runfile import read_run
 
         run = read_run(path)
-        t, h = run.fit_window(20.0)
-        return t, h, run.rig
+        # the fit path's preparation (steady head, window, decimation to the fit rate): what is fitted
+        rec = prepare_record(run.time_s, run.head_m, run.trigger_time_s, run.rig, 20.0,
+                             record_rate_hz=run.sample_rate_hz)
+        return rec.t, rec.h, run.rig
     rig = load_rig("perugia").with_changes(friction="linear")
     t = np.arange(20000) / 1000.0
     h = valve_head(t, rig, load_material("A")) + np.random.default_rng(2018).normal(0, 0.1, t.size)
@@ -157,7 +160,7 @@ def main(argv=None):
               f"({', '.join(f'{v:.2f}' for v in ptimes)} s), {rp.evaluations} model evaluations")
         print(f"  current / previous: {t_sweep / t_prev:.2f} (speed-up over the previous sweep {t_prev / t_sweep:.2f} x; "
               f"issue 13: >= 2)")
-        worse = [f.name for f, g in zip(r.models, rp.models) if f.F > g.F * (1 + 1e-9)]
+        worse = [f"{f.name} ({f.F / g.F - 1:+.1e})" for f, g in zip(r.models, rp.models) if f.F > g.F * (1 + 1e-9)]
         print(f"  F no worse than the previous sweep for every model: {'yes' if not worse else 'NO: ' + ', '.join(worse)}")
         print(f"  best model {r.best.name} (previous {rp.best.name}), a = {r.best.wave_speed_m_s:.3f} m/s "
               f"(previous {rp.best.wave_speed_m_s:.3f})")
