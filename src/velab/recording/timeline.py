@@ -47,6 +47,9 @@ def slice_block(b, k: int):
                    host_time_s=b.host_time_s - (b.n - k) / b.rate_hz)
 
 
+QUICK_FRACTIONS = (0.25, 0.5, 0.75)  # intermediate quick fits at these fractions of the fit window
+
+
 class Timeline:
     """State of one run's samples. Only the acquisition thread calls ``process``; the control
     thread reads the counters (plain ints/floats) and calls ``mark_trigger``."""
@@ -275,7 +278,10 @@ class Timeline:
         self._fit_n += k
         if s.fit and s.online_fit and s.intermediate_fits and not self.window_closed and self.trigger_measured \
                 and self.clean_until is None:
-            fractions = (0.25, 0.5, 0.75)
+            fractions = QUICK_FRACTIONS
+            if self.lead_window_s is not None:
+                # the lead fit (a full sweep) comes at 80 %: a quick fit just before it would be cancelled by it
+                fractions = tuple(f for f in fractions if f * s.fit_window_s <= self.lead_window_s - 0.1 * s.fit_window_s)
             after = float(t[-1]) - self.trigger_time
             if self._quick_next < len(fractions) and after >= fractions[self._quick_next] * s.fit_window_s:
                 self._quick_next += 1
