@@ -174,9 +174,8 @@ def fit_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | N
     rec_lead = prepare_record(t_s, head_m, trigger_time_s, rig, lw, record_rate_hz=record_rate_hz)
     computed = not matches(lead, rec.window_s, sweep_options, rec_lead.describe())
     if computed:
-        lead = fit_prepared(rec_lead, rig, progress=_stage_progress(progress, 0, f" (lead fit, {lw:.6g} s)"),
-                            **sweep_options)
-        lead.settings["lead_for"] = options_key(rec.window_s, sweep_options)
+        lead = _fit_lead_record(rec_lead, rig, rec.window_s,
+                                progress=_stage_progress(progress, 0, f" (lead fit, {lw:.6g} s)"), **sweep_options)
     result = fit_prepared(rec, rig, lead=lead, progress=_stage_progress(progress, 1, ""), **sweep_options)
     result.settings["lead"]["computed_in_this_fit"] = computed
     if computed:
@@ -193,9 +192,13 @@ def fit_lead(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float, *, r
     if lw is None:
         return None
     rec_lead = prepare_record(t_s, head_m, trigger_time_s, rig, lw, record_rate_hz=record_rate_hz)
+    return _fit_lead_record(rec_lead, rig, window_s, **sweep_options)
+
+
+def _fit_lead_record(rec_lead: PreparedRecord, rig: Rig, window_s: float, **sweep_options) -> SweepResult:
+    """The lead fit on its prepared record, marked with what it was made for (``matches``)."""
     lead = fit_prepared(rec_lead, rig, **sweep_options)
-    sweep_options.pop("progress", None)
-    lead.settings["lead_for"] = options_key(window_s, sweep_options)
+    lead.settings["lead_for"] = options_key(window_s, sweep_options)  # (progress is not part of the key)
     return lead
 
 

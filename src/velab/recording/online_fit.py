@@ -26,6 +26,7 @@ import numpy as np
 
 from velab.config import Rig
 from velab import fit_worker
+from velab.fitting.lead import lead_window_s
 
 log = logging.getLogger(__name__)
 MIN_FIT_WINDOW_S = 2.0
@@ -85,6 +86,12 @@ class OnlineFit:
             self._proc = fit_worker.acquire()
         except OSError as exc:  # no interpreter to start: fit here
             log.warning("no fit process (%s): the fit runs in the recorder's process", exc)
+
+    def lead_window_s(self) -> float | None:
+        """The fit path's lead part of the final window (velab.fitting.lead) for this run's fit options."""
+        if not (self.s.fit and self.s.online_fit):
+            return None
+        return lead_window_s(self.rig, self.s.fit_window_s, {"method": self.s.fit_method})
 
     @property
     def busy(self) -> bool:

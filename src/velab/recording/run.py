@@ -13,7 +13,6 @@ import time
 from velab.drivers.base import TriggerNotStarted, TriggerUnknown
 from velab.drivers.valve import ValveState
 from velab.errors import VelabError
-from velab.fitting.lead import lead_window_s
 from velab.recording import phases as P
 from velab.recording.devices import check_steady_flow, check_steady_head
 from velab.recording.layout import bench_snapshot, commanded_rig, create_run_file, run_file_name
@@ -118,7 +117,7 @@ class RunControl:
         self._timeline = Timeline(s, fs, (beta, gamma, end), ceiling, source.pressure_channel, source.valve_channel,
                                   self.hooks, self._writer.put, self._window_closed,
                                   on_baseline=lambda: self._submit(lambda: None),
-                                  lead_window_s=self._lead_window(), on_lead=self._lead_ready)
+                                  lead_window_s=self._fit.lead_window_s(), on_lead=self._lead_ready)
         valve = self.devices[self.roles["valve"]]
         self._slow = SlowChannels(valve, self.roles["valve"], self.devices[self.roles["flowmeter"]], self.hooks,
                                   self._writer.put, lambda: self._timeline.now_axis,
@@ -244,13 +243,6 @@ class RunControl:
                 return
             self._end_request = (status, reason)
         self._submit(lambda: self._do_end(status, reason))
-
-    def _lead_window(self) -> float | None:
-        """The fit path's lead part of the window (velab.fitting.lead), if the online fit has one."""
-        s = self.settings
-        if not (s.fit and s.online_fit) or self._fit is None:
-            return None
-        return lead_window_s(self._fit.rig, s.fit_window_s, {"method": s.fit_method})
 
     def _lead_ready(self) -> None:
         """From the acquisition thread: the lead's part of the window is in: its fit starts now,

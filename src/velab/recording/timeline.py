@@ -70,6 +70,12 @@ class Timeline:
         self.lead_window_s = lead_window_s
         self.on_lead = on_lead
         self._lead_sent = False
+        # quick fits at these instants after the trigger; with a lead at 80 %, not the one just
+        # before it (the lead would cancel it)
+        quick = [f * settings.fit_window_s for f in QUICK_FRACTIONS]
+        if lead_window_s is not None:
+            quick = [w for w in quick if w <= lead_window_s - 0.1 * settings.fit_window_s]
+        self._quick_windows = quick
         self.n_pre = int(round(settings.pretrigger_s * fs))
         self.gidx = 0  # global index of the next sample (gaps included)
         self.n_written = 0
@@ -276,20 +282,16 @@ class Timeline:
         self._fit_t[self._fit_n:self._fit_n + k] = t[:k]
         self._fit_h[self._fit_n:self._fit_n + k] = head[:k]
         self._fit_n += k
-        if s.fit and s.online_fit and s.intermediate_fits and not self.window_closed and self.trigger_measured \
-                and self.clean_until is None:
-            fractions = QUICK_FRACTIONS
-            if self.lead_window_s is not None:
-                # the lead fit (a full sweep) comes at 80 %: a quick fit just before it would be cancelled by it
-                fractions = tuple(f for f in fractions if f * s.fit_window_s <= self.lead_window_s - 0.1 * s.fit_window_s)
+        if not self.window_closed and self.trigger_measured and self.clean_until is None:
             after = float(t[-1]) - self.trigger_time
-            if self._quick_next < len(fractions) and after >= fractions[self._quick_next] * s.fit_window_s:
+            quick = self._quick_windows
+            if s.fit and s.online_fit and s.intermediate_fits and self._quick_next < len(quick) \
+                    and after >= quick[self._quick_next]:
                 self._quick_next += 1
-                self.on_window_closed(fractions[self._quick_next - 1] * s.fit_window_s, final=False)
-        if self.lead_window_s is not None and not self._lead_sent and not self.window_closed and self.trigger_measured \
-                and self.clean_until is None and float(t[-1]) - self.trigger_time >= self.lead_window_s:
-            self._lead_sent = True
-            self.on_lead()
+                self.on_window_closed(quick[self._quick_next - 1], final=False)
+            if self.lead_window_s is not None and not self._lead_sent and after >= self.lead_window_s:
+                self._lead_sent = True
+                self.on_lead()
 
     def _keep_pre(self, t, head) -> None:
         pb = self._pre_blocks
