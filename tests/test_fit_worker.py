@@ -69,7 +69,9 @@ def test_a_fit_error_is_named_and_the_worker_goes_on(proc):
 
 def test_a_killed_worker_fails_its_job_with_the_signal(proc):
     _, fut = proc.submit(**_kwargs(models=[0, 1, 2, 3, 4]))
-    time.sleep(0.3)
+    # stopped at once, so the job cannot finish before the kill (a sleep let a fast fit end first)
+    os.kill(proc.pid, signal.SIGSTOP)
+    assert not fut.done()
     os.kill(proc.pid, signal.SIGKILL)
     with pytest.raises(worker.WorkerDied, match="killed by signal 9"):
         fut.result(timeout=10)
