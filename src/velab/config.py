@@ -39,6 +39,7 @@ from velab.tomlschema import Reader as _Reader
 from velab.tomlschema import non_negative as _non_negative
 from velab.tomlschema import positive as _positive
 from velab.tomlschema import read_toml  # noqa: F401  (re-exported for callers of velab.config.read_toml)
+from velab.valvelaw import CHARACTERISTICS, DEFAULT_SERIES_SHARE, VALVE_LAWS, Valve, check_table
 
 # Retardation times of the paper's "reduced" Sm: the first m of these are fixed.
 REDUCED_RETARDATION_TIMES_S = (0.01, 0.1, 1.0, 10.0, 100.0)
@@ -148,6 +149,7 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
     )
     if fit["tau_min_s"] is not None and fit["tau_max_s"] is not None and not fit["tau_min_s"] < fit["tau_max_s"]:
         raise r.fail("[fit] tau_max_s", f"must be greater than tau_min_s (got {fit['tau_max_s']} <= {fit['tau_min_s']})")
+    valve = _valve_keys(r)
     rig = Rig(
         name=top["name"],
         pipe=Pipe(
@@ -167,6 +169,7 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
         **friction,
         source=str(path),
         fit=FitSettings(**fit),
+        valve=valve,
     )
     try:  # derived quantities of absurd (if finite) inputs can overflow: a config error, not a crash
         steady_head_m = rig.steady_head_m
@@ -178,6 +181,47 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
     if steady_head_m <= 0:
         raise r.fail("[flow] reservoir_head_m", f"smaller than the steady head loss {rig.steady_head_loss_m:.3g} m")
     return rig
+
+
+def _share(v: float) -> str | None:
+    return None if 0 < v <= 1 else "must be in (0, 1] (the valve's share of the steady head loss when open)"
+
+
+def _valve_keys(r: "_Reader") -> Valve:
+    """The optional [valve] table (velab.valvelaw): the flow law, MV's characteristic, its loss share."""
+    v = r.read(
+        r.table("valve", required=False) or {},
+        "[valve] ",
+        {
+            "law": _Key(str, False, "orifice", choices=VALVE_LAWS),
+            "characteristic": _Key(str, False, "butterfly", choices=CHARACTERISTICS),
+            "series_loss_share": _Key(float, False, DEFAULT_SERIES_SHARE, _share),
+            "exponent": _Key(float, False, None, _positive),
+            "position_pct": _Key(list, False, None),
+            "flow_ratio": _Key(list, False, None),
+        },
+    )
+    ch = v["characteristic"]
+    if ch == "power" and v["exponent"] is None:
+        raise r.fail("[valve] exponent", 'missing key (needed with characteristic = "power")')
+    if ch != "power" and v["exponent"] is not None:
+        raise r.fail("[valve] exponent", 'only used with characteristic = "power"')
+    table = (v["position_pct"], v["flow_ratio"])
+    if ch == "table":
+        for key, val in zip(("position_pct", "flow_ratio"), table):
+            if val is None:
+                raise r.fail(f"[valve] {key}", 'missing key (needed with characteristic = "table")')
+            if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in val):
+                raise r.fail(f"[valve] {key}", "must be an array of finite numbers")
+        try:
+            check_table(*table)
+        except ValueError as exc:
+            raise r.fail("[valve] position_pct", str(exc)) from None
+    elif any(x is not None for x in table):
+        raise r.fail("[valve] position_pct", 'only used with characteristic = "table"')
+    return Valve(law=v["law"], characteristic=ch, series_loss_share=v["series_loss_share"], exponent=v["exponent"],
+                 position_pct=tuple(float(x) for x in table[0] or ()),
+                 flow_ratio=tuple(float(x) for x in table[1] or ()))
 
 
 def _brunone_k3(v: float) -> str | None:

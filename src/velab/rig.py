@@ -12,6 +12,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 from velab.errors import ConfigError
 from velab.friction import FACTOR_LAWS, LAMINAR_RE, STEADY_LAWS, UNSTEADY_LAWS, darcy_factor
+from velab.valvelaw import Valve, valve_from_dict
 
 GRAVITY_M_S2 = 9.81
 
@@ -95,6 +96,8 @@ class Rig:
     brunone_k3: float = 0.02
     source: str = ""
     fit: FitSettings = field(default_factory=FitSettings)  # the [fit] table (velab.fitting)
+    # the valve pair and its flow law (velab.valvelaw, physics.md section 10): the [valve] table
+    valve: Valve = field(default_factory=Valve)
 
     def __post_init__(self):
         for name, value, allowed in (("friction", self.friction, STEADY_LAWS),
@@ -162,6 +165,12 @@ class Rig:
         """Head at the transducer (just upstream of the valve) before the trigger."""
         return self.reservoir_head_m - self.steady_head_loss_m
 
+    @property
+    def valve_head_m(self) -> float:
+        """Hv0: the steady head just upstream of the valve above its free discharge (the valve pair
+        discharges at the transducer's level, so this is the steady head at the transducer)."""
+        return self.steady_head_m
+
     def joukowsky_head_m(self, wave_speed_m_s: float | None = None) -> float:
         a = wave_speed_m_s or self.nominal_wave_speed_m_s
         return a * self.steady_flow_m3_s / (GRAVITY_M_S2 * self.pipe.area_m2)
@@ -196,9 +205,19 @@ def rig_from_dict(d: dict) -> Rig:
             **_friction_from_dict(d),
             source=d.get("source", ""),
             fit=FitSettings(**(d.get("fit") or {})),
+            valve=_valve_from_stored(d),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"rig description: invalid or incomplete ({exc})") from None
+
+def _valve_from_stored(d: dict) -> Valve:
+    """The valve of a stored rig. Run files written before the valve law existed were made with the
+    flow imposed as the commanded sigmoid (synthetic runs, the simulated rig), or hold records whose
+    valve nobody described (imports): they read as the paper's imposed flow."""
+    if "valve" not in d:
+        return Valve(law="imposed", characteristic="linear")
+    return valve_from_dict(d["valve"])
+
 
 def _friction_from_dict(d: dict) -> dict:
     """Friction fields of a stored rig. Run files written before quadratic friction existed
