@@ -114,6 +114,8 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
         {
             "density_kg_m3": _Key(float, False, 998.2, _positive),
             "kinematic_viscosity_m2_s": _Key(float, False, 1.004e-6, _positive),
+            # the water's temperature: its vapour pressure is the interlock's cavitation limit (velab.cavitation)
+            "temperature_c": _Key(float, False, 20.0, _water_temperature),
         },
     )
     flow = r.read(
@@ -181,6 +183,10 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
     if steady_head_m <= 0:
         raise r.fail("[flow] reservoir_head_m", f"smaller than the steady head loss {rig.steady_head_loss_m:.3g} m")
     return rig
+
+
+def _water_temperature(v: float) -> str | None:
+    return None if 0 <= v <= 100 else "must be in [0, 100] C (liquid water at atmospheric pressure)"
 
 
 def _share(v: float) -> str | None:

@@ -35,6 +35,7 @@ class Pipe:
 class Fluid:
     density_kg_m3: float = 998.2
     kinematic_viscosity_m2_s: float = 1.004e-6
+    temperature_c: float = 20.0  # sets the vapour-pressure head (velab.cavitation); stored rigs without it: 20 C
 
 
 @dataclass(frozen=True)

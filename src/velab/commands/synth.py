@@ -6,7 +6,7 @@ import argparse
 import logging
 
 from velab.commands.common import float_range, int_range, prepare_output
-from velab.errors import DataError
+from velab.errors import DataError, SafetyError
 
 log = logging.getLogger("velab.synth")
 
@@ -65,6 +65,17 @@ def check_work(rate_hz: float, duration_s: float, pretrigger_s: float) -> int:
     return int(round(n))
 
 
+def refuse_cavitation(rig) -> None:
+    """No synthetic record of a rig whose downsurge reaches the vapour-pressure head: no model of velab holds
+    there (column separation, velab.cavitation). The undamped Joukowsky downsurge, no margin (exit 3)."""
+    from velab.cavitation import predict_downsurge
+
+    down = predict_downsurge(rig, surge_margin=0.0)
+    if not down.allowed:
+        raise SafetyError(f"synthetic run refused: rig {rig.name}: "
+                          + down.message.removeprefix("manoeuvre refused: "))
+
+
 def run(args: argparse.Namespace) -> int:
     check_work(args.rate, args.duration, args.pretrigger)
     out = prepare_output(args.output, args.force)
@@ -89,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
         rig = rig.with_changes(friction=args.friction)
     if args.friction_unsteady is not None:
         rig = rig.with_changes(friction_unsteady=args.friction_unsteady)
+    refuse_cavitation(rig)
     min_rate = NYQUIST_FACTOR * manoeuvre_band_hz(rig)
     if args.rate < min_rate:
         raise DataError(f"--rate {args.rate:g} Hz cannot resolve the manoeuvre (beta {rig.manoeuvre.beta_per_s:g} 1/s: "

@@ -1,4 +1,4 @@
-"""Safety: the surge interlock, the pressure ceiling, the output-directory check.
+"""Safety: the surge interlock (and its downsurge against cavitation), the pressure ceiling, the output-directory check.
 
 Pure functions (no I/O but the directory probe), each tested alone. Per-sample quality is the
 drivers' (``SampleBlock.sample_quality``: NE43 limits, open loop, NaN, stuck counts, device
@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from velab.cavitation import predict_downsurge
 from velab.config import Rig
 from velab.drivers.base import GRAVITY_M_S2, Quality
 from velab.drivers.blocks import MEASUREMENT_CODES, QUALITY_CODE, QUALITY_CODES
@@ -36,15 +37,28 @@ class SurgePrediction:
     peak_pressure_pa: float
     limit_pa: float
     limiting: str  # "transducer full scale" | "pipe pressure rating"
-    allowed: bool
+    allowed: bool  # neither the peak over the limit nor the downsurge at the vapour-pressure head
     message: str
+    # the first downsurge against column separation (velab.cavitation)
+    min_head_m: float = math.nan
+    vapour_head_m: float = math.nan
+    cavitation: bool = False
 
 
-def predict_surge(rig: Rig, settings: RecordSettings, steady_head_m: float | None = None) -> SurgePrediction:
-    """Joukowsky surge a*dQ/(g A) over the steady head, plus margin, against the rig's limits."""
+def predict_surge(rig: Rig, settings: RecordSettings, steady_head_m: float | None = None,
+                  steady_flow_m3_s: float | None = None) -> SurgePrediction:
+    """Joukowsky surge a*dQ/(g A) over the steady head, plus margin, against the rig's limits; and the
+    same below the steady head against the vapour-pressure head (column separation, velab.cavitation).
+
+    Conservative on both sides: the peak from the higher of the measured and the rig's steady head,
+    the downsurge from the lower one, and from the measured flow if given, else from the highest flow
+    the readiness check lets through (the rig's Q0 plus the flow tolerance)."""
     rho_g = rig.fluid.density_kg_m3 * GRAVITY_M_S2
     h0 = rig.steady_head_m if steady_head_m is None else max(float(steady_head_m), rig.steady_head_m)
     dq_frac = (100.0 - settings.end_position_pct) / 100.0
+    low = rig.steady_head_m if steady_head_m is None else min(float(steady_head_m), rig.steady_head_m)
+    flow = rig.steady_flow_m3_s * (1.0 + settings.flow_tolerance) if steady_flow_m3_s is None else steady_flow_m3_s
+    down = predict_downsurge(rig, low, flow, surge_margin=settings.surge_margin, closed_fraction=dq_frac)
     surge = rig.joukowsky_head_m() * dq_frac * (1.0 + settings.surge_margin)
     peak = h0 + surge
     peak_pa = peak * rho_g
@@ -56,7 +70,12 @@ def predict_surge(rig: Rig, settings: RecordSettings, steady_head_m: float | Non
            f"({limit_pa / 1e5:.2f} bar = {limit_pa / rho_g:.1f} m)")
     if not allowed:
         msg = "manoeuvre refused: " + msg
-    return SurgePrediction(h0, surge, peak, peak_pa, limit_pa, limiting, allowed, msg)
+        if not down.allowed:
+            msg += "; and " + down.message.removeprefix("manoeuvre refused: ")
+    elif not down.allowed:
+        msg = down.message  # one line naming cavitation and the vapour-pressure head
+    return SurgePrediction(h0, surge, peak, peak_pa, limit_pa, limiting, allowed and down.allowed, msg,
+                           down.min_head_m, down.vapour_head_m, not down.allowed)
 
 
 def limit_pressure(rig: Rig) -> tuple[float, str]:
