@@ -15,8 +15,9 @@ from velab.config import GRAVITY_M_S2
 from velab.friction import weighting_exponentials
 
 
-def march_reference(rig, J_rel, tau, q_valve, n_reach, dt, a, friction, unsteady):
-    """(head at the valve, reservoir flow) at t_n = n dt; arguments as velab.moc.solver.run."""
+def march_reference(rig, J_rel, tau, q_valve, n_reach, dt, a, friction, unsteady, *, opening=None):
+    """(head at the valve, reservoir flow, valve flow) at t_n = n dt; arguments as velab.moc.solver.run
+    (``q_valve=None`` and ``opening``: the orifice law at the valve, solved as a quadratic in Q_P)."""
     p = rig.pipe
     A = p.area_m2
     B = a / (GRAVITY_M_S2 * A)
@@ -53,8 +54,9 @@ def march_reference(rig, J_rel, tau, q_valve, n_reach, dt, a, friction, unsteady
     q = np.zeros(n_reach + 1)
     q_old = np.zeros(n_reach + 1)
     eps = np.zeros((J_rel.shape[0], n_reach + 1))
-    head, q_res = [], []
-    for n in range(q_valve.size):
+    hv0 = rig.valve_head_m
+    head, q_res, q_val = [], [], []
+    for n in range(q_valve.size if opening is None else len(opening)):
         # creep: dt * rate at every node (old level), and dt deps/dt at P = G h_P + S
         rate = dt * np.sum((J_rel * h - eps) / tau, axis=0)
         c0 = J_rel * (tau * (1 - e) / dt - e) * h + e * eps
@@ -82,8 +84,16 @@ def march_reference(rig, J_rel, tau, q_valve, n_reach, dt, a, friction, unsteady
         q_new[1:-1] = (c1[:-1] - c2[1:]) / (bp + bm)
         h_new[1:-1] = (c1[:-1] - bp * q_new[1:-1]) / (1 + G / 2)
         q_new[0] = -c2[0] / b[1]  # reservoir, h = 0
-        q_new[-1] = q_valve[n]  # valve, imposed flow
-        h_new[-1] = (c1[-1] - b[-2] * q_valve[n]) / (1 + G / 2)
+        if opening is None:
+            qv = q_valve[n]  # valve, imposed flow
+        else:  # orifice: (Q0 + q)^2 = (Q0 tau)^2 / Hv0 (Hv0 + h), h from C+; numpy's quadratic root
+            K2 = (q0 * opening[n]) ** 2 / hv0
+            bb = b[-2] / (1 + G / 2)
+            D = hv0 + (c1[-1] + b[-2] * q0) / (1 + G / 2)
+            roots = np.roots([1.0, K2 * bb, -K2 * D]) if K2 > 0 else np.zeros(1)
+            qv = max(0.0, float(np.max(roots.real))) - q0
+        q_new[-1] = qv
+        h_new[-1] = (c1[-1] - b[-2] * qv) / (1 + G / 2)
         eps = J_rel * (1 - tau * (1 - e) / dt) * h_new + c0
         if unsteady == "vardy-brown":
             y = decay * y + weight * (q_new - q)
@@ -91,4 +101,5 @@ def march_reference(rig, J_rel, tau, q_valve, n_reach, dt, a, friction, unsteady
         h, q = h_new, q_new
         head.append(h[-1])
         q_res.append(q[0])
-    return np.array(head), np.array(q_res)
+        q_val.append(q[-1])
+    return np.array(head), np.array(q_res), np.array(q_val)

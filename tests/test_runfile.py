@@ -18,20 +18,22 @@ from velab.config import load_material, load_rig
 from velab.errors import DataError
 from velab.model import valve_head
 from velab.runfile import Channel, HEAD, RunWriter, fits_group, read_run, write_run
+from velab.synth import with_valve_law
 
 
 @pytest.fixture(scope="module")
 def synth_run(tmp_path_factory):
     path = tmp_path_factory.mktemp("runs") / "a.h5"
-    # linear friction: the paper's synthetic experiment, made by the frequency-domain model
+    # linear friction, the sigmoid imposed as the flow: the paper's synthetic experiment, made by the
+    # frequency-domain model
     assert main(["synth", "--material", "A", "--noise", "0", "--duration", "5", "--pretrigger", "0.5",
-                 "--friction", "linear", "-o", str(path)]) == 0
+                 "--friction", "linear", "--valve", "imposed", "-o", str(path)]) == 0
     return path
 
 
 def test_synth_noise_free_is_the_model(synth_run):
     r = read_run(synth_run)
-    rig, mat = load_rig("perugia").with_changes(friction="linear"), load_material("A")
+    rig, mat = with_valve_law(load_rig("perugia").with_changes(friction="linear"), "imposed"), load_material("A")
     assert r.status == "synthetic"
     assert r.sample_rate_hz == 1000.0
     assert r.time_s[0] == pytest.approx(-0.5) and r.time_s[-1] == pytest.approx(4.999)
@@ -46,8 +48,8 @@ def test_synth_noise_is_seeded_and_shared_between_materials(tmp_path):
     for mat in ("A", "B"):
         paths[mat] = tmp_path / f"{mat}.h5"
         assert main(["synth", "--material", mat, "--duration", "2", "--pretrigger", "0", "--friction", "linear",
-                     "-o", str(paths[mat])]) == 0
-    rig = load_rig("perugia").with_changes(friction="linear")
+                     "--valve", "imposed", "-o", str(paths[mat])]) == 0
+    rig = with_valve_law(load_rig("perugia").with_changes(friction="linear"), "imposed")
     ra, rb = read_run(paths["A"]), read_run(paths["B"])
     na = ra.head_m - rig.steady_head_m - valve_head(ra.time_s, rig, load_material("A"))
     nb = rb.head_m - rig.steady_head_m - valve_head(rb.time_s, rig, load_material("B"))
@@ -267,7 +269,7 @@ def test_synth_matches_the_independent_moc_solver(synth_run):
     from velab.moc import moc_valve_head
 
     r = read_run(synth_run)
-    rig, mat = load_rig("perugia").with_changes(friction="linear"), load_material("A")
+    rig, mat = with_valve_law(load_rig("perugia").with_changes(friction="linear"), "imposed"), load_material("A")
     t_moc, h_moc = moc_valve_head(rig, mat, 5.0, 1e-3)
     after = r.time_s >= 0
     h_synth = np.interp(t_moc, r.time_s[after], r.head_perturbation()[after])

@@ -144,3 +144,9 @@ def orifice_coupling(head_rise_m, valve_head_m: float) -> np.ndarray:
 def orifice_flow(opening, head_rise_m, steady_flow_m3_s: float, valve_head_m: float) -> np.ndarray:
     """Q = Q0 tau sqrt((Hv0 + h) / Hv0) (m^3/s)."""
     return steady_flow_m3_s * np.asarray(opening, dtype=float) * orifice_coupling(head_rise_m, valve_head_m)
+
+
+def imposed_flow(position_pct, steady_flow_m3_s: float) -> np.ndarray:
+    """The imposed law's flow for a valve position: Q = Q0 p / 100 (m^3/s), p clipped to 0..100 (the
+    flow follows the command; the simulated rig before the orifice law, stored rigs without a valve)."""
+    return steady_flow_m3_s * np.clip(np.asarray(position_pct, dtype=float), 0.0, 100.0) / 100.0

@@ -1,4 +1,5 @@
-"""``velab synth``: a synthetic water-hammer run of a known material (the paper's experiment with --friction linear)."""
+"""``velab synth``: a synthetic water-hammer run of a known material (the paper's experiment with
+--friction linear --valve imposed)."""
 
 from __future__ import annotations
 
@@ -13,19 +14,23 @@ log = logging.getLogger("velab.synth")
 # The work is bounded before anything is allocated: samples = rate x (pretrigger + duration).
 # 5 million samples (50 kHz x 100 s) take about 1.5 GB at the model's peak.
 MAX_SAMPLES = 5_000_000
-# The sampling rate must resolve the manoeuvre: at least twice the frequency above which the
-# sigmoid's spectrum is negligible (velab.model.manoeuvre_band_hz; 62 Hz for beta = 32 1/s).
+# The sampling rate must resolve the manoeuvre: at least twice the frequency above which the valve
+# flow's spectrum is negligible (velab.synth.flow_band_hz: the imposed sigmoid's band is 31 Hz for
+# beta = 32 1/s; the orifice law on a butterfly closes the flow about twice as fast).
 NYQUIST_FACTOR = 2.0
 
 
 def register(sub) -> None:
     p = sub.add_parser(
         "synth",
-        help="synthesise a run of a known material (the rig's friction; --friction linear: the paper's experiment)",
+        help="synthesise a run of a known material (the rig's valve and friction; --friction linear --valve "
+        "imposed: the paper's experiment)",
         description="Synthesise the head at the valve for a pipe-wall material on a rig, add white noise, and "
-        "write a run file. The rig's friction laws make the data (the reference rigs: quadratic Darcy-Weisbach, "
-        "through the time-domain model); --friction linear gives the paper's synthetic experiment (the "
-        "frequency-domain model). Materials: built-in names (A, B, elastic, hdpe_s1) "
+        "write a run file. The rig's valve and friction laws make the data (the reference rigs: the actuator "
+        "moves the butterfly valve along the sigmoid in position and the flow obeys the orifice law, with "
+        "quadratic Darcy-Weisbach friction, through the time-domain model); --friction linear --valve imposed "
+        "gives the paper's synthetic experiment (the sigmoid is the flow; the frequency-domain model). "
+        "Materials: built-in names (A, B, elastic, hdpe_s1) "
         "or a TOML file with wave_speed_m_s and [[kelvin_voigt]] elements (E_pa + eta_pa_s or J_per_pa + tau_s). "
         f"The rate must resolve the manoeuvre (at least {NYQUIST_FACTOR:g} x its band) and rate x (pretrigger + "
         f"duration) is at most {MAX_SAMPLES:,} samples.",
@@ -50,6 +55,9 @@ def register(sub) -> None:
                    "(default: the rig's)")
     p.add_argument("--friction-unsteady", metavar="LAW",
                    help="unsteady friction: none, vardy-brown (weighting function), brunone (default: the rig's)")
+    p.add_argument("--valve", choices=("orifice", "imposed"),
+                   help="the valve: orifice (the sigmoid is the valve's position, the flow obeys the orifice law "
+                   "of the rig's [valve]), imposed (the sigmoid is the flow, the paper's model) (default: the rig's)")
     p.add_argument("-o", "--output", required=True, help="run file to write (.h5)")
     p.add_argument("--force", action="store_true", help="replace an existing output file")
     p.add_argument("--title", default=None, help="run title")
@@ -82,8 +90,8 @@ def run(args: argparse.Namespace) -> int:
 
     from velab.config import Manoeuvre, load_material, load_rig
     from velab.friction import STEADY_LAWS, UNSTEADY_LAWS
-    from velab.model import manoeuvre_band_hz
-    from velab.synth import PAPER_NOISE_STD_M, PAPER_SEED, SynthSettings, friction_is_linear, synthesise
+    from velab.synth import (PAPER_NOISE_STD_M, PAPER_SEED, SynthSettings, flow_band_hz, head_model, synthesise,
+                             with_valve_law)
 
     for option, value, laws in (("--friction", args.friction, STEADY_LAWS),
                                 ("--friction-unsteady", args.friction_unsteady, UNSTEADY_LAWS)):
@@ -100,8 +108,10 @@ def run(args: argparse.Namespace) -> int:
         rig = rig.with_changes(friction=args.friction)
     if args.friction_unsteady is not None:
         rig = rig.with_changes(friction_unsteady=args.friction_unsteady)
+    if args.valve is not None:
+        rig = with_valve_law(rig, args.valve)
     refuse_cavitation(rig)
-    min_rate = NYQUIST_FACTOR * manoeuvre_band_hz(rig)
+    min_rate = NYQUIST_FACTOR * flow_band_hz(rig)
     if args.rate < min_rate:
         raise DataError(f"--rate {args.rate:g} Hz cannot resolve the manoeuvre (beta {rig.manoeuvre.beta_per_s:g} 1/s: "
                         f"band {min_rate / NYQUIST_FACTOR:.3g} Hz); use at least {min_rate:.3g} Hz")
@@ -111,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
                       duration_s=args.duration, pretrigger_s=args.pretrigger)
     log.info("synthesising %s on %s: %g Hz, %g s + %g s", material.name, rig.name, s.sample_rate_hz,
              s.pretrigger_s, s.duration_s)
-    t, head, flow = synthesise(rig, material, s)
+    t, head, flow, position = synthesise(rig, material, s)
     import numpy as np
 
     if not (np.isfinite(head).all() and np.isfinite(flow).all()):
@@ -120,15 +130,21 @@ def run(args: argparse.Namespace) -> int:
                         f"nothing written")
     from velab.runfiles import write_run
 
-    model = "frequency-domain model" if friction_is_linear(rig) else "time-domain model (MOC)"
-    friction = {"friction": rig.friction, "friction_unsteady": rig.friction_unsteady, "head_model": model}
+    model = head_model(rig)
+    friction = {"friction": rig.friction, "friction_unsteady": rig.friction_unsteady, "valve": rig.valve.law,
+                "head_model": model}
+    # the flow the model let through, and with the orifice law the position that made it
+    channels = {"flow": (flow, "m^3/s")}
+    if position is not None:
+        channels["valve_position"] = (position, "%")
     title = args.title or f"synthetic {material.model_name} material {material.name} on {rig.name}"
     write_run(
         out, rig, t, head, status="synthetic", title=title, material=material, noise_std_m=s.noise_std_m,
-        extra_channels={"flow": (flow, "m^3/s")}, sample_rate_hz=s.sample_rate_hz, overwrite=args.force,
+        extra_channels=channels, sample_rate_hz=s.sample_rate_hz, overwrite=args.force,
         source={"kind": "synth", "material": str(args.material), "rig": str(args.rig), **s.__dict__, **friction},
         settings={"synth": {**s.__dict__, **friction}, "rig": str(args.rig), "material": str(args.material)},
     )
     print(f"wrote {out}: {material.model_name} material {material.name}, {t.size} samples at {s.sample_rate_hz:g} Hz, "
-          f"noise {s.noise_std_m:g} m (seed {s.seed}); friction {rig.friction_description} ({model})")
+          f"noise {s.noise_std_m:g} m (seed {s.seed}); valve: {rig.valve.describe()}; friction "
+          f"{rig.friction_description} ({model})")
     return 0

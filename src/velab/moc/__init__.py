@@ -2,15 +2,22 @@
 
 It integrates the same physics as the frequency-domain model in :mod:`velab.model`
 on a fixed characteristic grid (Covas et al. 2005), with what that model cannot
-carry: the true quadratic steady friction and Brunone's unsteady friction. With
-the linearised friction it is an independent check of the frequency model (they
-share only the rig constants and the imposed q(t)).
+carry: the true quadratic steady friction, Brunone's unsteady friction and the valve's
+orifice law (physics.md section 10). With the linearised friction and the imposed flow
+it is an independent check of the frequency model (they share only the rig constants
+and the imposed q(t)).
 
 Entry points
 ------------
 * :func:`moc_head` -- head at the valve on any sample grid, for the wall parameters
-  of the calibration (a, J'_k, tau_k): the fast model for fitting and synthesis;
-* :func:`moc_solve` -- the solver on its own grid, with the reservoir flow: for checks.
+  of the calibration (a, J'_k, tau_k): the fast model for fitting and synthesis. The
+  valve takes the rig's sigmoid as an imposed flow (the paper's model, what the fit's
+  friction correction uses), or ``flow=`` another imposed flow, or ``opening=`` /
+  ``position=`` the valve's opening or position through the orifice law;
+* :func:`moc_transient` -- the same, with the flow through the valve (what the orifice
+  law let through): synthetic runs and the simulated rig;
+* :func:`moc_solve` -- the solver on its own grid, with the reservoir and valve flows,
+  following the rig's valve law (``rig.valve.law``): for checks.
 
 Formulation
 -----------
@@ -53,7 +60,15 @@ Characteristics (B = a / (g A)):
 
 Friction is explicit (evaluated at the foot of the characteristic, A or B), as
 in Covas et al. Boundaries: the reservoir node keeps h = 0 (so its wall never
-creeps); the valve node takes the imposed q(t).
+creeps); the valve node takes the imposed q(t), or solves the orifice law of the
+valve pair (velab.valvelaw) with C+: with h_P = c - b' q_P from C+ and X = Q0 + q_P,
+
+    X^2 = K^2 (Hv0 + h_P),   K = Q0 tau / sqrt(Hv0),
+
+a quadratic in X whose non-negative root is taken (X = 0 when the head would fall
+below the free discharge: nothing flows back in through a valve discharging to air).
+tau(t) is the valve pair's effective opening at each step, Hv0 = ``Rig.valve_head_m``.
+The orifice law makes the transient nonlinear whatever the friction.
 
 Grid: dx = a dt exactly, with N reaches. ``moc_solve`` takes N = round(L / (a dt))
 and adjusts the *time step* to dt' = L / (N a) (``adjust="dt"``, default) so that
@@ -67,8 +82,8 @@ step about 60x faster than the vectorised numpy loop it replaces; ``moc_head`` o
 20 s at 1 kHz costs about 11 ms (docs/model.md, benchmarks/model_eval.py).
 """
 
-from velab.moc.head import default_dt_s, moc_head, n_reaches, warm_up
+from velab.moc.head import ValveTransient, commanded_opening, default_dt_s, moc_head, moc_transient, n_reaches, warm_up
 from velab.moc.solver import FRICTION_LAWS, MocResult, grid, moc_solve, moc_valve_head
 
-__all__ = ["FRICTION_LAWS", "MocResult", "default_dt_s", "grid", "moc_head", "moc_solve", "moc_valve_head",
-           "n_reaches", "warm_up"]
+__all__ = ["FRICTION_LAWS", "MocResult", "ValveTransient", "commanded_opening", "default_dt_s", "grid", "moc_head",
+           "moc_solve", "moc_transient", "moc_valve_head", "n_reaches", "warm_up"]

@@ -19,6 +19,15 @@ not; the continuous rest is the other way round. So:
   nonlinear friction as it does in the pipe (up to 4 cm on the imperial rig), and sits
   at its exact instant, band-limited as in ``valve_head``.
 
+With the orifice law at the valve (``opening=``, ``position=``) the flow is not given but
+solved with the head, so the transient is nonlinear whatever the friction: the commanded
+sigmoid in position starts 0.41 % closed at the trigger, which a butterfly valve turns into
+a flow step of 0.03 % of Q0 (the orifice law's own response, the first step of the MOC). That
+step is taken apart as for the nonlinear laws: the MOC of the whole transient minus the
+linear MOC of that step alone, resampled without straddling a front, plus the frequency
+model's response to the step at the trigger's exact instant. The valve flow on the samples
+is the step plus the resampled rest, never below zero flow.
+
 With the linear laws ``moc_head`` agrees with ``valve_head`` up to the MOC's own
 (second-order) discretisation error, at any trigger offset (docs/model.md).
 """
@@ -26,6 +35,7 @@ With the linear laws ``moc_head`` agrees with ``valve_head`` up to the MOC's own
 from __future__ import annotations
 
 from collections import OrderedDict
+from dataclasses import dataclass
 from threading import Lock
 
 import numpy as np
@@ -34,6 +44,7 @@ from velab.config import Rig
 from velab.model import ValveHeadModel, flow_perturbation
 from velab.moc import kernel
 from velab.moc.solver import check_laws, run
+from velab.valvelaw import commanded_position_pct, imposed_flow
 
 DEFAULT_DT_S = 2e-3  # MOC step when none is given: second order, ~1e-4 hJ on the reference rig (docs/model.md)
 _STEP_MODELS: OrderedDict = OrderedDict()
@@ -75,8 +86,22 @@ def _step_model(rig: Rig, t: np.ndarray) -> ValveHeadModel:
     return model
 
 
+@dataclass(frozen=True)
+class ValveTransient:
+    """:func:`moc_transient` on the sample grid: perturbations at the valve, zeros before the trigger.
+
+    head_m : head h(t) just upstream of the valve (m above the steady head).
+    flow_m3_s : flow q(t) = Q(t) - Q0 through the valve (m^3/s): the imposed flow, or the one the
+        orifice law gave.
+    """
+
+    head_m: np.ndarray
+    flow_m3_s: np.ndarray
+
+
 def moc_head(rig: Rig, wave_speed_m_s: float, J_rel, tau_s, t_s, *, friction: str | None = None,
-             unsteady: str | None = None, dt_s: float | None = None, flow=None) -> np.ndarray:
+             unsteady: str | None = None, dt_s: float | None = None, flow=None, opening=None,
+             position=None) -> np.ndarray:
     """Head perturbation (m) at the valve on the sample grid t_s, from the time-domain model.
 
     t_s : uniform grid, s from the trigger; it may start negative (zeros before 0) and
@@ -86,14 +111,51 @@ def moc_head(rig: Rig, wave_speed_m_s: float, J_rel, tau_s, t_s, *, friction: st
         retardation times tau_k: the parameters of ``ValveHeadModel.head_params(a, J_rel, tau)``.
     friction : steady law ``"quadratic"``, ``"linear"``, ``"none"``; None -> ``rig.friction``.
     unsteady : ``"none"``, ``"vardy-brown"``, ``"brunone"``; None -> ``rig.friction_unsteady``.
-    dt_s : MOC step (default :func:`default_dt_s`, 1 ms on the reference rig); the grid has
+    dt_s : MOC step (default :func:`default_dt_s`, 2 ms on the reference rig); the grid has
         N = round(L / (a_nominal dt_s)) reaches and its step is L / (N a).
-    flow : optional callable t -> q(t), the valve's flow perturbation for t >= 0 (m^3/s;
-        default the rig's sigmoid). Its value at t = 0 is the step at the trigger.
+
+    The valve node (at most one of these; none: the rig's sigmoid imposed as the flow, whatever
+    ``rig.valve`` says -- the paper's model, which the fit's friction correction uses):
+
+    flow : callable t -> q(t), the valve's flow perturbation for t >= 0 (m^3/s), imposed.
+        Its value at t = 0 is the step at the trigger.
+    opening : callable t -> tau(t), the valve pair's effective opening (1 open, 0 shut) for t >= 0:
+        the flow obeys the orifice law Q = Q0 tau sqrt((Hv0 + h)/Hv0), Hv0 = ``rig.valve_head_m``.
+    position : callable t -> p(t), the valve's position (% open) for t >= 0, through ``rig.valve``:
+        its law "orifice" -> the orifice law with tau = ``rig.valve.opening(p)``; "imposed" ->
+        the flow Q0 p / 100 imposed.
     """
+    return _transient(rig, wave_speed_m_s, J_rel, tau_s, t_s, friction, unsteady, dt_s, flow, opening, position,
+                      with_flow=False).head_m
+
+
+def moc_transient(rig: Rig, wave_speed_m_s: float, J_rel, tau_s, t_s, *, friction: str | None = None,
+                  unsteady: str | None = None, dt_s: float | None = None, flow=None, opening=None,
+                  position=None) -> ValveTransient:
+    """Head and flow at the valve on the sample grid t_s: :func:`moc_head`'s arguments, and the
+    valve's flow as well (what the orifice law made of the opening, or the imposed flow)."""
+    return _transient(rig, wave_speed_m_s, J_rel, tau_s, t_s, friction, unsteady, dt_s, flow, opening, position,
+                      with_flow=True)
+
+
+def commanded_opening(rig: Rig):
+    """t -> tau(t) of the rig's commanded sigmoid in position (full closure) through ``rig.valve``."""
+    m = rig.manoeuvre
+    return lambda x: rig.valve.opening(commanded_position_pct(x, m.beta_per_s, m.gamma))
+
+
+def _transient(rig, wave_speed_m_s, J_rel, tau_s, t_s, friction, unsteady, dt_s, flow, opening, position,
+               with_flow: bool) -> ValveTransient:
     friction = rig.friction if friction is None else friction
     unsteady = rig.friction_unsteady if unsteady is None else unsteady
     check_laws(friction, unsteady)
+    if sum(x is not None for x in (flow, opening, position)) > 1:
+        raise ValueError("give the valve's flow, its opening or its position, not several")
+    if position is not None:
+        if rig.valve.law == "orifice":
+            opening = lambda x: rig.valve.opening(position(x))  # noqa: E731
+        else:
+            flow = lambda x: imposed_flow(position(x), rig.steady_flow_m3_s) - rig.steady_flow_m3_s  # noqa: E731
     t = np.asarray(t_s, dtype=float)
     if t.ndim != 1 or t.size < 2:
         raise ValueError("time grid must be a 1-D array of at least 2 samples")
@@ -101,36 +163,62 @@ def moc_head(rig: Rig, wave_speed_m_s: float, J_rel, tau_s, t_s, *, friction: st
     if not a > 0:
         raise ValueError(f"wave speed must be positive, got {wave_speed_m_s}")
     out = np.zeros(t.size)
+    q_out = np.zeros(t.size) if with_flow else out
     after = t >= 0.0
     if not after.any():
-        return out
+        return ValveTransient(out, q_out)
     n_reach = n_reaches(rig, default_dt_s(rig) if dt_s is None else float(dt_s))
     dt = rig.pipe.length_m / (n_reach * a)
     n_steps = int(np.floor(t[-1] / dt)) + 4  # the stencil reaches three points past the last sample
     t_grid = np.arange(n_steps) * dt
-    q_of = (lambda x: flow_perturbation(x, rig)) if flow is None else flow
-    step = float(np.asarray(q_of(np.zeros(1)), dtype=float).reshape(-1)[0])
-    q_grid = np.asarray(q_of(t_grid), dtype=float)
+    t_after = np.ascontiguousarray(t[after])
     # the linear laws closest to the requested ones: the step's response is taken with them
     lin_friction = "none" if friction == "none" else "linear"
     lin_unsteady = "vardy-brown" if unsteady == "vardy-brown" else "none"
-    # (in laminar flow the "quadratic" law is Poiseuille's, linear)
-    linear = (friction == lin_friction or rig.laminar) and unsteady == lin_unsteady
-    t_after = np.ascontiguousarray(t[after])
-    if linear or step == 0.0:
-        head_grid, _ = run(rig, J_rel, tau_s, q_grid - step, n_reach, dt, a, friction, unsteady)
-        out[after] = kernel.resample_cubic(head_grid, dt, t_after, 0)
+    if opening is not None:
+        # the orifice law is nonlinear whatever the friction: the MOC takes the whole transient, and the
+        # flow step it finds at the trigger (tau(0+) < 1: the commanded sigmoid starts 0.4 % closed) is
+        # treated as the nonlinear laws' step below
+        tau_grid = np.asarray(opening(t_grid), dtype=float).reshape(-1)
+        if tau_grid.size != n_steps:
+            raise ValueError("the opening must be a callable t -> tau(t) giving one value per instant")
+        head_grid, _, q_grid = run(rig, J_rel, tau_s, None, n_reach, dt, a, friction, unsteady, opening=tau_grid)
+        step = float(q_grid[0])
+        if step == 0.0:
+            out[after] = kernel.resample_cubic(head_grid, dt, t_after, 0)
+            if with_flow:
+                q_out[after] = kernel.resample_cubic(q_grid, dt, t_after, 0)
+        else:
+            step_grid, _, _ = run(rig, J_rel, tau_s, np.full(n_steps, step), n_reach, dt, a, lin_friction,
+                                  lin_unsteady)
+            out[after] = kernel.resample_cubic(head_grid - step_grid, dt, t_after, 2 * n_reach)
+            if with_flow:  # the step sits at the trigger's exact instant; the fronts it sends back stay sharp
+                q_out[after] = step + kernel.resample_cubic(q_grid - step, dt, t_after, 2 * n_reach)
+        if with_flow:  # the interpolation must not undershoot where the orifice law shut the flow off
+            np.maximum(q_out, -rig.steady_flow_m3_s, out=q_out)
     else:
-        head_grid, _ = run(rig, J_rel, tau_s, q_grid, n_reach, dt, a, friction, unsteady)
-        step_grid, _ = run(rig, J_rel, tau_s, np.full(n_steps, step), n_reach, dt, a, lin_friction, lin_unsteady)
-        out[after] = kernel.resample_cubic(head_grid - step_grid, dt, t_after, 2 * n_reach)
+        q_of = (lambda x: flow_perturbation(x, rig)) if flow is None else flow
+        step = float(np.asarray(q_of(np.zeros(1)), dtype=float).reshape(-1)[0])
+        q_grid = np.asarray(q_of(t_grid), dtype=float)
+        # (in laminar flow the "quadratic" law is Poiseuille's, linear)
+        linear = (friction == lin_friction or rig.laminar) and unsteady == lin_unsteady
+        if linear or step == 0.0:
+            head_grid, _, _ = run(rig, J_rel, tau_s, q_grid - step, n_reach, dt, a, friction, unsteady)
+            out[after] = kernel.resample_cubic(head_grid, dt, t_after, 0)
+        else:
+            head_grid, _, _ = run(rig, J_rel, tau_s, q_grid, n_reach, dt, a, friction, unsteady)
+            step_grid, _, _ = run(rig, J_rel, tau_s, np.full(n_steps, step), n_reach, dt, a, lin_friction,
+                                  lin_unsteady)
+            out[after] = kernel.resample_cubic(head_grid - step_grid, dt, t_after, 2 * n_reach)
+        if with_flow:
+            q_out[after] = np.asarray(q_of(t_after), dtype=float)
     if step != 0.0:
         lin = rig.with_changes(friction=lin_friction, friction_unsteady=lin_unsteady)
         h_step = _step_model(lin, t).head_params(a, np.asarray(J_rel, dtype=float), np.asarray(tau_s, dtype=float))
         # (the band-limited step's pre-ringing on a sample less than half a step before the
         # trigger, which valve_head keeps, is dropped: zeros before the trigger)
         out[after] += step * h_step[after]
-    return out
+    return ValveTransient(out, q_out)
 
 
 def warm_up() -> None:
@@ -138,6 +226,7 @@ def warm_up() -> None:
     the kernels, on a tiny problem: call it before a thread with a deadline needs the model."""
     q = np.linspace(0.0, -1e-3, 8)
     for mode in (kernel.UNSTEADY_NONE, kernel.UNSTEADY_WEIGHTING):
-        kernel.march(2, 1.0, q, kernel.STEADY_QUADRATIC, 0.0, 1e-3, 1e-3, np.ones(1), np.ones(1) * 0.5,
-                     np.ones(1), np.ones(1) * 0.1, np.ones(1) * 0.01, 0.1, mode, np.ones(1) * 0.5, np.ones(1), 0.0, 0.0)
+        kernel.march(2, 1.0, q, kernel.VALVE_IMPOSED, 0.0, kernel.STEADY_QUADRATIC, 0.0, 1e-3, 1e-3, np.ones(1),
+                     np.ones(1) * 0.5, np.ones(1), np.ones(1) * 0.1, np.ones(1) * 0.01, 0.1, mode, np.ones(1) * 0.5,
+                     np.ones(1), 0.0, 0.0)
     kernel.resample_cubic(q, 1.0, np.linspace(0.0, 4.0, 5), 4)

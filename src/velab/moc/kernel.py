@@ -21,16 +21,25 @@ from numba import njit
 STEADY_NONE, STEADY_LINEAR, STEADY_QUADRATIC = 0, 1, 2
 # unsteady friction
 UNSTEADY_NONE, UNSTEADY_WEIGHTING, UNSTEADY_BRUNONE = 0, 1, 2
+# the valve node: the flow imposed, or the orifice law of the valve pair (physics.md section 10)
+VALVE_IMPOSED, VALVE_ORIFICE = 0, 1
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
-def march(n_reach, B, q_valve, steady, adt_R, adt_k, q0,
+def march(n_reach, B, valve, valve_law, hv0, steady, adt_R, adt_k, q0,
           creep_old, creep_decay, creep_new, creep_rate, creep_J, creep_gain,
           unsteady, wf_decay, wf_weight, wf_gain, k3_B):
-    """March n_steps = q_valve.size steps from the undisturbed state; return (head at valve, reservoir flow).
+    """March n_steps = valve.size steps from the undisturbed state.
+
+    Returns (head at the valve, reservoir flow, valve flow), perturbations at t_n = n dt.
 
     n_reach : N (N + 1 nodes, node 0 at the reservoir, node N at the valve).
-    B : a / (g A). q_valve : imposed valve flow perturbation at t_n = n dt.
+    B : a / (g A).
+    valve, valve_law, hv0 : the valve node at t_n = n dt. VALVE_IMPOSED: ``valve`` is the imposed
+        flow perturbation q. VALVE_ORIFICE: ``valve`` is the effective opening tau of the valve pair
+        and the flow obeys the orifice law (Q0 + q)^2 = (Q0 tau)^2 / Hv0 (Hv0 + h) with C+, hv0 = Hv0
+        (m): a quadratic in Q = Q0 + q, its non-negative root; Q = 0 once the head would fall below
+        the free discharge (nothing flows back in through a valve discharging to air).
     steady, adt_R, adt_k, q0 : steady friction a dt (J(Q0 + q) - J(Q0)) with its slope
         (linear adt_R q; quadratic adt_k ((Q0 + q)|Q0 + q| - Q0^2)), trapezoidal in time
         with J(q_P) linearised about the foot (semi-implicit, second order).
@@ -42,7 +51,7 @@ def march(n_reach, B, q_valve, steady, adt_R, adt_k, q0,
     unsteady, wf_*, k3_B : weighting-function history y_k (y = wf_decay y + wf_weight dq,
         term wf_gain sum_k y_k) or Brunone's k3 B (dq_t + sign(Q) |dq_x|); explicit at the foot.
     """
-    n_steps = q_valve.size
+    n_steps = valve.size
     n1 = n_reach + 1
     m = creep_old.size
     kw = wf_decay.size
@@ -60,6 +69,7 @@ def march(n_reach, B, q_valve, steady, adt_R, adt_k, q0,
     dq = np.zeros(n1)
     head = np.empty(n_steps)
     q_res = np.empty(n_steps)
+    q_val = np.empty(n_steps)
     half_G1 = 1.0 + 0.5 * creep_gain
     inv_half_G1 = 1.0 / half_G1
     q0sq = q0 * q0
@@ -106,12 +116,26 @@ def march(n_reach, B, q_valve, steady, adt_R, adt_k, q0,
             qn = (c1 - c2) / (bp + bm)
             q[i] = qn
             h[i] = (c1 - bp * qn) * inv_half_G1
-        # reservoir: h = 0 (no creep there), C- gives q; valve: imposed q, C+ gives h
+        # reservoir: h = 0 (no creep there), C- gives q; valve: q imposed or from the orifice law, C+ gives h
         h[0] = 0.0
         q[0] = -(cm[1] - 0.5 * S[0]) / b[1]
-        qv = q_valve[n]
+        c1 = cp[n_reach - 1] - 0.5 * S[n_reach]
+        bp = b[n_reach - 1]
+        if valve_law == VALVE_ORIFICE:
+            # C+: h = (c1 - bp q) / (1 + G/2) = D - Hv0 - bb Q with Q = Q0 + q; orifice: Q^2 = K2 (Hv0 + h)
+            K2 = valve[n] * valve[n] * q0sq / hv0
+            bb = bp * inv_half_G1
+            D = hv0 + (c1 + bp * q0) * inv_half_G1
+            if K2 > 0.0 and D > 0.0:
+                kb = K2 * bb
+                # the positive root of Q^2 + kb Q - K2 D = 0, written without cancellation
+                qv = 2.0 * K2 * D / (kb + np.sqrt(kb * kb + 4.0 * K2 * D)) - q0
+            else:
+                qv = -q0  # shut, or the head below the discharge: no flow
+        else:
+            qv = valve[n]
         q[n_reach] = qv
-        h[n_reach] = (cp[n_reach - 1] - 0.5 * S[n_reach] - b[n_reach - 1] * qv) * inv_half_G1
+        h[n_reach] = (c1 - bp * qv) * inv_half_G1
         # ---- creep state to the new level: eps, its rate, and the next step's S and c0
         if m > 0:
             for j in range(n1):
@@ -146,7 +170,8 @@ def march(n_reach, B, q_valve, steady, adt_R, adt_k, q0,
                     U[j] += wf_gain * yk
         head[n] = h[n_reach]
         q_res[n] = q[0]
-    return head, q_res
+        q_val[n] = qv
+    return head, q_res, q_val
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=True)

@@ -14,6 +14,7 @@ from velab.config import GRAVITY_M_S2, Material, Rig
 from velab.friction import STEADY_LAWS, UNSTEADY_LAWS, weighting_exponentials
 from velab.model import creep_scale, flow_perturbation
 from velab.moc import kernel
+from velab.valvelaw import VALVE_LAWS, commanded_position_pct
 
 FRICTION_LAWS = STEADY_LAWS
 _FOLD_DECAY = 36.0  # history terms with n dtau above this decay by exp(-36) = 2e-16 within one step
@@ -31,6 +32,9 @@ class MocResult:
     n_reaches : number of reaches N (N + 1 nodes).
     friction : steady friction law used (``"quadratic"``, ``"linear"`` or ``"none"``).
     friction_unsteady : unsteady friction used (``"none"``, ``"vardy-brown"``, ``"brunone"``).
+    flow_valve_m3_s : flow perturbation q(t) through the valve (imposed, or from the orifice law).
+    valve_law : ``"imposed"`` (the sigmoid is the flow) or ``"orifice"`` (the sigmoid is MV's position).
+    position_pct : the valve's position, % open, with the orifice law (None with the imposed flow).
     """
 
     t_s: np.ndarray
@@ -41,6 +45,9 @@ class MocResult:
     n_reaches: int
     friction: str
     friction_unsteady: str = "none"
+    flow_valve_m3_s: np.ndarray | None = None
+    valve_law: str = "imposed"
+    position_pct: np.ndarray | None = None
 
 
 def grid(rig: Rig, wave_speed_m_s: float, dt_s: float, adjust: str = "dt") -> tuple[int, float, float]:
@@ -108,10 +115,28 @@ def weighting_coefficients(rig: Rig, dt: float, dx: float):
 _EMPTY = np.zeros(0)
 
 
-def run(rig: Rig, J_rel, tau, q_valve: np.ndarray, n_reach: int, dt: float, a: float,
-        friction: str, unsteady: str) -> tuple[np.ndarray, np.ndarray]:
-    """Build the kernel's coefficients and march; (head at the valve, reservoir flow) at t_n = n dt."""
+def run(rig: Rig, J_rel, tau, q_valve, n_reach: int, dt: float, a: float,
+        friction: str, unsteady: str, *, opening=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Build the kernel's coefficients and march from the steady state.
+
+    The valve node takes the imposed flow perturbation ``q_valve`` at t_n = n dt, or, with
+    ``q_valve=None`` and ``opening`` (the valve pair's effective opening tau at t_n), the orifice law
+    Q = Q0 tau sqrt((Hv0 + h)/Hv0) with Hv0 = ``rig.valve_head_m`` (physics.md section 10).
+    Returns (head at the valve, reservoir flow, valve flow), perturbations at t_n.
+    """
     check_laws(friction, unsteady)
+    if (q_valve is None) == (opening is None):
+        raise ValueError("the valve node needs either an imposed flow or an opening, not both")
+    if opening is not None:
+        valve = np.ascontiguousarray(opening, dtype=float).reshape(-1)
+        if not (np.all(np.isfinite(valve)) and np.all(valve >= 0.0)):
+            raise ValueError("the valve's effective opening must be finite and non-negative")
+        valve_law, hv0 = kernel.VALVE_ORIFICE, float(rig.valve_head_m)
+        if not hv0 > 0:
+            raise ValueError(f"the orifice law needs a positive steady head above the discharge, got {hv0:g} m")
+    else:
+        valve = np.ascontiguousarray(q_valve, dtype=float).reshape(-1)
+        valve_law, hv0 = kernel.VALVE_IMPOSED, 0.0
     p = rig.pipe
     A = p.area_m2
     B = a / (GRAVITY_M_S2 * A)
@@ -130,7 +155,7 @@ def run(rig: Rig, J_rel, tau, q_valve: np.ndarray, n_reach: int, dt: float, a: f
     else:
         wd, ww, wg = _EMPTY, _EMPTY, 0.0
         mode = kernel.UNSTEADY_BRUNONE if unsteady == "brunone" else kernel.UNSTEADY_NONE
-    return kernel.march(int(n_reach), float(B), np.ascontiguousarray(q_valve, dtype=float), int(steady),
+    return kernel.march(int(n_reach), float(B), valve, int(valve_law), hv0, int(steady),
                         float(dx * R), float(dx * f / (2 * GRAVITY_M_S2 * p.inner_diameter_m * A**2)),
                         float(rig.steady_flow_m3_s), co, cd, cn, cr, J_rel, G,
                         int(mode), wd, ww, float(wg), float(rig.brunone_k3 * B))
@@ -144,7 +169,8 @@ def material_creep(rig: Rig, material: Material) -> tuple[np.ndarray, np.ndarray
 
 
 def moc_solve(rig: Rig, material: Material, t_end_s: float, dt_s: float = 1e-3, *,
-              friction: str | None = None, unsteady: str | None = None, adjust: str = "dt") -> MocResult:
+              friction: str | None = None, unsteady: str | None = None, adjust: str = "dt",
+              valve: str | None = None) -> MocResult:
     """Integrate the viscoelastic RPV transient from the trigger to ``t_end_s`` on the solver's own grid.
 
     The flow step the sigmoid has at the trigger sits on the grid's first point, so
@@ -161,21 +187,36 @@ def moc_solve(rig: Rig, material: Material, t_end_s: float, dt_s: float = 1e-3, 
         ``"none"``; default the rig's law.
     unsteady : ``"none"``, ``"vardy-brown"`` or ``"brunone"``; default the rig's.
     adjust : ``"dt"`` (default) or ``"wave_speed"``, see :func:`grid`.
+    valve : ``"orifice"`` (the actuator moves MV along the rig's sigmoid in position, the flow obeys
+        the orifice law of ``rig.valve``) or ``"imposed"`` (the sigmoid is the flow, the paper's
+        model); default ``rig.valve.law``.
     """
     friction = rig.friction if friction is None else friction
     unsteady = rig.friction_unsteady if unsteady is None else unsteady
+    valve = rig.valve.law if valve is None else valve
     check_laws(friction, unsteady)
+    if valve not in VALVE_LAWS:
+        raise ValueError(f"valve must be one of {', '.join(VALVE_LAWS)}, got {valve!r}")
     n_reach, dt, a = grid(rig, material.wave_speed_m_s, dt_s, adjust)
     n_steps = int(np.floor(t_end_s / dt + 1e-9)) + 1
     t = np.arange(n_steps) * dt
     J_rel, tau = material_creep(rig, material)
-    head, q_res = run(rig, J_rel, tau, flow_perturbation(t, rig), n_reach, dt, a, friction, unsteady)
+    position = None
+    if valve == "orifice":
+        m = rig.manoeuvre
+        position = commanded_position_pct(t, m.beta_per_s, m.gamma)
+        head, q_res, q_val = run(rig, J_rel, tau, None, n_reach, dt, a, friction, unsteady,
+                                 opening=rig.valve.opening(position))
+    else:
+        head, q_res, q_val = run(rig, J_rel, tau, flow_perturbation(t, rig), n_reach, dt, a, friction, unsteady)
     return MocResult(t_s=t, head_m=head, flow_reservoir_m3_s=q_res, dt_s=dt, wave_speed_m_s=a,
-                     n_reaches=n_reach, friction=friction, friction_unsteady=unsteady)
+                     n_reaches=n_reach, friction=friction, friction_unsteady=unsteady, flow_valve_m3_s=q_val,
+                     valve_law=valve, position_pct=position)
 
 
 def moc_valve_head(rig: Rig, material: Material, t_end_s: float, dt_s: float = 1e-3,
-                   friction: str | None = None, adjust: str = "dt") -> tuple[np.ndarray, np.ndarray]:
+                   friction: str | None = None, adjust: str = "dt", valve: str | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """(t, h) at the valve from :func:`moc_solve` on the solver's own grid (step possibly adjusted)."""
-    r = moc_solve(rig, material, t_end_s, dt_s, friction=friction, adjust=adjust)
+    r = moc_solve(rig, material, t_end_s, dt_s, friction=friction, adjust=adjust, valve=valve)
     return r.t_s, r.head_m
