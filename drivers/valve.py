@@ -94,7 +94,9 @@ class ValveActuator(ModbusDevice):
 
     # -- manoeuvre
     def set_manoeuvre(self, beta_per_s: float, gamma: float, end_position_pct: float = 0.0) -> None:
-        """Q(t) = Q0 / (1 + exp(beta t + gamma)) towards end_position_pct (% open); one write."""
+        """The sigmoid the actuator moves the valve along, in position (% open): p(t) = end + (100 - end) /
+        (1 + exp(beta t + gamma)) towards end_position_pct; one write. The flow then follows the valve's
+        law (velab.valvelaw): with a butterfly it falls later and faster than p(t)."""
         specs = [self.profile.reg(n) for n in ("beta", "gamma", "end_position")]
         values = (beta_per_s, gamma, end_position_pct)
         for s, v in zip(specs, values):
@@ -110,7 +112,7 @@ class ValveActuator(ModbusDevice):
         self._write_regs(specs[0].address, regs)
 
     def set_closure_time(self, closure_time_s: float, end_position_pct: float = 0.0, gamma: float = -5.5) -> None:
-        """The equivalent 90 % -> 10 % closure time: beta = ln(81) / T."""
+        """The equivalent 90 % -> 10 % closure time of the position: beta = ln(81) / T."""
         if not closure_time_s > 0:
             raise RangeError(f"{self.name}: closure_time_s must be positive, got {closure_time_s}", device=self.name)
         self.set_manoeuvre(math.log(81.0) / closure_time_s, gamma, end_position_pct)

@@ -4,18 +4,21 @@ Every simulated device (Modbus ADC, flowmeter, valve actuator, the colleague's
 streaming ADC) samples this object; none has physics of its own.
 
 * Before the trigger: steady flow Q0, head ``rig.steady_head_m`` at the transducer.
-* The valve runs the commanded sigmoid, as an *effective opening* (linear valve
-  characteristic: Q = Q0 * opening / 100)::
+* The actuator moves the butterfly valve along the commanded sigmoid *in position*
+  (``velab.valvelaw.commanded_position_pct``)::
 
-      opening(tau) = end + (100 - end) / (1 + exp(beta tau + gamma)),   tau = t - trigger_time
+      p(tau) = end + (100 - end) / (1 + exp(beta tau + gamma)),   tau = t - trigger_time
 
-  With end = 0 the flow is exactly velab's sigmoid Q0 / (1 + exp(beta tau + gamma)).
-* The head after the trigger is ``rig.steady_head_m + h(tau)``, h from velab's own
-  models with the rig's friction law (``velab.synth.transient_head``: the time-domain
-  model for quadratic or Brunone friction, the frequency-domain model for linear laws)
-  for the commanded manoeuvre -- partial closure, or the opening frozen by a hold or a
-  seizure, so that the imposed flow freezes -- computed once per arm/hold on a fine
-  grid and interpolated.
+  stopped where it is by a hold or a seizure. The actuator reports that position, the
+  ADC's position channel shows it.
+* The flow and the head come from the rig's valve law (``rig.valve``, physics.md
+  section 10) through velab's own models (``velab.synth.transient``): "orifice" (the
+  rig files' default): the flow obeys the orifice law of the valve pair on that
+  position, Q = Q0 tau(p) sqrt((Hv0 + h)/Hv0), solved with the head by the time-domain
+  model (MOC) with the rig's friction; "imposed" (stored rigs from before the valve law):
+  the flow Q0 p / 100 is imposed, and the head is the frequency-domain model's for linear
+  friction laws, the MOC's otherwise. The flowmeter shows that flow. Both are computed
+  once per arm/hold/seizure on a fine grid and interpolated.
 * Transducer: gauge pressure = head * rho * g, 4-20 mA over 0..full scale, plus
   Gaussian noise that is a deterministic function of (seed, channel, time), so any
   two devices sampling the same instant see the same value.
@@ -28,7 +31,7 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -44,7 +47,8 @@ from velab.simulators.rig_faults import (  # noqa: F401 - RigFaults, FAULT_FOLLO
     pending_seize,
 )
 from velab.simulators.schedule import RunInstants
-from velab.synth import friction_is_linear, transient_head
+from velab.synth import transient, uses_frequency_model
+from velab.valvelaw import commanded_position_pct
 
 N_ANALOG = 4  # ch0 pressure, ch1 valve position, ch2-3 spare
 
@@ -65,18 +69,19 @@ class CommandRefused(Exception):
 
 @dataclass(frozen=True)
 class _Transient:
-    """One triggered manoeuvre: opening and head on a fine grid of tau."""
+    """One triggered manoeuvre: the valve's position, the head and the flow on a fine grid of tau."""
 
     trigger_time: float
     beta: float
     gamma: float
     end_pct: float
     dt: float
-    opening: np.ndarray  # % open on the grid
+    position: np.ndarray  # % open on the grid
     head: np.ndarray  # head perturbation (m) on the grid
+    flow: np.ndarray  # flow through the valve (m3/s) on the grid
     volume: np.ndarray  # integral of Q from the trigger (m3) on the grid
-    freeze_tau: float | None  # hold / seizure instant (opening frozen after it)
-    done_tau: float  # opening within 0.1 % of the end: state DONE
+    freeze_tau: float | None  # hold / seizure instant (position frozen after it)
+    done_tau: float  # position within 0.1 % of the end: state DONE
 
 
 def _splitmix64(x: np.ndarray) -> np.ndarray:
@@ -140,7 +145,7 @@ class SimulatedRig:
         self._t_base = clock.now()
         self._trigger_count = 0
         self._fault_bits_latched = 0
-        if not friction_is_linear(rig):
+        if not uses_frequency_model(rig):
             from velab.moc import warm_up  # numba, only for the time-domain model
 
             warm_up()  # compile or load the MOC kernel now, not in arm() while a client waits
@@ -199,8 +204,7 @@ class SimulatedRig:
             if self.state() is not ValveState.ARMED or self._armed is None:
                 raise CommandRefused(f"cannot trigger while {self.state().name} (arm first)")
             t = self.clock.now() if at is None else float(at)
-            a = self._armed
-            self._tr = _Transient(t, a.beta, a.gamma, a.end_pct, a.dt, a.opening, a.head, a.volume, a.freeze_tau, a.done_tau)
+            self._tr = replace(self._armed, trigger_time=t)
             self._armed = None
             self._state = ValveState.RUNNING
             self._stopped_state = None
@@ -209,7 +213,7 @@ class SimulatedRig:
             return t
 
     def hold(self, at: float | None = None) -> None:
-        """Freeze the valve where it is (HOLDING); the transient follows the frozen opening."""
+        """Freeze the valve where it is (HOLDING); the transient follows the frozen position."""
         self._stop(ValveState.HOLDING, at)
 
     def abort(self, at: float | None = None) -> None:
@@ -306,27 +310,28 @@ class SimulatedRig:
         return max(0.0, (self.clock.now() if t is None else t) - tr.trigger_time)
 
     # ------------------------------------------------------------ the transient
-    def _opening(self, tau: np.ndarray, beta, gamma, end, freeze_tau) -> np.ndarray:
-        tau = np.asarray(tau, dtype=float)
+    @staticmethod
+    def _position(tau: np.ndarray, beta, gamma, end, freeze_tau) -> np.ndarray:
+        """Where the actuator has moved the valve tau s after the trigger (% open): the commanded
+        sigmoid, stopped at freeze_tau."""
+        tau = np.maximum(np.asarray(tau, dtype=float), 0.0)
         if freeze_tau is not None:
             tau = np.minimum(tau, freeze_tau)
-        arg = np.clip(beta * tau + gamma, -700, 700)
-        return end + (100.0 - end) / (1.0 + np.exp(arg))
+        return commanded_position_pct(tau, beta, gamma, end)
 
     def _compute(self, trigger_time, beta, gamma, end, freeze_tau) -> _Transient:
         dt = self.grid_dt_s
         tau = np.arange(0.0, self.transient_s + dt / 2, dt)
-        opening = self._opening(tau, beta, gamma, end, freeze_tau)
+        position = self._position(tau, beta, gamma, end, freeze_tau)
         rig_c = self.rig.with_changes(manoeuvre=Manoeuvre(beta_per_s=beta, gamma=gamma))
-        q0 = self.rig.steady_flow_m3_s
         standard = end == 0.0 and freeze_tau is None
-        # the rig's friction law: frequency model if linear, time-domain model (MOC) otherwise
-        flow = None if standard else (lambda x: q0 * self._opening(x, beta, gamma, end, freeze_tau) / 100.0 - q0)
-        head = transient_head(tau, rig_c, self.material, flow=flow)
-        qabs = q0 * opening / 100.0
-        volume = np.concatenate([[0.0], np.cumsum(0.5 * (qabs[1:] + qabs[:-1]) * dt)])
+        # the rig's valve law on the position, the rig's friction law (velab.synth.transient picks the model)
+        moved = None if standard else (lambda x: self._position(x, beta, gamma, end, freeze_tau))
+        head, q = transient(tau, rig_c, self.material, position=moved)
+        flow = self.rig.steady_flow_m3_s + q
+        volume = np.concatenate([[0.0], np.cumsum(0.5 * (flow[1:] + flow[:-1]) * dt)])
         done_tau = (math.log(999.0) - gamma) / beta
-        return _Transient(trigger_time, beta, gamma, end, dt, opening, head, volume, freeze_tau, done_tau)
+        return _Transient(trigger_time, beta, gamma, end, dt, position, head, flow, volume, freeze_tau, done_tau)
 
     def _interp(self, tr: _Transient, arr: np.ndarray, tau: np.ndarray) -> np.ndarray:
         x = np.clip(tau / tr.dt, 0.0, arr.size - 1.0)
@@ -336,18 +341,24 @@ class SimulatedRig:
 
     # ------------------------------------------------------------ signals (vectorised)
     def valve_position(self, t) -> np.ndarray:
-        """Valve opening, % (100 = open), without noise."""
+        """The valve's position, % open (100 = open), where the actuator moved it; without noise."""
         t = np.asarray(t, dtype=float)
         tr = self._tr
         if tr is None:
             return np.full(t.shape, 100.0)
         tau = t - tr.trigger_time
-        pos = self._interp(tr, tr.opening, np.maximum(tau, 0.0))
+        pos = self._interp(tr, tr.position, np.maximum(tau, 0.0))
         return np.where(tau < 0, 100.0, pos)
 
     def flow_m3_s(self, t) -> np.ndarray:
-        """True flow through the valve (m3/s), without meter noise or refresh."""
-        return self.rig.steady_flow_m3_s * self.valve_position(t) / 100.0
+        """True flow through the valve (m3/s, the rig's valve law), without meter noise or refresh."""
+        t = np.asarray(t, dtype=float)
+        q0 = self.rig.steady_flow_m3_s
+        tr = self._tr
+        if tr is None:
+            return np.full(t.shape, q0)
+        tau = t - tr.trigger_time
+        return np.where(tau < 0, q0, self._interp(tr, tr.flow, np.maximum(tau, 0.0)))
 
     def head_m(self, t) -> np.ndarray:
         """Head at the transducer (m), without noise."""
@@ -425,5 +436,5 @@ class SimulatedRig:
         if tau <= grid_end:
             after = float(self._interp(tr, tr.volume, np.array([tau]))[0])
         else:
-            after = float(tr.volume[-1]) + q0 * tr.opening[-1] / 100.0 * (tau - grid_end)
+            after = float(tr.volume[-1]) + float(tr.flow[-1]) * (tau - grid_end)
         return self._vol_base + before + after

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from velab.config import Manoeuvre, load_material, load_rig
-from velab.synth import transient_head
+from velab.synth import transient
+from velab.valvelaw import commanded_position_pct
 from velab.simulators.clock import ManualClock, RealTimeClock
 from velab.simulators.rig import CommandRefused, SimulatedRig, ValveState
 
@@ -43,14 +44,18 @@ def test_transient_is_velab_model_for_commanded_manoeuvre(rig):
     t0 = rig.trigger()
     assert rig.trigger_time == t0 == 2.0 and rig.state() is ValveState.RUNNING
     tau = np.arange(0, 3, 1e-3)
-    # the rig's own friction law (quadratic: the time-domain model)
-    ref = transient_head(np.arange(0, 20 + 1e-4, 2e-4), rig.rig.with_changes(manoeuvre=Manoeuvre(40.0, -6.0)), rig.material)
-    ref_i = np.interp(tau, np.arange(ref.size) * 2e-4, ref)
+    # the rig's own valve law (orifice, on the commanded sigmoid in position) and friction law
+    # (quadratic): the time-domain model
+    grid = np.arange(0, 20 + 1e-4, 2e-4)
+    ref, q_ref = transient(grid, rig.rig.with_changes(manoeuvre=Manoeuvre(40.0, -6.0)), rig.material)
+    ref_i = np.interp(tau, grid, ref)
     assert rig.head_m(t0 + tau) - rig.rig.steady_head_m == pytest.approx(ref_i, abs=0.02)
     assert rig.head_m(np.array([t0 - 0.1]))[0] == rig.rig.steady_head_m
+    assert rig.valve_position(t0 + tau) == pytest.approx(commanded_position_pct(tau, 40.0, -6.0), abs=1e-9)
     q = rig.flow_m3_s(t0 + tau)
     q0 = rig.rig.steady_flow_m3_s
-    assert q == pytest.approx(q0 / (1 + np.exp(40.0 * tau - 6.0)), rel=1e-6, abs=1e-9)
+    assert q == pytest.approx(q0 + np.interp(tau, grid, q_ref), rel=1e-6, abs=1e-9)
+    assert np.abs(q - q0 / (1 + np.exp(40.0 * tau - 6.0))).max() > 0.2 * q0  # the sigmoid is not the flow
     rig.clock.advance(1.0)
     assert rig.state() is ValveState.DONE
 
