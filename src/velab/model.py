@@ -198,17 +198,15 @@ class ValveHeadModel:
         else:
             q = np.concatenate([np.zeros(lead), np.asarray(flow, dtype=float)[self.first :]])
             step = float(q[lead]) if n else 0.0
-        smooth = q - step * (t_int >= -1e-12 * dt)  # continuous at the trigger
-        if flow is not None:
-            smooth[:lead] = 0.0
         self.n_int = lead + n
         self.n_fft = sfft.next_fast_len(int(np.ceil(max(pad, 2.0) * self.n_int)), real=True)
         self.sigma = sigma_T / (self.n_fft * dt)
         self.growth = np.exp(self.sigma * np.arange(self.n_int) * dt)  # undoes the window after the inverse FFT
         omega = 2 * np.pi * sfft.rfftfreq(self.n_fft, dt)
         s_all = self.sigma + 1j * omega
-        tau0 = -t0  # the trigger instant on the internal grid
-        self.spec = sfft.rfft(np.diff(smooth, prepend=0.0) / self.growth, self.n_fft) + step * np.exp(-s_all * tau0)
+        self._after = t_int >= -1e-12 * dt
+        self._step_phase = np.exp(s_all * t0)  # exp(-s tau0), tau0 = -t0 the trigger instant on the internal grid
+        self.spec = self._flow_spectrum(q, step, zero_lead=flow is not None)
         n_bins = self.spec.size if band_hz is None else min(self.spec.size, int(np.searchsorted(omega, 2 * np.pi * band_hz)) + 1)
         self.band = Band(self.n_fft, n_bins, float(omega[n_bins - 1] / (2 * np.pi)))
         self.s_band = s_all[:n_bins]
@@ -216,8 +214,35 @@ class ValveHeadModel:
         # cumulative sum in the frequency domain (see sums_to_time): the windowed increments'
         # partial sums sum_(j<=J) growth_j y_j equal growth_(J+1) w_(J+1) - w_0 with
         # w = irfft(X / (exp(s dt) - 1)), so the fitter's batched columns need no cumsum
-        self.spec_sum = self._spec_band / np.expm1(self.s_band * dt)
+        self._expm1 = np.expm1(self.s_band * dt)
+        self.spec_sum = self._spec_band / self._expm1
         self._growth_sum = np.exp(self.sigma * np.arange(lead + 1, lead + 1 + n) * dt)
+
+    def _flow_spectrum(self, q: np.ndarray, step: float, zero_lead: bool) -> np.ndarray:
+        """Spectrum of the windowed flow increments on the internal grid, the step at the trigger's instant."""
+        smooth = q - step * self._after  # continuous at the trigger
+        if zero_lead:
+            smooth[: self.lead] = 0.0
+        return sfft.rfft(np.diff(smooth, prepend=0.0) / self.growth, self.n_fft) + step * self._step_phase
+
+    def flow_sums(self, flow) -> np.ndarray:
+        """:attr:`spec_sum` of another flow on the same grid (``flow`` as the constructor takes it): the
+        fitted closure (velab.fitting.manoeuvre) re-drives the model without rebuilding it."""
+        q = np.concatenate([np.zeros(self.lead), np.asarray(flow, dtype=float)[self.first :]])
+        step = float(q[self.lead]) if self.n else 0.0
+        return self._flow_spectrum(q, step, zero_lead=True)[: self.band.n_bins] / self._expm1
+
+    def head_of(self, impedance_spectra: np.ndarray, sums: np.ndarray) -> np.ndarray:
+        """Like :meth:`to_time`, with the flow's summed spectrum ``sums`` (:meth:`flow_sums`) instead of
+        the model's own; both broadcast over leading axes."""
+        z = np.asarray(impedance_spectra) * sums
+        buf = np.zeros(z.shape[:-1] + (self.spec.size,), dtype=complex)
+        buf[..., : self.band.n_bins] = z
+        return self.sums_to_time(buf)
+
+    def impedance(self, a: float, J_rel, tau) -> np.ndarray:
+        """Z on the band's bins for wave speed a and KV elements (J'_k, tau_k)."""
+        return _impedance_s(self.s_band, a, _phi_s(self.s_band, J_rel, tau), self.rig)
 
     def to_time(self, impedance_spectra: np.ndarray) -> np.ndarray:
         """Impedance on the band's bins (..., n_bins) -> head series (..., len(t)).

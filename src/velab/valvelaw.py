@@ -119,7 +119,7 @@ def effective_opening(flow_ratio, series_loss_share: float) -> np.ndarray:
     """tau = 1 / sqrt((1 - s) + s / phi^2); 0 where phi = 0 (shut)."""
     phi = np.asarray(flow_ratio, dtype=float)
     s = float(series_loss_share)
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", over="ignore"):
         inv = np.where(phi > 0, 1.0 / np.where(phi > 0, phi, 1.0) ** 2, np.inf)
     return np.where(phi > 0, 1.0 / np.sqrt((1.0 - s) + s * inv), 0.0)
 

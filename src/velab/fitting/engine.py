@@ -58,8 +58,9 @@ class HeadEvaluator:
     _MAX_M = 6  # the work buffers are sized for this many elements (S6) at the first evaluation
 
     def __init__(self, rig: Rig, t_s=None, *, band_hz="auto", extra_impedance=None, workers: int = 1,
-                 _model: ValveHeadModel | None = None):
-        vm = _model if _model is not None else ValveHeadModel(rig, t_s, band_hz=band_hz)
+                 flow=None, _model: ValveHeadModel | None = None):
+        # flow: the flow at the valve on t_s (velab.fitting.manoeuvre; None: the rig's sigmoid)
+        vm = _model if _model is not None else ValveHeadModel(rig, t_s, band_hz=band_hz, flow=flow)
         p = rig.pipe
         self.rig = rig
         self.model = vm

@@ -35,7 +35,7 @@ from scipy.optimize import minimize, minimize_scalar
 from velab.config import GRAVITY_M_S2, Rig
 from velab.errors import DataError
 from velab.friction import STEADY_LAWS, UNSTEADY_LAWS, unsteady_resistance
-from velab.model import creep_scale, valve_head
+from velab.model import ValveHeadModel, creep_scale, valve_head
 from velab.moc import moc_head
 
 # unsteady laws the frequency model carries exactly (linear in q, through the series impedance)
@@ -78,20 +78,36 @@ class TimeDomainModel:
     steady friction, an unsteady law it carries exactly); then nothing is ever run.
     """
 
-    def __init__(self, rig: Rig, t_s):
+    def __init__(self, rig: Rig, t_s, flow=None):
         self.rig = rig
         self.t = np.asarray(t_s, dtype=float)
+        # the flow at the valve on t (velab.fitting.manoeuvre), imposed in the time-domain model as in
+        # the frequency one; None: the rig's sigmoid
+        self.flow = None if flow is None else np.asarray(flow, dtype=float)
         self.steady = steady_law(rig)
         self.unsteady = unsteady_law(rig)
         self.active = self.steady == "quadratic" or self.unsteady not in FD_EXACT_UNSTEADY
         self.runs = 0
         self.seconds = 0.0
 
-    def head(self, a: float, J_rel, tau) -> np.ndarray:
-        """h_MOC(p) on the window's grid (the MOC picks its own second-order step, velab.moc)."""
+    def on_grid(self, t_s) -> "TimeDomainModel":
+        """The same laws on another grid (the flow, if any, is given again with ``head(flow=)``)."""
+        return TimeDomainModel(self.rig, t_s)
+
+    def flow_of(self):
+        """The imposed flow as the MOC takes it (t -> q, linear between the record's samples), or None."""
+        if self.flow is None:
+            return None
+        t, q = self.t, self.flow
+        return lambda s: np.interp(s, t, q)
+
+    def head(self, a: float, J_rel, tau, flow=None) -> np.ndarray:
+        """h_MOC(p) on the window's grid (the MOC picks its own second-order step, velab.moc); ``flow``
+        (t -> q) overrides the model's own flow at the valve."""
         t0 = time.perf_counter()
         h = np.asarray(moc_head(self.rig, a, np.asarray(J_rel, dtype=float), np.asarray(tau, dtype=float), self.t,
-                                friction=self.steady, unsteady=self.unsteady), dtype=float)
+                                friction=self.steady, unsteady=self.unsteady,
+                                flow=flow if flow is not None else self.flow_of()), dtype=float)
         self.runs += 1
         self.seconds += time.perf_counter() - t0
         if not np.all(np.isfinite(h)):
@@ -191,12 +207,16 @@ def rms(x: np.ndarray) -> float:
     return math.sqrt(float(np.mean(np.square(x)))) if np.size(x) else 0.0
 
 
-def fitted_head(t_s, rig: Rig, fit) -> np.ndarray:
+def fitted_head(t_s, rig: Rig, fit, flow=None) -> np.ndarray:
     """The head of a calibrated model (a ModelFit) on the grid t_s, with the model the fit used:
-    the time-domain model for a nonlinear friction law, the full-band frequency model otherwise."""
-    tm = TimeDomainModel(rig, t_s)
+    the time-domain model for a nonlinear friction law, the full-band frequency model otherwise.
+    ``flow``: the flow at the valve on t_s the fit was driven by (velab.fitting.manoeuvre.result_flow;
+    None: the rig's sigmoid)."""
+    tm = TimeDomainModel(rig, t_s, flow=flow)
     if tm.active:
         a = fit.wave_speed_m_s
         J_rel = np.array([1.0 / e for e in fit.E_pa]) * creep_scale(rig, a)
         return tm.head(a, J_rel, np.array(fit.tau_s))
-    return valve_head(t_s, rig, fit.material())
+    if flow is None:
+        return valve_head(t_s, rig, fit.material())
+    return ValveHeadModel(rig, t_s, band_hz=None, flow=flow).head(fit.material())

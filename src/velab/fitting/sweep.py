@@ -123,7 +123,7 @@ class _Sweep:
     """State shared by the models of one sweep: stages, bounds, friction, calibrated models."""
 
     def __init__(self, t, d, rig: Rig, bounds: FitBounds, method: str, polish: bool, starts, seed: int,
-                 threads: int, initial: SweepResult | None, lead: SweepResult | None = None):
+                 threads: int, initial: SweepResult | None, lead: SweepResult | None = None, flow=None):
         self.t, self.d, self.rig, self.bounds = t, d, rig, bounds
         self.method, self.polish, self.seed, self.initial, self.lead = method, polish, seed, initial, lead
         self.threads = threads
@@ -132,13 +132,16 @@ class _Sweep:
         dt = float(t[1] - t[0])
         self.band = manoeuvre_band_hz(rig)
         self.q = q = max(1, int((1.0 / dt) // (3.0 * self.band)))
-        self.stage_c = Stage(HeadEvaluator(rig, t[::q], band_hz="auto"), lowpass_decimate(d, q))
-        self.time_model = TimeDomainModel(rig, t)
+        # the flow at the valve (velab.fitting.manoeuvre) drives every stage, the time-domain model too
+        self.stage_c = Stage(HeadEvaluator(rig, t[::q], band_hz="auto", flow=None if flow is None else flow[::q]),
+                             lowpass_decimate(d, q))
+        self.time_model = TimeDomainModel(rig, t, flow=flow)
         # full-band evaluations are large numpy/FFT operations that release the GIL: with two threads,
         # each is split in two halves (HeadEvaluator workers=2), or two candidates are polished at once
         # on a pair of single-threaded evaluators (same model, own buffers); the result is the same
         workers = min(threads, 2) if SPLIT_FULL_BAND else 1
-        full = HeadEvaluator(rig, t, band_hz=None, workers=workers) if polish or self.time_model.active else None
+        full = (HeadEvaluator(rig, t, band_hz=None, workers=workers, flow=flow)
+                if polish or self.time_model.active else None)
         self.stage_f = Stage(full, d) if polish else None
         self.ev_full = full  # the full-band model the friction correction is taken against
         self.ev_pair = (full.fork(workers=1), full.fork(workers=1)) if polish and threads > 1 else None
@@ -474,6 +477,7 @@ def fit_sweep(
     friction: str | None = None,
     friction_unsteady: str | None = None,
     lead: SweepResult | None = None,
+    flow=None,
 ) -> SweepResult:
     """Calibrate EL/Sm models on a head record and rank them.
 
@@ -492,6 +496,8 @@ def fit_sweep(
     ``lead``: the sweep of this record's first part (velab.fitting.lead): each model is then
     calibrated from the lead's optimum alone (no multi-start search), and a model that ended there
     as a smaller one plus a vanished element is that again here.
+    ``flow``: the flow at the valve q(t) on the window's samples (velab.fitting.manoeuvre: from the
+    recorded position or a fitted closure); None: the rig's sigmoid imposed as the flow (the paper's).
     Pure computation: no I/O, no shared state; safe to call from worker threads.
     """
     if method not in METHODS:
@@ -502,13 +508,19 @@ def fit_sweep(
     ms = parse_models(models) if not isinstance(models, range) else parse_models(list(models))
     t, d = prepare_window(t_s, h_m, window_s)
     n = d.size
+    if flow is not None:  # given on t_s: the window's part of it
+        flow = np.asarray(flow, dtype=float)
+        i0 = int(np.searchsorted(np.asarray(t_s, dtype=float), t[0]))
+        if flow.shape != np.shape(t_s):
+            raise DataError(f"the flow at the valve has {flow.size} samples, the record {np.size(t_s)}")
+        flow = flow[i0 : i0 + n]
     dt = float(t[1] - t[0])
     window = n * dt
     rig = fit_rig(rig, friction, friction_unsteady)
     bounds = derive_bounds(rig, dt, window, tau_min_s=tau_min_s, tau_max_s=tau_max_s)
     if threads is None:
         threads = min(2, os.cpu_count() or 1)
-    sw = _Sweep(t, d, rig, bounds, method, polish, starts, seed, threads, initial, lead)
+    sw = _Sweep(t, d, rig, bounds, method, polish, starts, seed, threads, initial, lead, flow)
 
     jobs = [(m, False) for m in ms]
     if reduced:

@@ -44,13 +44,14 @@ class FitError(Exception):
 
 
 def fit_arguments(t_s: np.ndarray, head_m: np.ndarray, trigger_time_s: float, rig: Rig, *, models, window_s: float,
-                  method: str, sample_rate_hz: float, quick: bool = False) -> dict:
+                  method: str, sample_rate_hz: float, quick: bool = False, position_pct=None) -> dict:
     """The arguments of velab.fitting.prepare.fit_record for a recorded head record (the run's axis,
     absolute head, from before the trigger): the one fit path, as ``velab fit`` of the run file takes
-    it; ``quick`` = no polish, 2 starts (intermediate fits)."""
+    it; ``quick`` = no polish, 2 starts (intermediate fits); ``position_pct`` the recorded valve position
+    on ``t_s`` (the manoeuvre's input, as ``velab fit`` takes it from the file)."""
     kw = {"polish": False, "starts": 2} if quick else {}
     return dict(t_s=t_s, head_m=head_m, trigger_time_s=trigger_time_s, rig=rig, window_s=window_s,
-                record_rate_hz=sample_rate_hz, models=list(models), method=method, **kw)
+                record_rate_hz=sample_rate_hz, models=list(models), method=method, position_pct=position_pct, **kw)
 
 
 class OnlineFit:
@@ -101,7 +102,8 @@ class OnlineFit:
     def final_started(self) -> bool:
         return self._final is not None
 
-    def start(self, t: np.ndarray, h: np.ndarray, trigger_time_s: float, window_s: float, *, final: bool) -> None:
+    def start(self, t: np.ndarray, h: np.ndarray, trigger_time_s: float, window_s: float, *, final: bool,
+              position=None) -> None:
         """Start a fit of (t, h) over ``window_s`` after the trigger (a quick one is skipped while another runs)."""
         if final:
             if self._final is not None:
@@ -112,19 +114,19 @@ class OnlineFit:
             return
         else:
             self._cancel_quick.clear()
-        self._spawn("final" if final else "quick", t, h, trigger_time_s, window_s)
+        self._spawn("final" if final else "quick", t, h, trigger_time_s, window_s, position)
 
-    def start_lead(self, t: np.ndarray, h: np.ndarray, trigger_time_s: float, window_s: float) -> None:
+    def start_lead(self, t: np.ndarray, h: np.ndarray, trigger_time_s: float, window_s: float, position=None) -> None:
         """Start the lead fit of a ``window_s`` fit: (t, h) reach the end of the lead's part of the window."""
         if self._lead is not None or self._final is not None:
             return
         self._cancel_quick.set()  # a quick fit still running gives way
-        self._lead = self._spawn("lead", t, h, trigger_time_s, window_s)
+        self._lead = self._spawn("lead", t, h, trigger_time_s, window_s, position)
 
-    def _spawn(self, kind: str, t, h, trigger_time_s: float, window_s: float) -> threading.Thread:
+    def _spawn(self, kind: str, t, h, trigger_time_s: float, window_s: float, position=None) -> threading.Thread:
         with self._running_lock:
             self._running += 1
-        th = threading.Thread(target=self._work, args=(t, h, trigger_time_s, window_s, kind), daemon=True,
+        th = threading.Thread(target=self._work, args=(t, h, trigger_time_s, window_s, kind, position), daemon=True,
                               name="velab-recorder-fit" + ("" if kind == "final" else "-" + kind))
         if kind == "final":
             self._final = th
@@ -151,11 +153,12 @@ class OnlineFit:
             th.join(0.05)
         return self._lead_result if self._lead_result is not None else True
 
-    def _fit(self, t, h, trigger_time_s, window_s, kind):
+    def _fit(self, t, h, trigger_time_s, window_s, kind, position=None):
         """The fit, in the worker process if there is a live one, else here; raises _Cancelled."""
         final = kind == "final"
         kw = fit_arguments(t, h, trigger_time_s, self.rig, models=self.s.fit_models, window_s=window_s,
-                           method=self.s.fit_method, sample_rate_hz=self.fs, quick=kind == "quick")
+                           method=self.s.fit_method, sample_rate_hz=self.fs, quick=kind == "quick",
+                           position_pct=position)
         if final:
             kw["lead"] = self._lead_for_final()
         call = "lead" if kind == "lead" else "record"
@@ -203,10 +206,10 @@ class OnlineFit:
         if proc is not None:
             fit_worker.release(proc)
 
-    def _work(self, t, h, trigger_time_s, window_s, kind) -> None:
+    def _work(self, t, h, trigger_time_s, window_s, kind, position=None) -> None:
         final = kind == "final"
         try:
-            r = self._fit(t, h, trigger_time_s, window_s, kind)
+            r = self._fit(t, h, trigger_time_s, window_s, kind, position)
             if final:
                 self.result = r
                 self.latency_s = time.perf_counter() - self._closed_at

@@ -251,10 +251,10 @@ class RunControl:
         if fit is None or self._halted or self._end_request is not None or tl.lead_window_s is None:
             return
         try:
-            t, h, trigger, _, _ = tl.fit_window(tl.lead_window_s)
+            t, h, trigger, _, _, pos = tl.fit_window(tl.lead_window_s)
         except ValueError:
             return  # (the final fit says why there is no fit)
-        fit.start_lead(t, h, trigger, self.settings.fit_window_s)
+        fit.start_lead(t, h, trigger, self.settings.fit_window_s, position=pos)
 
     def _window_closed(self, window_s: float, final: bool) -> None:
         """From the acquisition thread: the fit window (or a quick fit's part of it) is in."""
@@ -265,7 +265,7 @@ class RunControl:
         if final and ending in (P.ABORTED, P.FAILED):
             return  # the end decides (no fit of an aborted or failed run)
         try:
-            t, h, trigger, w, note = tl.fit_window(window_s)
+            t, h, trigger, w, note, pos = tl.fit_window(window_s)
         except ValueError as exc:
             if final:
                 fit.refuse(str(exc))
@@ -273,7 +273,7 @@ class RunControl:
         if note and final:
             self._message(note)
         if final or (not fit.busy and w >= window_s):
-            fit.start(t, h, trigger, w, final=final)
+            fit.start(t, h, trigger, w, final=final, position=pos)
 
     def _safe_valve(self, ask: bool = True) -> None:
         valve = self.devices.get(self.roles.get("valve", ""))

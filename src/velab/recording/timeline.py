@@ -91,7 +91,7 @@ class Timeline:
         self.trigger_from_feedback = False  # ... and the instant measured from it
         self._pos_t: list = []
         self._pos_v: list = []
-        self._fit_t = self._fit_h = None
+        self._fit_t = self._fit_h = self._fit_p = None  # the window's axis, head, valve position
         self._fit_n = 0
         self._pre_blocks: deque = deque()  # (axis time, head) blocks before the trigger was marked
         self.clean_until: float | None = None  # first flagged / lost instant after the trigger
@@ -130,7 +130,7 @@ class Timeline:
             if self._last_host is not None:
                 idx = max(idx, int(round(self._last_idx + (now_host - self._last_host) * self.fs * clock_scale)))
             cap = int((self.s.fit_window_s + 2.0) * self.fs + (idx - self.gidx)) + 1
-            self._fit_t, self._fit_h = np.empty(cap), np.empty(cap)
+            self._fit_t, self._fit_h, self._fit_p = np.empty(cap), np.empty(cap), np.empty(cap)
             self._fit_n = 0
             self.trigger_idx = idx
             self.trigger_time = (idx - self.n_pre) / self.fs
@@ -281,6 +281,7 @@ class Timeline:
         k = min(t.size, self._fit_t.size - self._fit_n)
         self._fit_t[self._fit_n:self._fit_n + k] = t[:k]
         self._fit_h[self._fit_n:self._fit_n + k] = head[:k]
+        self._fit_p[self._fit_n:self._fit_n + k] = pos[:k] if pos is not None else np.nan
         self._fit_n += k
         if not self.window_closed and self.trigger_measured and self.clean_until is None:
             after = float(t[-1]) - self.trigger_time
@@ -318,8 +319,9 @@ class Timeline:
             self.hooks.request_end("completed", "")
 
     # ---------------------------------------------------------------- the fit's data
-    def fit_window(self, window_s: float) -> tuple[np.ndarray, np.ndarray, float, float, str]:
-        """(t on the run's axis, absolute head, trigger time, window used, note): the record the fit
+    def fit_window(self, window_s: float) -> tuple[np.ndarray, np.ndarray, float, float, str, np.ndarray | None]:
+        """(t on the run's axis, absolute head, trigger time, window used, note, valve position or None):
+        the record the fit
         path (velab.fitting.prepare) takes, the same samples as in the run file, from a few seconds
         before the trigger to the end of the clean part of the window.
 
@@ -340,4 +342,8 @@ class Timeline:
         end = int(np.searchsorted(self._fit_t[:n], self.trigger_time + window_s - 0.5 * dt))
         t = np.concatenate([b[0] for b in self._pre_blocks] + [self._fit_t[:end]])
         h = np.concatenate([b[1] for b in self._pre_blocks] + [self._fit_h[:end]])
-        return t, h, float(self.trigger_time), window_s, note
+        pos = None
+        if self.vch:  # the manoeuvre's input (velab.fitting.manoeuvre); open before the trigger
+            pre = sum(b[0].size for b in self._pre_blocks)
+            pos = np.concatenate([np.full(pre, 100.0), self._fit_p[:end]])
+        return t, h, float(self.trigger_time), window_s, note, pos

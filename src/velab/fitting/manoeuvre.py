@@ -1,0 +1,367 @@
+"""The manoeuvre in the fit: the flow at the valve that drives the model, built from the record.
+
+The frequency-domain model (velab.model) takes the flow at the valve q(t) = Q(t) - Q0 as its input.
+A real valve does not impose the paper's sigmoid: the actuator moves the valve in *position* and the
+flow obeys the orifice law through the valve pair (physics.md section 10, velab.valvelaw):
+
+    Q(t) = Q0 tau(t) sqrt((Hv0 + h(t)) / Hv0)
+
+The head rise h is the *measured* one (the record holds it), so the input stays linear for the
+model. Two ways to the effective opening tau(t), named in the result (``ValveInput.source``):
+
+* ``"position"``: the record holds the valve position and the rig describes the valve
+  (characteristic, loss share, law): tau(t) = rig.valve.opening(p_measured(t)). A rig whose valve law
+  is ``"imposed"`` (the paper's model, and every run made before the valve law existed) gives
+  Q = Q0 p/100 instead;
+* ``"fitted"``: no position record (imported CSVs) -- the effective opening is a parametric monotone
+  closure fitted as nuisance parameters, the same for every wall model (so they add the same k to
+  each and leave dAIC unchanged):
+
+      Q / Q0 = T(sigmoid(beta (t - t_half))) * c(t)^kappa,   T(x) = 1 / sqrt((1 - s) + s x^(-2 n)),
+      c(t) = sqrt((Hv0 + h_measured(t)) / Hv0)
+
+  beta, t_half: the actuator's sigmoid in position; n: the characteristic's power (phi = x^n);
+  s: the valve's share of the steady loss; kappa: how much of the orifice coupling acts (1 for a
+  valve discharging to air, 0 for a flow imposed as such). The family holds a real butterfly
+  (n = 2, s = 0.05, kappa = 1) and the paper's imposed sigmoid flow exactly (n = 1, s = 1,
+  kappa = 0), so a record needs no label.
+
+  The closure is fitted on the record's first part (the closure and the first wave periods, which
+  it shapes) jointly with an S2 wall (which stands in for whatever wall the sweep then finds:
+  the closure's parameters barely depend on it), through the same friction correction as the
+  sweep (the time-domain model at the current parameters, velab.fitting.friction).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from velab.config import Rig
+from scipy.signal import butter, sosfiltfilt
+
+from velab.errors import DataError
+from velab.fitting.friction import TimeDomainModel
+from velab.model import ValveHeadModel, flow_perturbation, manoeuvre_band_hz
+from velab.valvelaw import orifice_coupling
+
+# the closure is fitted before the first reflection returns to the valve (2L/a), or over 1.5 x its
+# commanded span if that is longer: there the head is the pipe's characteristic impedance times the
+# flow, and the wall acts only through its fastest creep (one Kelvin-Voigt element stands in for it)
+CLOSURE_SPAN_FACTOR = 1.5
+WALL = 3  # ln a, ln J'_1, ln tau_1
+COUPLING_SPAN_FACTOR = 3.0  # the coupling's head is filtered over this multiple of the closure's window
+COUPLING_BAND_FACTOR = 2.0  # the coupling's head is low-passed at this multiple of the manoeuvre's band
+REFRESHES = 1  # friction-correction refreshes of the closure fit (time-domain laws only)
+START_ITERATIONS = 8  # each start of the closure fit is taken this many steps before the better one goes on
+PARAM_NAMES = ("beta_per_s", "t_half_s", "power", "loss_share", "coupling")
+# the two starts of the closure: a real butterfly discharging to air, and the imposed sigmoid flow
+STARTS = ((2.0, 0.05, 1.0), (1.0, 1.0, 0.0))
+
+
+@dataclass(frozen=True)
+class ValveInput:
+    """The flow at the valve that drives the model, on the fit's grid, and how it was obtained."""
+
+    source: str  # "position" | "fitted" | "rig" (the rig's sigmoid: no record of the head to couple)
+    flow: np.ndarray  # q(t) = Q(t) - Q0 on the record's grid (0 before the trigger), m^3/s
+    params: dict = field(default_factory=dict)  # the fitted closure's parameters
+    se: dict = field(default_factory=dict)  # and their standard errors
+    text: str = ""
+    k: int = 0  # nuisance parameters fitted (added to every model's count)
+
+    def describe(self) -> dict:
+        return {"source": self.source, "params": dict(self.params), "se": dict(self.se), "text": self.text,
+                "nuisance_parameters": self.k}
+
+
+def sigmoid(u) -> np.ndarray:
+    return 0.5 * (1.0 - np.tanh(0.5 * np.asarray(u, dtype=float)))  # 1 / (1 + exp(u)), no overflow
+
+
+def closure_opening(t, beta: float, t_half: float, power: float, share: float) -> np.ndarray:
+    """T(sigmoid(beta (t - t_half))) for t >= 0, 1 before the trigger."""
+    t = np.asarray(t, dtype=float)
+    x = sigmoid(beta * (t - t_half))
+    with np.errstate(divide="ignore", over="ignore", under="ignore"):
+        inv = np.where(x > 0, np.exp(-2.0 * power * np.log(np.where(x > 0, x, 1.0))), np.inf)
+        tau = np.where(x > 0, 1.0 / np.sqrt((1.0 - share) + share * inv), 0.0)
+    return np.where(t >= 0, tau, 1.0)
+
+
+def coupling_head(t, h, rig: Rig) -> np.ndarray:
+    """The measured head rise as the orifice coupling takes it: low-passed (zero phase) at twice the
+    manoeuvre's band, so that the transducer's noise does not enter the flow (the head rise of a
+    closure is slower than that)."""
+    t = np.asarray(t, dtype=float)
+    h = np.asarray(h, dtype=float)
+    if t.size < 32:
+        return h
+    fs = 1.0 / float(t[1] - t[0])
+    fc = COUPLING_BAND_FACTOR * manoeuvre_band_hz(rig)
+    if fc >= 0.45 * fs:
+        return h
+    sos = butter(4, fc, fs=fs, output="sos")
+    return sosfiltfilt(sos, h)
+
+
+def closure_flow(t, h, rig: Rig, params) -> np.ndarray:
+    """q(t) of the parametric closure (``PARAM_NAMES`` order) with the head rise h (``coupling_head``)."""
+    beta, t_half, power, share, kappa = params
+    c = orifice_coupling(h, rig.valve_head_m)
+    with np.errstate(divide="ignore"):
+        ck = np.where(c > 0, c ** kappa, 0.0 if kappa > 0 else 1.0)
+    q = rig.steady_flow_m3_s * (closure_opening(t, beta, t_half, power, share) * ck - 1.0)
+    return np.where(np.asarray(t) >= 0, q, 0.0)
+
+
+def position_flow(t, h, position_pct, rig: Rig) -> np.ndarray:
+    """q(t) from the recorded valve position through the rig's valve (law, characteristic, share)."""
+    t = np.asarray(t, dtype=float)
+    p = np.clip(np.asarray(position_pct, dtype=float), 0.0, 100.0)
+    q0 = rig.steady_flow_m3_s
+    if rig.valve.law == "imposed":
+        q = q0 * (p / 100.0 - 1.0)
+    else:
+        q = q0 * (rig.valve.opening(p) * orifice_coupling(h, rig.valve_head_m) - 1.0)
+    return np.where(t >= 0, q, 0.0)
+
+
+def from_position(t, h, position_pct, rig: Rig) -> ValveInput:
+    v = rig.valve
+    text = ("flow at the valve from the recorded valve position: "
+            + ("Q0 p/100 (the rig's imposed-flow valve)" if v.law == "imposed" else
+               f"{v.describe()}, orifice coupling from the measured head"))
+    return ValveInput("position", position_flow(t, h, position_pct, rig), text=text)
+
+
+def early_window_s(rig: Rig, window_s: float) -> float:
+    """Up to the first reflection's return, 2L/a, or 1.5 x the commanded closure (down to 0.1 %)."""
+    m = rig.manoeuvre
+    closure = max(0.0, (math.log(999.0) - m.gamma) / m.beta_per_s)
+    return min(window_s, max(2.0 * rig.pipe.length_m / rig.nominal_wave_speed_m_s, CLOSURE_SPAN_FACTOR * closure))
+
+
+class _ClosureProblem:
+    """Residuals of the early record against the frequency model driven by the parametric closure,
+    plus a fixed time-domain correction (friction), in the variables
+    x = (ln a, ln J'_1, ln tau_1, ln beta, t_half, ln n, ln s, kappa).
+
+    The model is built once; a new wall changes the impedance, a new closure the flow's spectrum
+    (``ValveHeadModel.flow_sums``): the Jacobian's columns are finite differences of either, in one
+    batched inverse FFT."""
+
+    STEP = 1e-6
+
+    def __init__(self, t, d, h_meas, rig: Rig, time_model):
+        self.t, self.d, self.h, self.rig, self.time_model = t, d, h_meas, rig, time_model
+        self.corr = np.zeros_like(d)
+        self.vm = ValveHeadModel(rig, t, band_hz=None, flow=np.zeros_like(t))
+        self._cache = (None, None)
+
+    @staticmethod
+    def split(x):
+        a = math.exp(x[0])
+        J = np.exp(x[1:2])
+        tau = np.exp(x[2:3])
+        valve = (math.exp(x[3]), x[4], math.exp(x[5]), math.exp(x[6]), x[7])
+        return a, J, tau, valve
+
+    def flow(self, x) -> np.ndarray:
+        return closure_flow(self.t, self.h, self.rig, self.split(x)[3])
+
+    def head_fd(self, x) -> np.ndarray:
+        a, J, tau, _ = self.split(x)
+        return self.vm.head_of(self.vm.impedance(a, J, tau), self.vm.flow_sums(self.flow(x)))
+
+    def residual(self, x) -> np.ndarray:
+        return self.head_fd(x) + self.corr - self.d
+
+    def jacobian(self, x) -> np.ndarray:
+        a, J, tau, valve = self.split(x)
+        Z0 = self.vm.impedance(a, J, tau)
+        sums0 = self.vm.flow_sums(self.flow(x))
+        h0 = self.vm.head_of(Z0, sums0)
+        rows_z, rows_s = [], []
+        for i in range(WALL):  # the wall: the impedance moves
+            xp = np.array(x, dtype=float)
+            xp[i] += self.STEP
+            ap, Jp, taup, _ = self.split(xp)
+            rows_z.append(self.vm.impedance(ap, Jp, taup))
+        for i in range(WALL, WALL + len(PARAM_NAMES)):  # the closure: the flow moves
+            xp = np.array(x, dtype=float)
+            xp[i] += self.STEP
+            rows_s.append(self.vm.flow_sums(self.flow(xp)))
+        hz = self.vm.head_of(np.array(rows_z), sums0)
+        hs = self.vm.head_of(Z0, np.array(rows_s))
+        return (np.vstack([hz, hs]) - h0).T / self.STEP
+
+    def refresh(self, x) -> None:
+        """The correction h_MOC - h_FD at x (the flow imposed in both)."""
+        if self.time_model is None:
+            return
+        a, J, tau, _ = self.split(x)
+        q = self.flow(x)
+        t = self.t
+        h_time = self.time_model.head(a, J, tau, flow=lambda s: np.interp(s, t, q))
+        self.corr = h_time - self.head_fd(x)
+
+
+def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None) -> ValveInput:
+    """The parametric closure fitted on the record's first part (``early_window_s``): t from the
+    trigger (starting at 0), d the head perturbation (also the measured head rise of the coupling),
+    ``time_model`` a velab.fitting.friction.TimeDomainModel on the same grid (None: the frequency
+    model is the rig's model). Returns the flow on the whole grid."""
+    t = np.asarray(t, dtype=float)
+    d = np.asarray(d, dtype=float)
+    hc = coupling_head(t, d, rig) if coupling is None else np.asarray(coupling, dtype=float)
+    te = early_window_s(rig, window_s)
+    ne = max(16, int(np.searchsorted(t, te - 1e-9)))
+    tm = None
+    if time_model is not None and time_model.active:
+        tm = time_model.on_grid(t[:ne])
+    prob = _ClosureProblem(t[:ne], d[:ne], hc[:ne], rig, tm)
+    m = rig.manoeuvre
+    a0 = _scan_wave_speed(prob, rig)
+    lo = np.array([math.log(a0 * 0.8), math.log(1e-6), math.log(1e-3),
+                   math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), 0.0])
+    hi = np.array([math.log(a0 * 1.25), math.log(5.0), math.log(10.0),
+                   math.log(m.beta_per_s * 5), 3.0 * m.half_closure_s + 1.0, math.log(6.0), 0.0, 1.0])
+    # both starts are taken a few steps (the friction correction at the rig's sigmoid), the better one
+    # is solved to the end with the correction refreshed at its optimum
+    x_rig = [math.log(a0), math.log(0.05), math.log(0.05), math.log(m.beta_per_s), m.half_closure_s]
+    prob.refresh(np.clip(np.array(x_rig + [0.0, 0.0, 0.0]), lo, hi))
+    tries = [levenberg_marquardt(prob.residual, prob.jacobian,
+                                 np.array(x_rig + [math.log(power), math.log(share), kappa]), lo, hi,
+                                 max_iter=START_ITERATIONS) for power, share, kappa in STARTS]
+    sol = min(tries, key=lambda s: float(s.fun @ s.fun))
+    for it in range(1 + (REFRESHES if tm is not None else 0)):
+        if it:
+            prob.refresh(sol.x)
+        sol = levenberg_marquardt(prob.residual, prob.jacobian, sol.x, lo, hi)
+    F = float(np.mean(sol.fun ** 2))
+    best = (F, sol, prob.corr)
+    F, sol, _ = best
+    x = sol.x
+    _, _, _, valve = prob.split(x)
+    se = _standard_errors(sol, F, prob.d.size)
+    params = dict(zip(PARAM_NAMES, (float(v) for v in valve)))
+    # standard errors in the reported units (the solver's variables are logs for beta, n, s)
+    ses = {}
+    for i, name in enumerate(PARAM_NAMES):
+        s = se[WALL + i]
+        ses[name] = float(s * params[name]) if name in ("beta_per_s", "power", "loss_share") else float(s)
+    q = closure_flow(t, hc, rig, valve)
+    text = (f"flow at the valve from a fitted closure (no valve position in the record): effective opening "
+            f"T(sigmoid(beta (t - t_half))) with beta = {params['beta_per_s']:.4g} 1/s, t_half = "
+            f"{params['t_half_s'] * 1e3:.4g} ms, characteristic power {params['power']:.3g}, valve loss share "
+            f"{params['loss_share']:.3g}, orifice coupling {params['coupling']:.3g} (1: discharge to air, "
+            f"0: imposed flow), fitted on the first {t[ne - 1] + t[1] - t[0]:.3g} s")
+    return ValveInput("fitted", q, params, ses, text, k=len(PARAM_NAMES))
+
+
+@dataclass
+class _Solution:
+    x: np.ndarray
+    fun: np.ndarray
+    jac: np.ndarray
+    iterations: int
+
+
+def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, ftol: float = 1e-7) -> _Solution:
+    """A small bounded Levenberg-Marquardt (steps clipped to the box, Marquardt's diagonal scaling):
+    ten parameters and a few thousand residuals, where scipy's trust-region solver spends its time in
+    an SVD per iteration."""
+    x = np.clip(np.asarray(x0, dtype=float), lo, hi)
+    r = residual(x)
+    F = float(r @ r)
+    lam = 1e-3
+    J = jacobian(x)
+    it = 0
+    for it in range(1, max_iter + 1):
+        A = J.T @ J
+        g = J.T @ r
+        D = np.maximum(np.diag(A), 1e-30)
+        improved = False
+        while lam < 1e12:
+            try:
+                step = np.linalg.solve(A + lam * np.diag(D), -g)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            xn = np.clip(x + step, lo, hi)
+            rn = residual(xn)
+            Fn = float(rn @ rn)
+            if Fn < F:
+                improved = True
+                break
+            lam *= 4.0
+        if not improved:
+            break
+        gain = (F - Fn) / F
+        x, r, F = xn, rn, Fn
+        lam = max(lam / 3.0, 1e-12)
+        J = jacobian(x)
+        if gain < ftol:
+            break
+    return _Solution(x, r, J, it)
+
+
+def _standard_errors(sol, F: float, n: int) -> np.ndarray:
+    J = sol.jac
+    try:
+        cov = np.linalg.pinv(J.T @ J) * F * n / max(n - J.shape[1], 1)
+    except np.linalg.LinAlgError:
+        return np.full(J.shape[1], math.nan)
+    return np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+
+def _scan_wave_speed(prob: _ClosureProblem, rig: Rig) -> float:
+    """Elastic pipe with the rig's sigmoid as an imposed flow: the wave speed that best lines up the
+    early fronts (a start for the closure fit: the fronts' timing sets it)."""
+    a_nom = rig.nominal_wave_speed_m_s
+    q = closure_flow(prob.t, prob.h, rig, (rig.manoeuvre.beta_per_s, rig.manoeuvre.half_closure_s, 1.0, 1.0, 0.0))
+    vm, sums, none = prob.vm, prob.vm.flow_sums(q), np.zeros(0)
+
+    def F(a):
+        return float(np.mean((vm.head_of(vm.impedance(a, none, none), sums) - prob.d) ** 2))
+
+    grid = np.geomspace(a_nom / 2, a_nom * 2, 241)
+    i = int(np.argmin([F(a) for a in grid]))
+    fine = np.geomspace(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)], 41)
+    return float(fine[int(np.argmin([F(a) for a in fine]))])
+
+
+MODES = ("auto", "fitted", "rig")
+
+
+def valve_input(t, d, rig: Rig, window_s: float, *, position_pct=None, mode: str = "auto",
+                closure: ValveInput | dict | None = None) -> ValveInput:
+    """The flow at the valve for a prepared record (t from the trigger, d the head perturbation):
+    ``mode`` "auto" -- from the recorded position if there is one, else the fitted closure;
+    "fitted" -- the fitted closure even with a position record; "rig" -- the rig's commanded sigmoid
+    imposed as the flow (the paper's model: no coupling, nothing fitted). ``closure``: a closure
+    already fitted on this record's first part (a lead fit's ``settings["manoeuvre"]``): its
+    parameters drive this window too, and the closure is not fitted again."""
+    if mode not in MODES:
+        raise DataError(f"unknown manoeuvre input {mode!r} (choose from {', '.join(MODES)})")
+    t = np.asarray(t, dtype=float)
+    if mode == "rig":
+        return ValveInput("rig", flow_perturbation(t, rig),
+                          text="flow at the valve imposed as the rig's sigmoid Q0 / (1 + exp(beta t + gamma)) "
+                               "(the paper's model: no valve law)")
+    # the coupling's head over a span that does not depend on the window's length (a lead fit and the
+    # final fit of one record see the same closure); after it the valve is shut and the coupling idle
+    span = int(np.searchsorted(t, COUPLING_SPAN_FACTOR * early_window_s(rig, math.inf)))
+    hc = np.asarray(d, dtype=float).copy()
+    hc[:span] = coupling_head(t[:span], hc[:span], rig)
+    if position_pct is not None and mode == "auto":
+        return from_position(t, hc, position_pct, rig)
+    old = closure.describe() if isinstance(closure, ValveInput) else closure
+    if old and old.get("source") == "fitted":
+        params = {k: float(old["params"][k]) for k in PARAM_NAMES}
+        return ValveInput("fitted", closure_flow(t, hc, rig, [params[k] for k in PARAM_NAMES]), params,
+                          dict(old.get("se", {})), old.get("text", ""), k=len(PARAM_NAMES))
+    return fit_closure(t, d, rig, window_s, TimeDomainModel(rig, t), coupling=hc)
