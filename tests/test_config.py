@@ -138,3 +138,42 @@ def test_bad_arguments_one_line(argv, capsys):
     err = capsys.readouterr().err
     assert exc.value.code == 2
     assert err.count("\n") == 1 and err.startswith("velab") and "--help" in err
+
+
+def test_valve_table_default_and_given(tmp_path):
+    """No [valve] table: the butterfly on the orifice law; a given table is read as written."""
+    v = load_rig(write(tmp_path, RIG)).valve
+    assert (v.law, v.characteristic, v.series_loss_share) == ("orifice", "butterfly", 0.05)
+    text = RIG + '[valve]\ncharacteristic = "table"\nposition_pct = [0, 50, 100]\nflow_ratio = [0, 0.3, 1]\n'
+    v = load_rig(write(tmp_path, text, "t.toml")).valve
+    assert v.characteristic == "table" and v.position_pct == (0.0, 50.0, 100.0) and v.flow_ratio == (0.0, 0.3, 1.0)
+    v = load_rig(write(tmp_path, RIG + '[valve]\nlaw = "imposed"\n', "i.toml")).valve
+    assert v.law == "imposed"
+
+
+@pytest.mark.parametrize(
+    "table, where, reason",
+    [
+        ('law = "sigmoid"', "[valve] law", "orifice"),
+        ('characteristic = "globe"', "[valve] characteristic", "butterfly"),
+        ("series_loss_share = 0", "[valve] series_loss_share", "must be in (0, 1]"),
+        ("series_loss_share = 1.5", "[valve] series_loss_share", "must be in (0, 1]"),
+        ('characteristic = "power"', "[valve] exponent", "missing key"),
+        ("exponent = 2.5", "[valve] exponent", 'only used with characteristic = "power"'),
+        ('characteristic = "power"\nexponent = -1', "[valve] exponent", "must be positive"),
+        ('characteristic = "table"\nposition_pct = [0, 100]', "[valve] flow_ratio", "missing key"),
+        ('characteristic = "table"\nposition_pct = [0, 60, 50, 100]\nflow_ratio = [0, 0.2, 0.5, 1]',
+         "[valve] position_pct", "increase strictly"),
+        ('characteristic = "table"\nposition_pct = [0, 100]\nflow_ratio = [0, "x"]', "[valve] flow_ratio",
+         "finite numbers"),
+        ("position_pct = [0, 100]", "[valve] position_pct", 'only used with characteristic = "table"'),
+        ("opening = 1", "[valve] opening", "unknown key"),
+    ],
+)
+def test_valve_errors_name_file_key_reason(tmp_path, table, where, reason):
+    p = write(tmp_path, RIG + "[valve]\n" + table + "\n")
+    with pytest.raises(ConfigError) as exc:
+        load_rig(p)
+    msg = str(exc.value)
+    assert str(p) in msg and where in msg and reason in msg, msg
+    assert "\n" not in msg
