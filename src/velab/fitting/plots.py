@@ -5,13 +5,16 @@ from __future__ import annotations
 import numpy as np
 
 from velab.config import Rig
+from velab.fitting.adequacy import best_residuals
 from velab.fitting.results import SweepResult
 from velab.fitting.friction import fitted_head
 from velab.model import phi
 
 
 def report_figure(t, h, rig: Rig, result: SweepResult, path) -> None:
-    """Write a 2 x 2 figure: measured vs fitted head; delta AIC vs m; J vs tau; |phi(omega)|.
+    """Write a figure: measured vs fitted head; delta AIC vs m; J vs tau; |phi(omega)|; and across the
+    bottom the best model's residuals against time with the record's noise band (+- the pretrigger
+    baseline's standard deviation, velab.fitting.adequacy) and the fit's warnings.
 
     The format follows the file suffix (.png, .pdf, .svg).
     """
@@ -20,8 +23,9 @@ def report_figure(t, h, rig: Rig, result: SweepResult, path) -> None:
     matplotlib.use("Agg", force=False)
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(11, 8), layout="constrained")
-    ax = fig.subplots(2, 2)
+    fig = Figure(figsize=(11, 11), layout="constrained")
+    axes = fig.subplot_mosaic([["head", "aic"], ["creep", "phi"], ["res", "res"]], height_ratios=[1, 1, 0.8])
+    ax = np.array([[axes["head"], axes["aic"]], [axes["creep"], axes["phi"]]])
     t = np.asarray(t, dtype=float)
     h = np.asarray(h, dtype=float)
     full = [f for f in result.models if not f.reduced]
@@ -68,4 +72,20 @@ def report_figure(t, h, rig: Rig, result: SweepResult, path) -> None:
     a3.set_ylabel("|φ(iω)|")
     a3.set_title("viscoelastic function")
     a3.legend(fontsize=7)
+
+    a4 = axes["res"]
+    tr, res = best_residuals(t, h, rig, result)
+    a4.plot(tr, res, color="0.3", lw=0.5, label=f"{best.name} residual (fit rate)")
+    sd = result.baseline_noise_m
+    if sd is not None:
+        a4.axhspan(-sd, sd, color="tab:green", alpha=0.2, lw=0, label=f"± baseline noise {sd:.3g} m")
+        for k in (-2, 2):
+            a4.axhline(k * sd, color="tab:green", lw=0.6, ls=":")
+    ratio = f", F/noise {best.noise_ratio:.3g}" if best.noise_ratio is not None else ", no baseline noise"
+    codes = ", ".join(w["code"] for w in result.warnings)
+    a4.set_title(f"residuals of {best.name}{ratio}" + (f"   WARNING: {codes}" if codes else ""),
+                 color="tab:red" if codes else "black")
+    a4.set_xlabel("t (s)")
+    a4.set_ylabel("h - model (m)")
+    a4.legend(fontsize=7, loc="upper right")
     fig.savefig(path)

@@ -29,6 +29,7 @@ from scipy.signal import firwin, resample_poly
 
 from velab.config import Rig
 from velab.errors import DataError
+from velab.fitting.adequacy import assess, baseline_noise
 from velab.fitting.lead import lead_window_s, matches, options_key
 from velab.fitting.results import SweepResult
 from velab.fitting.sweep import fit_sweep
@@ -54,6 +55,10 @@ class PreparedRecord:
     decimation: int
     filter: str
     notes: list[str] = field(default_factory=list)
+    # the record's own noise: the pretrigger baseline prepared like the window (velab.fitting.adequacy)
+    baseline_noise_m: float | None = None  # None: fewer than adequacy.MIN_BASELINE_SAMPLES at the fit rate
+    baseline_lag1: float | None = None
+    baseline_samples: int = 0
 
     @property
     def fit_rate_hz(self) -> float:
@@ -141,8 +146,11 @@ def prepare_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float
     q = fit_decimation(rig, record_rate_hz)
     hd = decimate_head(hw, q)
     td = tw[::q][: hd.size]
+    # the baseline through the window's filter and decimation, so that its variance and F compare
+    base = baseline_noise(head[:i0] - steady, lambda x: decimate_head(x, q), FIR_TAPS_PER_Q // 2 if q > 1 else 0)
     return PreparedRecord(td, hd[: td.size], float(window_s), float(trigger_time_s), steady, float(record_rate_hz), q,
-                          anti_alias_filter(q))
+                          anti_alias_filter(q), baseline_noise_m=base.std_m, baseline_lag1=base.lag1,
+                          baseline_samples=base.samples)
 
 
 def fit_prepared(rec: PreparedRecord, rig: Rig, **sweep_options) -> SweepResult:
@@ -154,6 +162,7 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, **sweep_options) -> SweepResult:
     result.anti_alias_filter = rec.filter
     result.settings["record"] = rec.describe()
     result.notes.extend(rec.notes)
+    assess(result, rec, rig)  # noise ratios and warnings (misfit, cavitation, bound)
     return result
 
 

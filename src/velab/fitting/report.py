@@ -31,25 +31,61 @@ def bounds_line(f) -> str:
     return f"{f.name}: " + "; ".join(parts)
 
 
+def warning_lines(result) -> list[str]:
+    """One line per warning of the fit (velab.fitting.adequacy): "WARNING misfit: ..."."""
+    return [f"WARNING {w.get('code', '?')}: {w.get('message', '')}" for w in getattr(result, "warnings", None) or []]
+
+
+def noise_line(result) -> str:
+    """The record's own noise and what chance allows the best model, or why it is not known."""
+    sd = getattr(result, "baseline_noise_m", None)
+    ad = getattr(result, "adequacy", None) or {}
+    if sd is None:
+        return ""
+    bound = ad.get("misfit_bound")
+    rho = getattr(result, "baseline_lag1", None)
+    return (f"record noise (pretrigger baseline, {ad.get('baseline_samples', '?')} samples at the fit rate): "
+            f"{sd:.3g} m, lag-1 {rho if rho is not None else math.nan:.2f}; F/noise: the model's mean squared "
+            f"residual over its variance" + (f", chance allows the best model up to {bound:.2f}" if bound else ""))
+
+
+def _ratio(f) -> str:
+    r = getattr(f, "noise_ratio", None)
+    return f"{r:.3g}" if r is not None and math.isfinite(r) else "-"
+
+
+def _support(result, f) -> str:
+    # support among models that do not describe the record is not support: say so in the cell
+    from velab.fitting.adequacy import is_misfit
+
+    return f.support + (" (misfit)" if is_misfit(result, f) else "")
+
+
 def format_report(result, elements: bool = True) -> str:
     sel = result.selection
+    warnings = warning_lines(result)
     lines = [
         f"n = {result.n} samples, window = {result.window_s:g} s from the trigger "
         f"({result.sample_rate_hz:g} Hz), method = {result.method}",
         f"model choice: {_SELECTION_TEXT.get(sel, sel)}; dAIC_w: the paper's white-noise AIC",
-        f"{'model':<6}{'k':>3}{'F (m^2)':>13}{'AIC white':>12}{'AIC AR1':>12}{'dAIC':>10}{'dAIC_w':>10}"
-        f"{'weight':>7}  {'support':<17}{'a (m/s)':>17}{'lag1':>7}{'n_eff':>8}  note",
+        *warnings,
+        f"{'model':<6}{'k':>3}{'F (m^2)':>13}{'F/noise':>9}{'AIC white':>12}{'AIC AR1':>12}{'dAIC':>10}{'dAIC_w':>10}"
+        f"{'weight':>7}  {'support':<27}{'a (m/s)':>17}{'lag1':>7}{'n_eff':>8}  note",
     ]
     best = result.best.name
     for f in result.models:
         mark = "*" if f.name == best else " "
         a = _pm(f.wave_speed_m_s, f.wave_speed_se_m_s, ".2f")
         lines.append(
-            f"{f.name + mark:<6}{f.k:>3}{f.F:>13.6e}{f.aic:>12.2f}{f.aic_ar1:>12.2f}{f.delta_aic:>10.2f}"
-            f"{f.delta_aic_white:>10.2f}{f.weight:>7.3f}  {f.support:<17}{a:>17}{f.lag1_autocorr:>7.3f}"
+            f"{f.name + mark:<6}{f.k:>3}{f.F:>13.6e}{_ratio(f):>9}{f.aic:>12.2f}{f.aic_ar1:>12.2f}{f.delta_aic:>10.2f}"
+            f"{f.delta_aic_white:>10.2f}{f.weight:>7.3f}  {_support(result, f):<27}{a:>17}{f.lag1_autocorr:>7.3f}"
             f"{f.n_eff:>8.0f}  {f.note}"
         )
-    lines.append(f"best model (minimum {'AIC AR1' if sel == 'ar1' else 'AIC'}): {best}")
+    codes = [w.get("code") for w in getattr(result, "warnings", None) or []]
+    lines.append(f"best model (minimum {'AIC AR1' if sel == 'ar1' else 'AIC'}): {best}"
+                 + (" -- but it does not describe the record (WARNING misfit above)" if "misfit" in codes else "")
+                 + (" -- the record cavitated: no model holds there (WARNING cavitation above)"
+                    if "cavitation" in codes else ""))
     if elements:
         lines.append("")
         lines.append(f"{'model':<6}{'#':>2}{'E (Pa)':>12}{'eta (Pa s)':>12}{'tau (s)':>22}{'J (1/Pa)':>12}"
@@ -86,5 +122,7 @@ def format_report(result, elements: bool = True) -> str:
         f"residuals of {best}: lag-1 autocorrelation {lag:.2f}, effective sample size {result.best.n_eff:.0f} of {result.n}"
         + (" -- correlated: the white-noise AIC over-rewards extra parameters" if abs(lag) > 0.2 else "")
     )
+    if noise_line(result):
+        lines.append(noise_line(result))
     lines.extend(result.notes)
     return "\n".join(lines)

@@ -45,6 +45,21 @@ def model_name(m: int, reduced: bool = False) -> str:
     return f"S{m}r" if reduced else f"S{m}"
 
 
+def _optional(v) -> float | None:
+    """A stored number that may be absent (None: not computed, or a document before it existed)."""
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def _warnings(v) -> list[dict]:
+    """Stored warnings as [{"code", "message"}] (anything else in a damaged document is dropped)."""
+    return [{"code": str(w.get("code", "")), "message": str(w.get("message", ""))}
+            for w in (v if isinstance(v, list) else []) if isinstance(w, dict)]
+
+
 def _nan_tuple(v, m):
     v = tuple(float(x) if x is not None else math.nan for x in (v or ()))
     return v if len(v) == m else (math.nan,) * m
@@ -93,6 +108,7 @@ class ModelFit:
     equivalent_to: str = ""  # "S1" when S2's extra element vanished (or two share tau), else ""
     split_elements: int = 0  # live elements whose retardation time another one already has
     friction: dict = field(default_factory=dict)  # friction correction of this model (see friction.py)
+    noise_ratio: float | None = None  # F / the pretrigger baseline's noise variance (velab.fitting.adequacy)
 
     @property
     def rss(self) -> float:
@@ -154,6 +170,7 @@ class ModelFit:
             "equivalent_to": self.equivalent_to or None, "split_elements": self.split_elements,
             "note": self.note or None,
             "friction": dict(self.friction),
+            "noise_ratio": self.noise_ratio,
             "evaluations": self.evaluations, "jacobians": self.jacobians, "starts": self.starts,
         }
 
@@ -189,6 +206,7 @@ class ModelFit:
             at_bounds=[dict(b) for b in d.get("at_bounds") or []],
             equivalent_to=str(d.get("equivalent_to") or ""), split_elements=int(d.get("split_elements") or 0),
             friction=dict(d.get("friction") or {}),
+            noise_ratio=_optional(d.get("noise_ratio")),
         )
 
 
@@ -241,6 +259,12 @@ class SweepResult:
     # the record's own rate and the anti-alias filter that took it to the fit rate (sample_rate_hz)
     record_rate_hz: float = math.nan
     anti_alias_filter: str = "none"
+    # the record's own noise (its pretrigger baseline at the fit rate) and what the fit makes of it
+    # (velab.fitting.adequacy): warnings [{"code": "misfit"|"cavitation"|"bound", "message"}]
+    baseline_noise_m: float | None = None
+    baseline_lag1: float | None = None
+    adequacy: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
 
     @property
     def fit_rate_hz(self) -> float:
@@ -288,6 +312,10 @@ class SweepResult:
             "evaluations": self.evaluations,
             "models": [f.to_dict() for f in self.models],
             "notes": list(self.notes),
+            "baseline_noise_m": self.baseline_noise_m,
+            "baseline_lag1": self.baseline_lag1,
+            "adequacy": dict(self.adequacy),
+            "warnings": [dict(w) for w in self.warnings],
         }
 
     @classmethod
@@ -302,8 +330,18 @@ class SweepResult:
             notes=list(d.get("notes") or []), selection=sel if sel in SELECTIONS else "white",
             record_rate_hz=float(d.get("record_rate_hz") or d.get("sample_rate_hz") or math.nan),
             anti_alias_filter=str(d.get("anti_alias_filter") or "none"),
+            baseline_noise_m=_optional(d.get("baseline_noise_m")), baseline_lag1=_optional(d.get("baseline_lag1")),
+            adequacy=dict(d.get("adequacy") or {}), warnings=_warnings(d.get("warnings")),
         )
+        if "warnings" not in d and r.models and r.best.at_bounds:
+            # a fit stored before the warnings existed: its parameters on a bound are the one it can have
+            from velab.fitting.adequacy import bound_message
+
+            r.warnings = [{"code": "bound", "message": bound_message(r.best)}]
         return r
+
+    def warning_codes(self) -> list[str]:
+        return [w["code"] for w in self.warnings]
 
     def report(self, elements: bool = True) -> str:
         """A plain-text table (one line per model), the parameters per element, bounds, notes."""

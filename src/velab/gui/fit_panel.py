@@ -1,10 +1,12 @@
 """The fit panel: the model table (fit_rows.py) and the paper's plots.
 
-Plots (pyqtgraph, one row): measured and fitted head for the models ticked in the table;
-delta AIC against m; the calibrated creep elements J against tau (decade labels only,
+Plots (pyqtgraph): measured and fitted head for the models ticked in the table, and below it the best
+model's residuals against time with the record's noise band (+- the pretrigger baseline's standard
+deviation: velab.fitting.adequacy); delta AIC against m; the calibrated creep elements J against tau (decade labels only,
 negligible elements left out); |phi(omega)|. The model curves are computed by
 :func:`fit_view_data` on a worker thread (it is model evaluation over the whole window);
-the panel only draws, and only when it is on screen: a fit that arrives while the Run page
+the panel only draws, and only when it is on screen. The fit's warnings (misfit, cavitation, bound)
+are a red line under the header: a fit that arrives while the Run page
 is shown is drawn (and its curves computed) when the Fit page is opened.
 """
 
@@ -22,7 +24,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QTableWid
 
 from velab.fitting.friction import fitted_head
 from velab.gui import tasks
-from velab.gui.fit_rows import COLUMNS, criterion, model_rows
+from velab.gui.fit_rows import COLUMNS, criterion, model_rows, warnings_text
 from velab.model import phi
 
 PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf",
@@ -53,7 +55,14 @@ def fit_view_data(t, h, rig, result) -> dict:
             continue
         if f.m:
             phis[f.name] = np.abs(phi(omega, rig, mat))
-    return {"t": td, "h": h[::q], "curves": curves, "freq_hz": omega / (2 * np.pi), "phi": phis, "result": result}
+    try:  # the best model's residuals at the fit rate, as the fitter saw them (comparable to the noise band)
+        from velab.fitting.adequacy import best_residuals
+
+        res_t, res = best_residuals(t, h, rig, result)
+    except Exception:  # a model the time grid cannot hold: no residual plot
+        res_t = res = np.zeros(0)
+    return {"t": td, "h": h[::q], "curves": curves, "freq_hz": omega / (2 * np.pi), "phi": phis, "result": result,
+            "res_t": res_t, "res": res}
 
 
 class DecadeAxis(pg.AxisItem):
@@ -108,6 +117,11 @@ class FitPanel(QWidget):
         f.setBold(True)
         self.header.setFont(f)
         lay.addWidget(self.header)
+        self.warnings = QLabel("")  # the fit's warnings: the best model does not describe the record, ...
+        self.warnings.setWordWrap(True)
+        self.warnings.setStyleSheet("background:#fde2e1; color:#6b0d0a; padding:2px;")
+        self.warnings.hide()
+        lay.addWidget(self.warnings)
 
         self.table = QTableWidget(0, len(COLUMNS))
         self.table.setHorizontalHeaderLabels(COLUMNS)
@@ -126,16 +140,21 @@ class FitPanel(QWidget):
         self.plots = pg.GraphicsLayoutWidget()
         lay.addWidget(self.plots, 1)
         self.p_head = self.plots.addPlot(row=0, col=0, title="measured and fitted head")
-        self.p_aic = self.plots.addPlot(row=0, col=1, title="ΔAIC against m")
-        self.p_creep = self.plots.addPlot(row=0, col=2, title="creep elements J against τ",
+        self.p_aic = self.plots.addPlot(row=0, col=1, rowspan=2, title="ΔAIC against m")
+        self.p_creep = self.plots.addPlot(row=0, col=2, rowspan=2, title="creep elements J against τ",
                                           axisItems={"left": DecadeAxis("left"), "bottom": DecadeAxis("bottom")})
-        self.p_phi = self.plots.addPlot(row=0, col=3, title="|φ(ω)|",
+        self.p_phi = self.plots.addPlot(row=0, col=3, rowspan=2, title="|φ(ω)|",
                                         axisItems={"left": DecadeAxis("left"), "bottom": DecadeAxis("bottom")})
+        self.p_res = self.plots.addPlot(row=1, col=0, title="residuals of the best model, ± the record's noise")
+        self.p_res.setXLink(self.p_head)
         lay_ = self.plots.ci.layout
         for col, stretch in enumerate((2, 1, 1, 1)):
             lay_.setColumnStretchFactor(col, stretch)
+        lay_.setRowStretchFactor(0, 2)
+        lay_.setRowStretchFactor(1, 1)
         self.p_head.setLabel("bottom", "time from trigger", units="s")
         self.p_head.setLabel("left", "head − steady", units="m")
+        self.p_res.setLabel("left", "h − model", units="m")
         self.p_aic.setLabel("bottom", "m (Kelvin-Voigt elements)")
         self.p_aic.setLabel("left", "log10(1 + ΔAIC)")
         self.p_creep.setLabel("bottom", "τ (s)")
@@ -144,14 +163,15 @@ class FitPanel(QWidget):
         self.p_phi.setLabel("bottom", "f (Hz)")
         self.p_phi.setLabel("left", "|φ|")
         self.p_phi.setLogMode(x=True, y=True)
-        for p in (self.p_head, self.p_aic, self.p_creep, self.p_phi):
+        for p in (self.p_head, self.p_aic, self.p_creep, self.p_phi, self.p_res):
             p.showGrid(x=True, y=True, alpha=0.25)
             p.getAxis("left").setWidth(52)
         for p in (self.p_creep, self.p_phi):
             for ax in ("left", "bottom"):
                 p.getAxis(ax).enableAutoSIPrefix(False)
-        self.p_head.setClipToView(True)
-        self.p_head.setDownsampling(auto=True, mode="peak")
+        for p in (self.p_head, self.p_res):
+            p.setClipToView(True)
+            p.setDownsampling(auto=True, mode="peak")
         self.head_legend = self.p_head.addLegend(offset=(-5, 5), labelTextSize="8pt")
         self.creep_legend = self.p_creep.addLegend(offset=(5, 5), labelTextSize="7pt", colCount=3)
         self._fit_table_height(7)
@@ -164,7 +184,8 @@ class FitPanel(QWidget):
         self._curves_for = None
         self._serial += 1
         self.table.setRowCount(0)
-        for p in (self.p_head, self.p_aic, self.p_creep, self.p_phi):
+        self.warnings.hide()
+        for p in (self.p_head, self.p_aic, self.p_creep, self.p_phi, self.p_res):
             p.clear()
         self.creep_legend.clear()
         self.head_legend.clear()
@@ -253,6 +274,9 @@ class FitPanel(QWidget):
             + (" (correlated: the white-noise AIC over-rewards extra parameters)"
                if abs(best.lag1_autocorr) > 0.2 and doc_sel == "AIC" else "")
         )
+        text = warnings_text(result)
+        self.warnings.setText("⚠ " + text.replace("\n", "\n⚠ ") if text else "")
+        self.warnings.setVisible(bool(text))
         self._fill_table(result)
         self._compute_curves()
         # the plots in the next turns of the event loop: drawing everything at once held the GUI
@@ -363,8 +387,30 @@ class FitPanel(QWidget):
             self._stale = True  # drawn when the panel is shown
         self.shown.emit(self.result.best.name if self.result else "")
 
+    def warning_text(self) -> str:
+        """The warnings line as shown ("" when the fit has none)."""
+        self.ensure_rendered()
+        return self.warnings.text() if not self.warnings.isHidden() else ""
+
+    def _draw_residuals(self) -> None:
+        self.p_res.clear()
+        d, result = self.data, self.result
+        if not d or result is None or not len(d.get("res", ())):
+            return
+        sd = getattr(result, "baseline_noise_m", None)
+        if sd is not None:  # the record's own noise: where a model that describes it leaves its residuals
+            t0, t1 = float(d["res_t"][0]), float(d["res_t"][-1])
+            lo = self.p_res.plot([t0, t1], [-sd, -sd], pen=pg.mkPen("#2a9d2a", width=1))
+            hi = self.p_res.plot([t0, t1], [sd, sd], pen=pg.mkPen("#2a9d2a", width=1))
+            self.p_res.addItem(pg.FillBetweenItem(lo, hi, brush=pg.mkBrush(42, 157, 42, 60)))
+        self.p_res.plot(d["res_t"], d["res"], pen=pg.mkPen("#444", width=1))
+        ratio = getattr(result.best, "noise_ratio", None)
+        self.p_res.setTitle(f"residuals of {result.best.name}" + (f", F/noise {ratio:.3g}" if ratio is not None else "")
+                            + (f", ± noise {sd:.3g} m" if sd is not None else ", no baseline noise"))
+
     def _draw_curves(self) -> None:
         self._draw_head()
+        self._draw_residuals()
         self.p_phi.clear()
         for name, ph in self.data["phi"].items():
             best = self.result is not None and name == self.result.best.name

@@ -10,7 +10,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-COLUMNS = ("plot", "model", "k", "F (m²)", "AIC", "ΔAIC", "weight", "support", "a (m/s)", "lag-1", "notes")
+COLUMNS = ("plot", "model", "k", "F (m²)", "F/noise", "AIC", "ΔAIC", "weight", "support", "a (m/s)", "lag-1",
+           "notes")
 
 
 def _num(x) -> float:
@@ -49,6 +50,13 @@ def _bound_text(b: dict) -> str:
     return text + (f" ({b['option']} moves it)" if b.get("option") else "")
 
 
+def warnings_text(result) -> str:
+    """The fit's warnings (velab.fitting.adequacy), one per line: "misfit: the best model ...", or ""."""
+    doc = result if isinstance(result, dict) else result.to_dict()
+    return "\n".join(f"{w.get('code', '?')}: {w.get('message', '')}" for w in doc.get("warnings") or []
+                     if isinstance(w, dict))
+
+
 def criterion(doc: dict) -> str:
     """The criterion behind ΔAIC and the best model: "AIC (AR1)" or "AIC" (the paper's white-noise AIC)."""
     return "AIC (AR1)" if doc.get("selection") == "ar1" else "AIC"
@@ -59,6 +67,7 @@ def model_rows(result) -> list[ModelRow]:
     doc = result if isinstance(result, dict) else result.to_dict()
     ar1 = doc.get("selection") == "ar1"
     best = doc.get("best")
+    bound = _num((doc.get("adequacy") or {}).get("misfit_bound"))
     rows = []
     for m in doc.get("models") or []:
         name = str(m.get("name", "?"))
@@ -80,8 +89,13 @@ def model_rows(result) -> list[ModelRow]:
                 continue
             tau, J = _num(e.get("tau")), _num(e.get("J"))
             tips.append(f"element {i}: τ = {_pm(tau, e.get('tau_se'), '.4g')} s, J = {_pm(J, e.get('J_se'), '.3e')} 1/Pa")
-        cells = ("", name, str(m.get("k", "")), f"{_num(m.get('F')):.4g}", f"{aic:.1f}",
-                 f"{_num(m.get('delta_aic')):.2f}", f"{_num(m.get('weight')):.3f}", str(m.get("support", "")),
+        ratio = _num(m.get("noise_ratio"))
+        support = str(m.get("support", ""))
+        if math.isfinite(bound) and math.isfinite(ratio) and ratio > bound:
+            support += " (misfit)"  # support among models that do not describe the record
+            notes.append(f"F is {ratio:.3g} x the record's noise (chance allows {bound:.2f})")
+        cells = ("", name, str(m.get("k", "")), f"{_num(m.get('F')):.4g}", f"{ratio:.3g}" if math.isfinite(ratio) else "–",
+                 f"{aic:.1f}", f"{_num(m.get('delta_aic')):.2f}", f"{_num(m.get('weight')):.3f}", support,
                  _pm(a, m.get("wave_speed_se"), ".2f" if _fin(m.get("wave_speed_se")) else ".1f"), f"{_num(m.get('lag1_autocorr')):.2f}", "; ".join(notes))
         rows.append(ModelRow(name, cells, name == best, bool(m.get("reduced", False)), notes, "\n".join(tips),
                              negligible))

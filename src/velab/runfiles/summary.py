@@ -116,12 +116,20 @@ def describe_fits(path) -> list[str]:
         window = d.get("window", math.nan)
         out.append(f"  fit {name}: method {d.get('method', '?')}, window {float(window):g} s, "
                    f"n {int(d.get('n', 0))}, best {d.get('best', '?')} ({d.get('date', '')})")
-        out.append(f"    {'model':<6}{'k':>3}{'F (m^2)':>13}{'AIC':>14}{'dAIC':>12}{'weight':>8}  {'a (m/s)':>8}  support")
+        # the fit's warnings (velab.fitting.adequacy: misfit, cavitation, bound); older fits have none stored
+        for w in d.get("warnings") or []:
+            if isinstance(w, dict):
+                out.append(f"    WARNING {w.get('code', '?')}: {w.get('message', '')}")
+        if isinstance(d.get("baseline_noise_m"), (int, float)):
+            out.append(f"    record noise {float(d['baseline_noise_m']):.3g} m (pretrigger baseline); "
+                       "F/noise per model below")
+        out.append(f"    {'model':<6}{'k':>3}{'F (m^2)':>13}{'F/noise':>9}{'AIC':>14}{'dAIC':>12}{'weight':>8}  {'a (m/s)':>8}"
+                   "  support")
         for m in d.get("models", []):
             def num(key):
                 v = m.get(key, math.nan)
                 return float(v) if isinstance(v, (int, float)) else math.nan
             out.append(f"    {str(m.get('name', '?')):<6}{int(num('k')) if math.isfinite(num('k')) else 0:>3}"
-                       f"{num('F'):>13.5g}{num('aic'):>14.2f}{num('delta_aic'):>12.2f}{num('weight'):>8.3f}  "
+                       f"{num('F'):>13.5g}{num('noise_ratio'):>9.3g}{num('aic'):>14.2f}{num('delta_aic'):>12.2f}{num('weight'):>8.3f}  "
                        f"{num('wave_speed'):>8.2f}  {m.get('support', '')}")
     return out
