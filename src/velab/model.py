@@ -77,15 +77,16 @@ def series_impedance(s, rig: Rig) -> np.ndarray:
     return W
 
 
-def _impedance_s(s: np.ndarray, a: float, phi_s: np.ndarray, rig: Rig) -> np.ndarray:
-    """Z(s) = -Zc tanh(mu L) for s != 0; s == 0 gets the steady -R L."""
+def _impedance_s(s: np.ndarray, a: float, phi_s: np.ndarray, rig: Rig, W=None) -> np.ndarray:
+    """Z(s) = -Zc tanh(mu L) for s != 0; s == 0 gets the steady -R L. ``W``: the series impedance on s
+    if not the rig's own (a fit's equivalent linear friction, velab.fitting.friction)."""
     p = rig.pipe
     C = GRAVITY_M_S2 * p.area_m2 / a**2
     s = np.asarray(s, dtype=complex)
     zero = s == 0
     s_safe = np.where(zero, 1.0, s)
     Y = s_safe * C * (1.0 + phi_s)  # shunt admittance per unit length
-    mu = np.sqrt(Y * series_impedance(s_safe, rig))  # principal branch: Re(mu) >= 0
+    mu = np.sqrt(Y * (series_impedance(s_safe, rig) if W is None else W))  # principal branch: Re(mu) >= 0
     Z = -(mu / Y) * np.tanh(mu * p.length_m)
     return np.where(zero, -rig.linear_resistance * p.length_m, Z)
 
@@ -240,9 +241,10 @@ class ValveHeadModel:
         buf[..., : self.band.n_bins] = z
         return self.sums_to_time(buf)
 
-    def impedance(self, a: float, J_rel, tau) -> np.ndarray:
-        """Z on the band's bins for wave speed a and KV elements (J'_k, tau_k)."""
-        return _impedance_s(self.s_band, a, _phi_s(self.s_band, J_rel, tau), self.rig)
+    def impedance(self, a: float, J_rel, tau, W=None) -> np.ndarray:
+        """Z on the band's bins for wave speed a and KV elements (J'_k, tau_k); ``W`` the series
+        impedance on the band's bins if not the rig's own."""
+        return _impedance_s(self.s_band, a, _phi_s(self.s_band, J_rel, tau), self.rig, W)
 
     def to_time(self, impedance_spectra: np.ndarray) -> np.ndarray:
         """Impedance on the band's bins (..., n_bins) -> head series (..., len(t)).

@@ -43,8 +43,9 @@ from velab.config import Rig
 from scipy.signal import butter, sosfiltfilt
 
 from velab.errors import DataError
-from velab.fitting.friction import TimeDomainModel
-from velab.model import ValveHeadModel, flow_perturbation, manoeuvre_band_hz
+from velab.fitting.engine import HeadEvaluator
+from velab.fitting.friction import TimeDomainModel, equivalent_friction
+from velab.model import ValveHeadModel, creep_scale, flow_perturbation, manoeuvre_band_hz, series_impedance
 from velab.valvelaw import orifice_coupling
 
 # the closure is fitted before the first reflection returns to the valve (2L/a), or over 1.5 x its
@@ -334,6 +335,111 @@ def _scan_wave_speed(prob: _ClosureProblem, rig: Rig) -> float:
     return float(fine[int(np.argmin([F(a) for a in fine]))])
 
 
+def refine_closure(t, d, rig: Rig, vi: ValveInput, fit) -> ValveInput:
+    """The fitted closure refined on the whole window (t, d) jointly with a calibrated wall (``fit``, a
+    ModelFit: the best model of a sweep driven by ``vi``, its starting point). Every wave front of the
+    window carries the closure's shape, so the whole record pins it far better than its first part;
+    and a fast creep element smooths the fronts as a slower closure would, so the two are solved
+    together (an alternation crawls along that ridge). The frequency model carries the linear
+    friction closest to the time-domain model (``equivalent_friction``) and the remaining difference
+    as a correction refreshed once. The standard errors come from the whole window, inflated for the
+    residuals' lag-1 correlation. Only the closure is kept: the sweep's continuation then calibrates
+    every model under it."""
+    if vi.source != "fitted":
+        return vi
+    t = np.asarray(t, dtype=float)
+    d = np.asarray(d, dtype=float)
+    hc = _coupling(t, d, rig)
+    m = rig.manoeuvre
+    a = fit.wave_speed_m_s
+    J0 = creep_scale(rig, a) / np.asarray(fit.E_pa, dtype=float)
+    tau0 = np.asarray(fit.tau_s, dtype=float)
+    k = J0.size
+    tm = TimeDomainModel(rig, t)
+    vm = ValveHeadModel(rig, t, band_hz=None, flow=vi.flow)
+    W = series_impedance(vm.s_band, rig)
+    if tm.active:
+        ev = HeadEvaluator(rig, t, band_hz=None, flow=vi.flow)
+        W = W + equivalent_friction(ev, (a, J0, tau0), tm.head(a, J0, tau0, flow=tm_flow(t, vi.flow)))(vm.s_band, rig)
+
+    def split(x):
+        return math.exp(x[0]), np.exp(x[1 : 1 + k]), np.exp(x[1 + k : 1 + 2 * k]), \
+            (math.exp(x[-5]), x[-4], math.exp(x[-3]), math.exp(x[-2]), x[-1])
+
+    def head_fd(x):
+        a_, J_, tau_, v = split(x)
+        return vm.head_of(vm.impedance(a_, J_, tau_, W), vm.flow_sums(closure_flow(t, hc, rig, v)))
+
+    corr = np.zeros_like(d)
+
+    def residual(x):
+        return head_fd(x) + corr - d
+
+    def jacobian(x):
+        a_, J_, tau_, v = split(x)
+        h0 = head_fd(x)
+        rows_z, rows_s = [], []
+        for i in range(x.size):
+            xp = np.array(x, dtype=float)
+            xp[i] += _ClosureProblem.STEP
+            ap, Jp, taup, vp = split(xp)
+            if i < 1 + 2 * k:
+                rows_z.append(vm.impedance(ap, Jp, taup, W))
+            else:
+                rows_s.append(vm.flow_sums(closure_flow(t, hc, rig, vp)))
+        sums0 = vm.flow_sums(closure_flow(t, hc, rig, v))
+        hz = vm.head_of(np.array(rows_z), sums0)
+        hs = vm.head_of(vm.impedance(a_, J_, tau_, W), np.array(rows_s))
+        return ((np.vstack([hz, hs]) - h0) / _ClosureProblem.STEP).T
+
+    p = vi.params
+    x = np.concatenate([[math.log(a)], np.log(J0), np.log(tau0),
+                        [math.log(p["beta_per_s"]), p["t_half_s"], math.log(p["power"]), math.log(p["loss_share"]),
+                         p["coupling"]]])
+    lo = np.concatenate([[math.log(a * 0.9)], np.full(k, math.log(1e-8)), np.full(k, math.log(1e-4)),
+                         [math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), 0.0]])
+    hi = np.concatenate([[math.log(a * 1.1)], np.full(k, math.log(10.0)), np.full(k, math.log(1e4)),
+                         [math.log(m.beta_per_s * 5), 3.0 * m.half_closure_s + 1.0, math.log(6.0), 0.0, 1.0]])
+    x = np.clip(x, lo, hi)
+    sol = None
+    for _ in range(2 if tm.active else 1):
+        if tm.active:
+            a_, J_, tau_, v = split(x)
+            corr = tm.head(a_, J_, tau_, flow=tm_flow(t, closure_flow(t, hc, rig, v))) - head_fd(x)
+        sol = levenberg_marquardt(residual, jacobian, x, lo, hi)
+        x = sol.x
+    res = sol.fun
+    F = float(res @ res) / res.size
+    rho = max(0.0, min(float(np.corrcoef(res[:-1], res[1:])[0, 1]) if res.size > 2 else 0.0, 0.99))
+    se = _standard_errors(sol, F, res.size)[-5:] * math.sqrt((1 + rho) / (1 - rho))
+    valve = split(x)[3]
+    params = dict(zip(PARAM_NAMES, (float(v) for v in valve)))
+    ses = {name: float(se[i] * params[name]) if name in ("beta_per_s", "power", "loss_share") else float(se[i])
+           for i, name in enumerate(PARAM_NAMES)}
+    text = (f"flow at the valve from a fitted closure (no valve position in the record): effective opening "
+            f"T(sigmoid(beta (t - t_half))) with beta = {params['beta_per_s']:.4g} +- {ses['beta_per_s']:.2g} 1/s, "
+            f"t_half = {params['t_half_s'] * 1e3:.4g} +- {ses['t_half_s'] * 1e3:.2g} ms, characteristic power "
+            f"{params['power']:.3g}, valve loss share {params['loss_share']:.3g}, orifice coupling "
+            f"{params['coupling']:.3g} (1: discharge to air, 0: imposed flow); fitted over {t[-1] + t[1] - t[0]:.4g} s "
+            f"with the wall")
+    return ValveInput("fitted", closure_flow(t, hc, rig, valve), params, ses, text, k=len(PARAM_NAMES))
+
+
+def tm_flow(t, q):
+    """The flow on the grid as the time-domain model takes it (t -> q, linear between samples)."""
+    return lambda s: np.interp(s, t, q)
+
+
+def _coupling(t: np.ndarray, d: np.ndarray, rig: Rig) -> np.ndarray:
+    """The head rise the orifice coupling takes: ``coupling_head`` over a span that does not depend on
+    the window's length (a lead fit and the final fit of one record see the same closure); after it
+    the valve is shut and the coupling idle."""
+    span = int(np.searchsorted(t, COUPLING_SPAN_FACTOR * early_window_s(rig, math.inf)))
+    hc = np.asarray(d, dtype=float).copy()
+    hc[:span] = coupling_head(t[:span], hc[:span], rig)
+    return hc
+
+
 MODES = ("auto", "fitted", "rig")
 
 
@@ -352,11 +458,7 @@ def valve_input(t, d, rig: Rig, window_s: float, *, position_pct=None, mode: str
         return ValveInput("rig", flow_perturbation(t, rig),
                           text="flow at the valve imposed as the rig's sigmoid Q0 / (1 + exp(beta t + gamma)) "
                                "(the paper's model: no valve law)")
-    # the coupling's head over a span that does not depend on the window's length (a lead fit and the
-    # final fit of one record see the same closure); after it the valve is shut and the coupling idle
-    span = int(np.searchsorted(t, COUPLING_SPAN_FACTOR * early_window_s(rig, math.inf)))
-    hc = np.asarray(d, dtype=float).copy()
-    hc[:span] = coupling_head(t[:span], hc[:span], rig)
+    hc = _coupling(t, d, rig)
     if position_pct is not None and mode == "auto":
         return from_position(t, hc, position_pct, rig)
     old = closure.describe() if isinstance(closure, ValveInput) else closure

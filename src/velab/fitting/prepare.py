@@ -30,7 +30,9 @@ from scipy.signal import firwin, resample_poly
 from velab.config import Rig
 from velab.errors import DataError
 from velab.fitting.adequacy import assess, baseline_noise
+from velab.fitting.friction import fit_rig, fitted_head
 from velab.fitting.lead import lead_window_s, matches, options_key
+from velab.fitting.manoeuvre import refine_closure, valve_input
 from velab.fitting.results import SweepResult
 from velab.fitting.sweep import fit_sweep
 from velab.model import manoeuvre_band_hz
@@ -39,6 +41,8 @@ from velab.model import manoeuvre_band_hz
 # sigmoid's flow spectrum is below 1e-8 of its DC value): 930 Hz at the reference rig
 FIT_RATE_PER_BAND = 30.0
 STEADY_HEAD_S = 1.0  # the steady head is the mean over this long before the trigger
+# a one-step fit is calibrated again under the refined closure if that gains at least this in n ln F
+REFINE_MIN_GAIN = 0.5
 FIR_TAPS_PER_Q = 20
 
 
@@ -59,6 +63,8 @@ class PreparedRecord:
     baseline_noise_m: float | None = None  # None: fewer than adequacy.MIN_BASELINE_SAMPLES at the fit rate
     baseline_lag1: float | None = None
     baseline_samples: int = 0
+    # the valve position (% open) on t, prepared like the head, if the record holds one
+    position: np.ndarray | None = None
 
     @property
     def fit_rate_hz(self) -> float:
@@ -108,9 +114,11 @@ def steady_head(t: np.ndarray, head: np.ndarray, trigger_time_s: float, fallback
 
 
 def prepare_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | None, *,
-                   record_rate_hz: float) -> PreparedRecord:
+                   record_rate_hz: float, position_pct=None) -> PreparedRecord:
     """The calibration data of a record: ``t_s`` on the run's axis (s, increasing), ``head_m`` the
-    absolute head there (before and after the trigger), ``window_s`` after the trigger (None: all).
+    absolute head there (before and after the trigger), ``window_s`` after the trigger (None: all),
+    ``position_pct`` the recorded valve position on ``t_s`` if there is one (the manoeuvre's input,
+    velab.fitting.manoeuvre; not used if it is not finite throughout the window).
 
     Raises DataError (one line) for a window longer than the record, NaN in it, a non-uniform axis."""
     t = np.asarray(t_s, dtype=float)
@@ -148,14 +156,57 @@ def prepare_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float
     td = tw[::q][: hd.size]
     # the baseline through the window's filter and decimation, so that its variance and F compare
     base = baseline_noise(head[:i0] - steady, lambda x: decimate_head(x, q), FIR_TAPS_PER_Q // 2 if q > 1 else 0)
+    pos, notes = _window_position(position_pct, t, i0, i1, q, td.size)
     return PreparedRecord(td, hd[: td.size], float(window_s), float(trigger_time_s), steady, float(record_rate_hz), q,
-                          anti_alias_filter(q), baseline_noise_m=base.std_m, baseline_lag1=base.lag1,
-                          baseline_samples=base.samples)
+                          anti_alias_filter(q), notes=notes, baseline_noise_m=base.std_m, baseline_lag1=base.lag1,
+                          baseline_samples=base.samples, position=pos)
 
 
-def fit_prepared(rec: PreparedRecord, rig: Rig, **sweep_options) -> SweepResult:
-    """``fit_sweep`` on a prepared record; the preparation goes into the result."""
-    result = fit_sweep(rec.t, rec.h, rig, window_s=None, **sweep_options)
+def _window_position(position_pct, t: np.ndarray, i0: int, i1: int, q: int, n: int):
+    """The recorded valve position over the window, filtered and decimated as the head (None if absent
+    or not finite throughout: the manoeuvre is then fitted), and a note if it was dropped."""
+    if position_pct is None:
+        return None, []
+    p = np.asarray(position_pct, dtype=float)
+    if p.shape != t.shape:
+        raise DataError(f"valve position and time must have equal lengths (got {p.shape} and {t.shape})")
+    pw = p[i0:i1]
+    if not np.all(np.isfinite(pw)):
+        return None, ["valve position not finite throughout the window: the manoeuvre is fitted instead"]
+    return decimate_head(pw, q)[:n], []
+
+
+def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refine: str = "continue",
+                 **sweep_options) -> SweepResult:
+    """``fit_sweep`` on a prepared record, driven by the flow at the valve built from it
+    (velab.fitting.manoeuvre; ``manoeuvre``: "auto", "fitted" or "rig"); the preparation goes into
+    the result.
+
+    A fitted closure is refined on the whole window with the best model's wall
+    (``manoeuvre.refine_closure``). ``refine``: "continue" -- then every model is calibrated again
+    from its optimum under the refined closure (a continuation) if the refinement gained at least
+    REFINE_MIN_GAIN in n ln F; "only" -- the refined closure is stored for the continuation of this
+    lead fit (``settings["manoeuvre_refined"]``). A continuation (``lead`` given) takes the closure its
+    lead refined."""
+    lead = sweep_options.get("lead")
+    closure = None
+    if isinstance(lead, SweepResult):
+        closure = lead.settings.get("manoeuvre_refined") or lead.settings.get("manoeuvre")
+    frig = fit_rig(rig, sweep_options.get("friction"), sweep_options.get("friction_unsteady"))
+    vi = valve_input(rec.t, rec.h, frig, rec.window_s, position_pct=rec.position, mode=manoeuvre, closure=closure)
+    result = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=vi.flow, **sweep_options)
+    if vi.source == "fitted" and closure is None and result.models:
+        refined = refine_closure(rec.t, rec.h, frig, vi, result.best)
+        if refine == "only":
+            result.settings["manoeuvre_refined"] = refined.describe()
+        elif _refit_gain(rec, frig, result, refined) >= REFINE_MIN_GAIN:
+            again = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=refined.flow, **(sweep_options | {"lead": result}))
+            again.settings["lead"] = None  # (a continuation of this fit's own first pass, not of a lead fit)
+            again.duration_s += result.duration_s
+            again.evaluations += result.evaluations
+            result, vi = again, refined
+    result.settings["manoeuvre"] = vi.describe()
+    result.notes.append(vi.text)
     # the rates as the record states them (fit_sweep measures its step from the time axis)
     result.sample_rate_hz = rec.fit_rate_hz
     result.record_rate_hz = rec.record_rate_hz
@@ -166,21 +217,31 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, **sweep_options) -> SweepResult:
     return result
 
 
+def _refit_gain(rec: PreparedRecord, rig: Rig, result: SweepResult, refined) -> float:
+    """n ln(F / F'): what the refined closure gains for the best model's wall (its head under the
+    refined flow, with the rig's friction laws), against the best model's F."""
+    h = fitted_head(rec.t, rig, result.best, flow=refined.flow)
+    F = float(np.mean((h - rec.h) ** 2))
+    return rec.h.size * math.log(result.best.F / F) if F > 0 else math.inf
+
+
 def fit_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | None, *, record_rate_hz: float,
-               lead: bool | SweepResult = True, **sweep_options) -> SweepResult:
+               lead: bool | SweepResult = True, position_pct=None, **sweep_options) -> SweepResult:
     """Prepare a record (``prepare_record``) and calibrate on it: the one fit path of velab.
 
     The default sweep of a long enough window runs as a lead fit on its first part and a
     continuation on the whole (velab.fitting.lead). ``lead``: True (compute it here), a SweepResult
     (the recorder's, computed while the window's last part was being recorded: used if it is the
     lead this call would compute, else computed again), or False (one step; not the fit path's
-    result, for comparisons)."""
-    rec = prepare_record(t_s, head_m, trigger_time_s, rig, window_s, record_rate_hz=record_rate_hz)
+    result, for comparisons). ``position_pct``: the recorded valve position on ``t_s`` (or None)."""
+    rec = prepare_record(t_s, head_m, trigger_time_s, rig, window_s, record_rate_hz=record_rate_hz,
+                         position_pct=position_pct)
     lw = lead_window_s(rig, rec.window_s, sweep_options) if lead is not False else None
     if lw is None:
         return fit_prepared(rec, rig, **sweep_options)
     progress = sweep_options.pop("progress", None)
-    rec_lead = prepare_record(t_s, head_m, trigger_time_s, rig, lw, record_rate_hz=record_rate_hz)
+    rec_lead = prepare_record(t_s, head_m, trigger_time_s, rig, lw, record_rate_hz=record_rate_hz,
+                              position_pct=position_pct)
     computed = not matches(lead, rec.window_s, sweep_options, rec_lead.describe())
     if computed:
         lead = _fit_lead_record(rec_lead, rig, rec.window_s,
@@ -193,20 +254,23 @@ def fit_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | N
 
 
 def fit_lead(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float, *, record_rate_hz: float,
-             **sweep_options) -> SweepResult | None:
+             position_pct=None, **sweep_options) -> SweepResult | None:
     """The lead fit of a ``window_s`` fit of this record (None if it has none): what ``fit_record``
     computes first, for the recorder to run as soon as the lead's part of the window is in. ``t_s``
     and ``head_m`` need only reach the end of that part."""
     lw = lead_window_s(rig, window_s, sweep_options)
     if lw is None:
         return None
-    rec_lead = prepare_record(t_s, head_m, trigger_time_s, rig, lw, record_rate_hz=record_rate_hz)
+    if position_pct is not None:  # the recorder passes the record up to now; the lead needs its part
+        position_pct = np.asarray(position_pct, dtype=float)[: np.size(t_s)]
+    rec_lead = prepare_record(t_s, head_m, trigger_time_s, rig, lw, record_rate_hz=record_rate_hz,
+                              position_pct=position_pct)
     return _fit_lead_record(rec_lead, rig, window_s, **sweep_options)
 
 
 def _fit_lead_record(rec_lead: PreparedRecord, rig: Rig, window_s: float, **sweep_options) -> SweepResult:
     """The lead fit on its prepared record, marked with what it was made for (``matches``)."""
-    lead = fit_prepared(rec_lead, rig, **sweep_options)
+    lead = fit_prepared(rec_lead, rig, refine="only", **sweep_options)
     lead.settings["lead_for"] = options_key(window_s, sweep_options)  # (progress is not part of the key)
     return lead
 
@@ -223,4 +287,5 @@ def fit_run(run, window_s: float | None, **sweep_options) -> SweepResult:
     GUI archive's re-fit call. Lost samples inside the window are refused (a gap cannot be fitted)."""
     run.fit_window(window_s)  # the reader's own checks of the window (gaps, NaN), with the file's name
     return fit_record(run.time_s, run.head_m, run.trigger_time_s, run.rig, window_s,
-                      record_rate_hz=run.sample_rate_hz, **sweep_options)
+                      record_rate_hz=run.sample_rate_hz, position_pct=run.channels.get("valve_position"),
+                      **sweep_options)
