@@ -37,6 +37,8 @@ class CsvRecord:
     value_column: str
     units: str
     sample_rate_hz: float
+    valve_position_pct: np.ndarray | None = None  # the valve position column (% open), if named
+    valve_column: str = ""
 
 
 def _pick(header: list[str], wanted: str | None, default_index: int, path: Path, what: str) -> int:
@@ -56,6 +58,7 @@ def read_csv_record(
     units: str = "m",
     time_column: str | None = None,
     value_column: str | None = None,
+    valve_column: str | None = None,
     uneven_tolerance: float = 0.01,
 ) -> CsvRecord:
     """Parse and validate a CSV record; raises DataError naming the line."""
@@ -90,17 +93,24 @@ def read_csv_record(
                 raise DataError(f"{path}: line 1: expected a header row (column names), found numbers")
             ti = _pick(header, time_column, 0, path, "time")
             vi = _pick(header, value_column, 1, path, "pressure")
-            times, values = [], []
+            pi = None if valve_column is None else _pick(header, valve_column, -1, path, "valve position")
+            times, values, positions = [], [], []
             for row in reader:
                 line = reader.line_num
                 if not row or all(not c.strip() for c in row):
                     continue
-                if len(row) <= max(ti, vi):
+                if len(row) <= max(ti, vi, -1 if pi is None else pi):
                     raise DataError(f"{path}: line {line}: expected {len(header)} columns, found {len(row)}")
                 t = _number(row[ti], path, line, header[ti])
                 v = _number(row[vi], path, line, header[vi])
                 times.append(t)
                 values.append(v)
+                if pi is not None:
+                    p = _number(row[pi], path, line, header[pi])
+                    if not -1.0 <= p <= 101.0:  # a little beyond 0..100: feedback calibration
+                        raise DataError(f"{path}: line {line}: column {header[pi]!r}: valve position {p:g} is not "
+                                        "a percentage open (0..100)")
+                    positions.append(min(max(p, 0.0), 100.0))
         except UnicodeDecodeError:
             raise DataError(f"{path}: not a text (UTF-8) CSV file") from None
         except csv.Error as exc:
@@ -125,7 +135,8 @@ def read_csv_record(
         )
     factor = PRESSURE_UNITS[units]
     head = v if factor is None else v * factor / (rig.fluid.density_kg_m3 * GRAVITY_M_S2)
-    return CsvRecord(t, head, header[ti], header[vi], units, 1.0 / step)
+    pos = np.asarray(positions) if pi is not None else None
+    return CsvRecord(t, head, header[ti], header[vi], units, 1.0 / step, pos, header[pi] if pi is not None else "")
 
 
 def _is_number(text: str) -> bool:

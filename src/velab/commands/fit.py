@@ -49,6 +49,10 @@ def register(sub) -> None:
                    help="steady friction law of the calibration model (default: the rig's)")
     p.add_argument("--friction-unsteady", choices=UNSTEADY_LAWS, default=None,
                    help="unsteady friction law of the calibration model (default: the rig's)")
+    p.add_argument("--manoeuvre", choices=("auto", "fitted", "rig"), default="auto",
+                   help="the flow at the valve that drives the model: auto (default; from the recorded valve "
+                   "position through the rig's valve, else a closure fitted with the wall), fitted (the closure "
+                   "even with a position record), rig (the rig's sigmoid imposed as the flow: the paper's model)")
     add_json_option(p)
     p.add_argument("--plot", metavar="FILE", help="write report figures (.png, .pdf or .svg); with several runs, "
                    "one file per run named FILE-stem_RUN-stem.suffix")
@@ -82,8 +86,18 @@ def _options(args) -> dict:
         "reduced": args.reduced, "starts": args.starts, "polish": not args.no_polish,
         "save": not args.no_save, "name": args.name, "plot": args.plot,
         "tau_min_s": args.tau_min, "tau_max_s": args.tau_max, "selection": args.selection,
-        "friction": args.friction, "friction_unsteady": args.friction_unsteady,
+        "friction": args.friction, "friction_unsteady": args.friction_unsteady, "manoeuvre": args.manoeuvre,
     }
+
+
+def _window_position(run, t):
+    """The recorded valve position on the fit window's grid t (s from the trigger), or None."""
+    import numpy as np
+
+    pos = run.channels.get("valve_position")
+    if pos is None:
+        return None
+    return np.interp(np.asarray(t) + run.trigger_time_s, run.time_s, pos)
 
 
 def _plot_path(template: str, run_path: str, many: bool) -> str:
@@ -105,7 +119,7 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
                      reduced=opts["reduced"], starts=opts["starts"], polish=opts["polish"],
                      progress=progress, tau_min_s=opts["tau_min_s"], tau_max_s=opts["tau_max_s"],
                      selection=opts["selection"], friction=opts["friction"],
-                     friction_unsteady=opts["friction_unsteady"])
+                     friction_unsteady=opts["friction_unsteady"], manoeuvre=opts.get("manoeuvre", "auto"))
     result.settings["window_s_requested"] = opts["window_s"]
     name = None
     if opts["save"]:
@@ -122,7 +136,7 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
         figure = _plot_path(opts["plot"], path, many)
         t, h = run.fit_window(opts["window_s"])
         try:
-            report_figure(t, h, run.rig, result, figure)
+            report_figure(t, h, run.rig, result, figure, position_pct=_window_position(run, t))
         except OSError as exc:
             raise DataError(f"{figure}: cannot write the figure: {exc.strerror or exc}") from None
     return result, name

@@ -24,6 +24,8 @@ def register(sub) -> None:
     p.add_argument("--trigger", type=finite_float, default=0.0, help="trigger instant on the file's time axis, s (default 0)")
     p.add_argument("--time-column", help="name of the time column (default: the first)")
     p.add_argument("--value-column", help="name of the pressure column (default: the second)")
+    p.add_argument("--valve-column", help="name of a valve position column (%% open), if the record has one: the "
+                                          "fit then takes the manoeuvre from it (default: none, the manoeuvre is fitted)")
     p.add_argument("--title", help="run title (default: the CSV file name)")
     p.add_argument("-o", "--output", required=True, help="run file to write (.h5)")
     p.add_argument("--force", action="store_true", help="replace an existing output file")
@@ -39,7 +41,8 @@ def run(args: argparse.Namespace) -> int:
 
     rig = load_rig(args.rig)
     out = prepare_output(args.output, args.force)
-    rec = read_csv_record(args.csv, rig, units=args.units, time_column=args.time_column, value_column=args.value_column)
+    rec = read_csv_record(args.csv, rig, units=args.units, time_column=args.time_column, value_column=args.value_column,
+                          valve_column=args.valve_column)
     t = rec.time_s - args.trigger
     if not (t[0] <= 0 <= t[-1]):
         raise DataError(f"--trigger {args.trigger:g} s is outside the record ({rec.time_s[0]:g} .. {rec.time_s[-1]:g} s)")
@@ -48,8 +51,10 @@ def run(args: argparse.Namespace) -> int:
     write_run(
         out, rig, t, rec.head_m, status="imported", title=args.title or Path(args.csv).name,
         sample_rate_hz=rec.sample_rate_hz, overwrite=args.force,
+        extra_channels=None if rec.valve_position_pct is None else {"valve_position": (rec.valve_position_pct, "%")},
         source={"kind": "csv", "file": str(Path(args.csv).resolve()), "time_column": rec.time_column,
-                "value_column": rec.value_column, "units": rec.units, "trigger_s": args.trigger},
+                "value_column": rec.value_column, "units": rec.units, "trigger_s": args.trigger,
+                "valve_column": rec.valve_column},
     )
     n_pre = int(np.count_nonzero(t < 0))
     print(f"wrote {out}: {t.size} samples at {rec.sample_rate_hz:g} Hz, {n_pre} before the trigger")

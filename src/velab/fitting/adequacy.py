@@ -142,11 +142,14 @@ def is_misfit(result, f) -> bool:
     return bound is not None and r is not None and math.isfinite(r) and r > bound
 
 
-def best_residuals(t, h, rig, result, model=None) -> tuple[np.ndarray, np.ndarray]:
+def best_residuals(t, h, rig, result, model=None, position_pct=None) -> tuple[np.ndarray, np.ndarray]:
     """(t, residual) of the best model (or ``model``) on a window ``t``, ``h`` (s from the trigger, head
     perturbation, m, at the record's rate), taken to the fit rate as the fit path does (the result's
-    ``settings["record"]["decimation"]``), so that they compare with the baseline noise band."""
+    ``settings["record"]["decimation"]``), so that they compare with the baseline noise band; the model
+    is driven by the fit's own flow at the valve (velab.fitting.manoeuvre.result_flow; ``position_pct``
+    the recorded valve position on t, if the fit took it)."""
     from velab.fitting.friction import fitted_head
+    from velab.fitting.manoeuvre import result_flow
     from velab.fitting.prepare import decimate_head  # (prepare imports this module)
 
     t = np.asarray(t, dtype=float)
@@ -155,4 +158,6 @@ def best_residuals(t, h, rig, result, model=None) -> tuple[np.ndarray, np.ndarra
     hd = decimate_head(h, q)
     td = t[::q][: hd.size]
     f = model if model is not None else result.best
-    return td, hd[: td.size] - fitted_head(td, rig, f)
+    pd = None if position_pct is None else np.asarray(position_pct, dtype=float)[::q][: td.size]
+    flow = result_flow(result.settings, td, hd[: td.size], rig, pd)
+    return td, hd[: td.size] - fitted_head(td, rig, f, flow=flow)

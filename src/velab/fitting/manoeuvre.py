@@ -46,7 +46,7 @@ from velab.errors import DataError
 from velab.fitting.engine import HeadEvaluator
 from velab.fitting.friction import TimeDomainModel, equivalent_friction
 from velab.model import ValveHeadModel, creep_scale, flow_perturbation, manoeuvre_band_hz, series_impedance
-from velab.valvelaw import orifice_coupling
+from velab.valvelaw import commanded_position_pct, orifice_coupling
 
 # the closure is fitted before the first reflection returns to the valve (2L/a), or over 1.5 x its
 # commanded span if that is longer: there the head is the pipe's characteristic impedance times the
@@ -467,3 +467,27 @@ def valve_input(t, d, rig: Rig, window_s: float, *, position_pct=None, mode: str
         return ValveInput("fitted", closure_flow(t, hc, rig, [params[k] for k in PARAM_NAMES]), params,
                           dict(old.get("se", {})), old.get("text", ""), k=len(PARAM_NAMES))
     return fit_closure(t, d, rig, window_s, TimeDomainModel(rig, t), coupling=hc)
+
+
+def result_flow(settings: dict, t, h, rig: Rig, position_pct=None) -> np.ndarray | None:
+    """The flow at the valve a stored fit was driven by (its ``settings["manoeuvre"]``), rebuilt on the
+    grid t (s from the trigger) from the head perturbation h there and the recorded position: what a
+    figure needs to draw the fitted models. None for fits made before the manoeuvre was an input (the
+    rig's sigmoid)."""
+    man = (settings or {}).get("manoeuvre")
+    if not man:
+        return None
+    t = np.asarray(t, dtype=float)
+    source = man.get("source")
+    if source == "rig":
+        return flow_perturbation(t, rig)
+    hc = _coupling(t, np.asarray(h, dtype=float), rig)
+    if source == "position":
+        if position_pct is None:  # (a figure without the position record: the commanded one stands in)
+            m = rig.manoeuvre
+            position_pct = commanded_position_pct(t, m.beta_per_s, m.gamma)
+        return position_flow(t, hc, position_pct, rig)
+    if source == "fitted":
+        return closure_flow(t, hc, rig, [float(man["params"][k]) for k in PARAM_NAMES])
+    return None
+

@@ -8,15 +8,17 @@ from velab.config import Rig
 from velab.fitting.adequacy import best_residuals
 from velab.fitting.results import SweepResult
 from velab.fitting.friction import fitted_head
+from velab.fitting.manoeuvre import result_flow
 from velab.model import phi
 
 
-def report_figure(t, h, rig: Rig, result: SweepResult, path) -> None:
+def report_figure(t, h, rig: Rig, result: SweepResult, path, position_pct=None) -> None:
     """Write a figure: measured vs fitted head; delta AIC vs m; J vs tau; |phi(omega)|; and across the
     bottom the best model's residuals against time with the record's noise band (+- the pretrigger
     baseline's standard deviation, velab.fitting.adequacy) and the fit's warnings.
 
-    The format follows the file suffix (.png, .pdf, .svg).
+    The format follows the file suffix (.png, .pdf, .svg). The models are driven by the fit's own flow
+    at the valve (``position_pct``: the recorded valve position on t, if the fit took it).
     """
     import matplotlib
 
@@ -30,12 +32,13 @@ def report_figure(t, h, rig: Rig, result: SweepResult, path) -> None:
     h = np.asarray(h, dtype=float)
     full = [f for f in result.models if not f.reduced]
     best = result.best
+    flow = result_flow(result.settings, t, h, rig, position_pct)
 
     a0 = ax[0, 0]
     a0.plot(t, h, color="0.6", lw=0.6, label="measured")
     for f in full:
         if f.m in (1, 2, 3) or f is best:
-            a0.plot(t, fitted_head(t, rig, f), lw=0.9, label=f"{f.name} (F={f.F:.3g} m²)")
+            a0.plot(t, fitted_head(t, rig, f, flow=flow), lw=0.9, label=f"{f.name} (F={f.F:.3g} m²)")
     a0.set_xlabel("t (s)")
     a0.set_ylabel("h (m)")
     a0.set_title("measured and calibrated head")
@@ -74,7 +77,7 @@ def report_figure(t, h, rig: Rig, result: SweepResult, path) -> None:
     a3.legend(fontsize=7)
 
     a4 = axes["res"]
-    tr, res = best_residuals(t, h, rig, result)
+    tr, res = best_residuals(t, h, rig, result, position_pct=position_pct)
     a4.plot(tr, res, color="0.3", lw=0.5, label=f"{best.name} residual (fit rate)")
     sd = result.baseline_noise_m
     if sd is not None:

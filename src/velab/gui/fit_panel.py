@@ -23,6 +23,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QTableWid
                                QWidget)
 
 from velab.fitting.friction import fitted_head
+from velab.fitting.manoeuvre import result_flow
 from velab.gui import tasks
 from velab.gui.fit_rows import COLUMNS, criterion, model_rows, warnings_text
 from velab.model import phi
@@ -47,10 +48,13 @@ def fit_view_data(t, h, rig, result) -> dict:
     td = t[::q]
     curves, phis = {}, {}
     omega = 2 * np.pi * np.logspace(-2, 2, 200)
+    # the fit's own flow at the valve (velab.fitting.manoeuvre), on the whole window: the closure is
+    # shorter than the display's subsampling step
+    flow = result_flow(result.settings, t, h, rig)
     for f in result.models:
         mat = f.material()
         try:
-            curves[f.name] = fitted_head(td, rig, f)
+            curves[f.name] = fitted_head(t, rig, f, flow=flow)[::q]
         except Exception:  # a model the time grid cannot hold: leave it out of the plot
             continue
         if f.m:
