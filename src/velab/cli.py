@@ -28,6 +28,7 @@ COMMAND_MODULES = (
     "velab.commands.synth",
     "velab.commands.import_csv",
     "velab.commands.info",
+    "velab.commands.runs",
     "velab.commands.recover",
     "velab.commands.fit",
     "velab.commands.sim",

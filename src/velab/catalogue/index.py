@@ -1,0 +1,301 @@
+"""The catalogue's index: an SQLite file of one row per run file, kept up to date by (path, size, mtime).
+
+Where (:func:`default_path`): ``$VELAB_CATALOGUE`` if set; else
+``$XDG_CACHE_HOME/velab/catalogue.sqlite`` (``~/.cache/velab``); where that cannot
+be written, ``.velab-catalogue.sqlite`` beside the archive (the first folder listed);
+else an in-memory index (correct, only not kept).
+
+:meth:`Catalogue.update` walks the folders (hidden names skipped: the temporary
+``.NAME.h5.part`` and lock files of writers), keeps the row of every file whose
+(size, mtime, inode) did not change, reads the others in worker processes
+(:mod:`velab.catalogue.extract`) and forgets files that are gone. A file is keyed
+by its state *before* it is read, so a run being recorded, which grows between
+two listings, is read again by the next one.
+
+Safe with several readers and a recorder at once: WAL journal (readers never wait
+for a writer), a busy timeout, each batch of rows one ``BEGIN IMMEDIATE``
+transaction. A damaged or foreign index file is deleted and rebuilt without a word
+(it holds nothing that is not in the run files). Run files are only ever read.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sqlite3
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable
+
+from velab.catalogue import RUN_SUFFIXES
+
+log = logging.getLogger("velab.catalogue")
+
+SCHEMA = 1
+FILE_NAME = "catalogue.sqlite"
+BESIDE_NAME = ".velab-catalogue.sqlite"
+BUSY_TIMEOUT_MS = 30_000
+BATCH_ROWS = 200  # rows per transaction while indexing (a killed indexer keeps what it committed)
+BATCH_S = 1.0
+
+
+def _version() -> int:
+    from velab.catalogue.rows import ROW_VERSION
+
+    return SCHEMA * 1000 + ROW_VERSION
+
+
+def _writable_dir(d: Path) -> bool:
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return False
+    return os.access(d, os.W_OK | os.X_OK)
+
+
+def default_path(roots: Iterable[str | os.PathLike] = ()) -> str:
+    """Where the index lives (module docstring); ``":memory:"`` when nowhere can be written."""
+    env = os.environ.get("VELAB_CATALOGUE")
+    if env:
+        return env
+    cache = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    d = Path(cache) / "velab"
+    if _writable_dir(d):
+        return str(d / FILE_NAME)
+    for r in roots:
+        r = Path(r)
+        r = r if r.is_dir() else r.parent
+        if os.access(r, os.W_OK | os.X_OK):
+            return str(r / BESIDE_NAME)
+    return ":memory:"
+
+
+@dataclass
+class Listing:
+    """What one update found under the folders."""
+
+    rows: list[dict]  # runs and damaged files, path order
+    others: list[dict] = field(default_factory=list)  # HDF5 files that are not runs
+    files: int = 0  # candidate files seen
+    read: int = 0  # files (re)read this time
+    removed: int = 0
+    seconds: float = 0.0
+    index_path: str = ""
+
+
+def scan(roots: Iterable[str | os.PathLike]) -> dict[str, tuple[int, int, int]]:
+    """Absolute path -> (size, mtime_ns, inode) of every candidate run file under the roots."""
+    out: dict[str, tuple[int, int, int]] = {}
+
+    def add(path: str, st: os.stat_result) -> None:
+        out[path] = (st.st_size, st.st_mtime_ns, st.st_ino)
+
+    def walk(d: str) -> None:
+        try:
+            it = os.scandir(d)
+        except OSError as exc:  # an unreadable sub-folder: say so, list the rest
+            log.warning("%s: cannot be listed (%s)", d, exc.strerror or exc)
+            return
+        with it:
+            for entry in it:
+                if entry.name.startswith("."):
+                    continue
+                try:
+                    if entry.is_dir(follow_symlinks=False):
+                        walk(entry.path)
+                    elif os.path.splitext(entry.name)[1].lower() in RUN_SUFFIXES and entry.is_file():
+                        add(entry.path, entry.stat())
+                except OSError:
+                    continue  # vanished meanwhile (a writer's rename)
+
+    for r in roots:
+        r = os.path.abspath(os.fspath(r))
+        if os.path.isdir(r):
+            walk(r)
+        elif os.path.isfile(r):
+            add(r, os.stat(r))
+    return out
+
+
+def _prefix_range(root: str) -> tuple[str, str]:
+    """Paths under the folder ``root`` are those in [root + "/", root + "0") ("0" follows "/")."""
+    root = root.rstrip(os.sep)
+    return root + os.sep, root + chr(ord(os.sep) + 1)
+
+
+class Catalogue:
+    """The index file, opened (and created or rebuilt) on construction. One per thread."""
+
+    def __init__(self, path: str | os.PathLike | None = None, roots: Iterable[str | os.PathLike] = ()):
+        self.path = str(path) if path is not None else default_path(roots)
+        self.db = self._open()
+
+    # ------------------------------------------------------------------ the file
+    def _connect(self) -> sqlite3.Connection:
+        db = sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_MS / 1000, isolation_level=None,
+                             check_same_thread=False)
+        db.execute(f"PRAGMA busy_timeout={BUSY_TIMEOUT_MS}")
+        if self.path != ":memory:":
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: a crash loses at most the last batch
+        version = db.execute("PRAGMA user_version").fetchone()[0]
+        if version != _version():
+            db.execute("BEGIN IMMEDIATE")
+            db.execute("DROP TABLE IF EXISTS files")
+            db.execute("CREATE TABLE files (path TEXT PRIMARY KEY, size INTEGER, mtime_ns INTEGER, ino INTEGER, "
+                       "kind TEXT, row TEXT, indexed REAL)")
+            db.execute(f"PRAGMA user_version={_version()}")
+            db.execute("COMMIT")
+        db.execute("SELECT count(*) FROM files").fetchone()
+        return db
+
+    def _open(self) -> sqlite3.Connection:
+        try:
+            return self._connect()
+        except sqlite3.DatabaseError as exc:  # "file is not a database", "malformed": rebuild it
+            log.debug("catalogue %s unusable (%s): rebuilt", self.path, exc)
+            self._remove()
+            try:
+                return self._connect()
+            except sqlite3.DatabaseError as exc2:  # cannot be written there either: in memory
+                log.warning("catalogue %s cannot be used (%s): not kept this time", self.path, exc2)
+                self.path = ":memory:"
+                return self._connect()
+
+    def _remove(self) -> None:
+        if self.path == ":memory:":
+            return
+        for suffix in ("", "-wal", "-shm", "-journal"):
+            try:
+                os.unlink(self.path + suffix)
+            except FileNotFoundError:
+                pass
+
+    def close(self) -> None:
+        self.db.close()
+
+    def __enter__(self) -> "Catalogue":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ reading
+    def stored(self, roots: Iterable[str | os.PathLike]) -> dict[str, tuple]:
+        """path -> (size, mtime_ns, ino, kind, row JSON) of what the index holds under the roots."""
+        out = {}
+        for r in roots:
+            r = os.path.abspath(os.fspath(r))
+            q = "SELECT path, size, mtime_ns, ino, kind, row FROM files WHERE "
+            if os.path.isdir(r):
+                cur = self.db.execute(q + "path >= ? AND path < ?", _prefix_range(r))
+            else:
+                cur = self.db.execute(q + "path = ?", (r,))
+            for p, *rest in cur:
+                out[p] = tuple(rest)
+        return out
+
+    def cached(self, roots: Iterable[str | os.PathLike]) -> Listing:
+        """What the index holds under the roots, without looking at the files (the GUI's first paint)."""
+        roots = list(roots)
+        return _listing(self._decode(self.stored(roots)), 0, 0, 0, self.path)
+
+    @staticmethod
+    def _decode(stored: dict[str, tuple]) -> dict[str, dict]:
+        out = {}
+        for p, (_, _, _, _, text) in stored.items():
+            try:
+                row = json.loads(text)
+            except (TypeError, ValueError):
+                continue
+            if isinstance(row, dict):
+                out[p] = row
+        return out
+
+    # ------------------------------------------------------------------ updating
+    def update(self, roots: Iterable[str | os.PathLike], *, jobs: int | None = None, rebuild: bool = False,
+               progress: Callable[[int, int], None] | None = None,
+               on_rows: Callable[[list[dict]], None] | None = None,
+               stop: Callable[[], bool] | None = None, fork: bool | None = None,
+               deadline_s: float | None = None) -> Listing:
+        """Bring the index up to date for ``roots`` and return their rows (module docstring).
+
+        ``progress(done, total)`` after each batch of files read; ``on_rows(rows)`` with each
+        batch of rows read (the GUI adds them as they come); ``stop()`` true: end early.
+        """
+        from velab.catalogue.extract import DEADLINE_S, read_rows
+
+        t0 = time.perf_counter()
+        roots = [os.path.abspath(os.fspath(r)) for r in roots]
+        for r in roots:
+            if not os.path.exists(r):
+                from velab.errors import DataError
+
+                raise DataError(f"{r}: no such folder")
+        seen = scan(roots)
+        stored = self.stored(roots)
+        rows = {} if rebuild else self._decode({p: v for p, v in stored.items() if p in seen and v[:3] == seen[p]})
+        stale = sorted(p for p in seen if p not in rows)
+        gone = [p for p in stored if p not in seen]
+        if gone:
+            self._write(lambda db: db.executemany("DELETE FROM files WHERE path = ?", [(p,) for p in gone]))
+        if stale:
+            jobs = jobs or min(2, os.cpu_count() or 1)
+            if len(stale) < 4:  # a child per core costs an import each: not worth it for a few files
+                jobs = 1
+            batch, last = [], time.monotonic()
+            done = 0
+            for row in read_rows(stale, jobs=jobs, fork=fork, stop=stop, deadline_s=deadline_s or DEADLINE_S):
+                rows[row["path"]] = row
+                batch.append(row)
+                done += 1
+                if len(batch) >= BATCH_ROWS or time.monotonic() - last > BATCH_S:
+                    self._store(batch, seen)
+                    if on_rows:
+                        on_rows(batch)
+                    if progress:
+                        progress(done, len(stale))
+                    batch, last = [], time.monotonic()
+            if batch:
+                self._store(batch, seen)
+                if on_rows:
+                    on_rows(batch)
+            if progress:
+                progress(done, len(stale))
+        return _listing(rows, len(seen), len(stale), len(gone), self.path, time.perf_counter() - t0)
+
+    def _store(self, rows: list[dict], keys: dict[str, tuple[int, int, int]]) -> None:
+        from velab.catalogue.rows import dumps
+
+        now = time.time()
+        values = [(r["path"], *keys[r["path"]], r["kind"], dumps(r), now) for r in rows if r["path"] in keys]
+        self._write(lambda db: db.executemany("INSERT OR REPLACE INTO files VALUES (?, ?, ?, ?, ?, ?, ?)", values))
+
+    def _write(self, fn) -> None:
+        """One write transaction; an index found damaged meanwhile is rebuilt (the rows come back next time)."""
+        try:
+            self.db.execute("BEGIN IMMEDIATE")
+            try:
+                fn(self.db)
+                self.db.execute("COMMIT")
+            except BaseException:
+                self.db.execute("ROLLBACK")
+                raise
+        except sqlite3.OperationalError as exc:
+            if "locked" in str(exc) or "busy" in str(exc):  # another process held it past the timeout
+                log.warning("catalogue %s busy: this listing's rows are not kept (%s)", self.path, exc)
+                return
+            raise
+        except sqlite3.DatabaseError as exc:
+            log.debug("catalogue %s damaged (%s): rebuilt", self.path, exc)
+            self.db.close()
+            self._remove()
+            self.db = self._open()
+
+
+def _listing(rows: dict[str, dict], files: int, read: int, removed: int, path: str, seconds: float = 0.0) -> Listing:
+    runs = [r for p, r in sorted(rows.items()) if r.get("kind") != "other"]
+    others = [r for p, r in sorted(rows.items()) if r.get("kind") == "other"]
+    return Listing(runs, others, files or len(rows), read, removed, seconds, path)

@@ -1,0 +1,202 @@
+"""Filters, sort keys and the text and CSV forms of catalogue rows (shared by ``velab runs`` and the GUI).
+
+Standard library only: a listing answered from the index never imports numpy or h5py.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as _dt
+import io
+import json
+import math
+from dataclasses import dataclass
+
+STATUSES = ("recording", "completed", "completed-with-faults", "stopped", "aborted", "failed", "synthetic",
+            "imported", "damaged")  # velab.runfiles.layout.STATUSES and the catalogue's own "damaged"
+
+# sort key name -> row field (the GUI's columns sort by the same fields)
+SORT_KEYS = {
+    "start": "start_time", "path": "path", "status": "status", "title": "title", "operator": "operator",
+    "specimen": "specimen", "rig": "rig", "q0": "steady_flow_l_s", "beta": "beta_per_s", "rate": "sample_rate_hz",
+    "duration": "duration_s", "best": "best_model", "wave-speed": "wave_speed_m_s", "se": "wave_speed_se_m_s",
+    "fits": "n_fits", "noise": "noise_ratio",
+}
+
+
+def parse_when(text: str, end: bool = False) -> float:
+    """``YYYY-MM-DD`` or an ISO 8601 date-time -> epoch s (local time when no offset is given).
+
+    A bare date with ``end`` is the end of that day (``--until 2026-11-25`` includes the 25th).
+    """
+    s = str(text).strip()
+    try:
+        if len(s) == 10:
+            d = _dt.datetime.combine(_dt.date.fromisoformat(s), _dt.time())
+            if end:
+                d += _dt.timedelta(days=1)
+        else:
+            d = _dt.datetime.fromisoformat(s)
+    except ValueError:
+        raise ValueError(f"not a date: {text!r} (use YYYY-MM-DD or YYYY-MM-DDTHH:MM[:SS][+HH:MM])") from None
+    t = (d if d.tzinfo else d.astimezone()).timestamp()
+    return t - 1e-6 if end and len(s) == 10 else t
+
+
+def row_time(row: dict) -> float | None:
+    """When the run started (epoch s); the file's mtime for a damaged file or a run without a start time."""
+    s = row.get("start_time")
+    if s:
+        try:
+            d = _dt.datetime.fromisoformat(s)
+            return (d if d.tzinfo else d.astimezone()).timestamp()
+        except ValueError:
+            pass
+    m = row.get("mtime")
+    return float(m) if isinstance(m, (int, float)) else None
+
+
+@dataclass
+class Filters:
+    """What ``velab runs`` and the Archive tab filter on; empty fields match everything."""
+
+    status: tuple[str, ...] = ()  # any of these
+    best: tuple[str, ...] = ()  # best model of the latest fit, any of these ("none": not fitted)
+    rig: str = ""  # part of the rig's name, any case
+    since: float | None = None  # epoch s, start time >= since
+    until: float | None = None  # epoch s, start time <= until
+    text: tuple[str, ...] = ()  # every word in title, operator, specimen or notes, any case
+
+    def match(self, row: dict) -> bool:
+        if self.status and row.get("status") not in self.status:
+            return False
+        if self.best:
+            best = (row.get("best_model") or "none").lower()
+            if best not in {b.lower() for b in self.best}:
+                return False
+        if self.rig and self.rig.lower() not in (row.get("rig") or "").lower():
+            return False
+        if self.since is not None or self.until is not None:
+            t = row_time(row)
+            if t is None or (self.since is not None and t < self.since) or (self.until is not None and t > self.until):
+                return False
+        if self.text:
+            hay = " ".join(str(row.get(k) or "") for k in ("title", "operator", "specimen", "notes")).lower()
+            if not all(w.lower() in hay for w in self.text):
+                return False
+        return True
+
+    def apply(self, rows: list[dict]) -> list[dict]:
+        return [r for r in rows if self.match(r)]
+
+
+def sort_rows(rows: list[dict], key: str = "start") -> list[dict]:
+    """Rows sorted by a :data:`SORT_KEYS` name (``-name``: descending); unknown values always last."""
+    desc = key.startswith("-")
+    field = SORT_KEYS[key.lstrip("-")]
+    known = [r for r in rows if r.get(field) not in (None, "")]
+    unknown = [r for r in rows if r.get(field) in (None, "")]
+    if field == "start_time":
+        kf = lambda r: (row_time(r) or 0.0, r["path"])  # noqa: E731 - offsets differ: compare instants
+    else:
+        kf = lambda r: (r[field].lower() if isinstance(r[field], str) else r[field], r["path"])  # noqa: E731
+    return sorted(known, key=kf, reverse=desc) + sorted(unknown, key=lambda r: r["path"])
+
+
+# ------------------------------------------------------------------ text forms
+
+
+def _num(v, fmt: str) -> str:
+    return format(v, fmt) if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) else ""
+
+
+def when_text(row: dict) -> str:
+    s = row.get("start_time")
+    if s:
+        try:
+            return _dt.datetime.fromisoformat(s).strftime("%Y-%m-%d %H:%M")
+        except ValueError:
+            return s[:16]
+    return ""
+
+
+def wave_speed_text(row: dict) -> str:
+    a, se = row.get("wave_speed_m_s"), row.get("wave_speed_se_m_s")
+    if not isinstance(a, (int, float)):
+        return ""
+    return f"{a:.1f} ± {se:.1f}" if isinstance(se, (int, float)) else f"{a:.1f}"
+
+
+def who_text(row: dict) -> str:
+    return " / ".join(x for x in (row.get("title"), row.get("operator"), row.get("specimen")) if x)
+
+
+def status_text(row: dict) -> str:
+    flags = ",".join(row.get("flags") or [])
+    return f"{row.get('status')} [{flags}]" if flags else str(row.get("status"))
+
+
+# (header, width, cell) of the text table; the last column (file) takes what is left
+TABLE = (
+    ("start", 16, when_text),
+    ("status", 24, status_text),
+    ("best", 4, lambda r: r.get("best_model") or ""),
+    ("a m/s ± SE", 13, wave_speed_text),
+    ("Q0 l/s", 6, lambda r: _num(r.get("measured_flow_l_s") or r.get("steady_flow_l_s"), ".3f")),
+    ("beta", 5, lambda r: _num(r.get("beta_per_s"), "g")),
+    ("rate", 6, lambda r: _num(r.get("sample_rate_hz"), "g")),
+    ("dur s", 6, lambda r: _num(r.get("duration_s"), ".1f")),
+    ("fits", 4, lambda r: str(r.get("n_fits") or 0) if r.get("kind") == "run" else ""),
+    ("rig", 14, lambda r: r.get("rig") or ""),
+    ("title / operator / specimen", 28, who_text),
+)
+
+
+def _cut(text: str, width: int) -> str:
+    return text if len(text) <= width else text[:width - 1] + "…"
+
+
+def table(rows: list[dict], relative_to: list[str] | None = None) -> str:
+    """The text table of ``rows``: one line each, the damaged ones with their reason."""
+    import os
+
+    def rel(p: str) -> str:
+        for r in relative_to or ():
+            if p.startswith(r.rstrip(os.sep) + os.sep):
+                return p[len(r.rstrip(os.sep)) + 1:]
+        return p
+
+    head = "  ".join(h.ljust(w) for h, w, _ in TABLE) + "  file"
+    lines = [head]
+    for row in rows:
+        if row.get("status") == "damaged":
+            lines.append(f"{when_text(row):<16}  {'damaged':<24}  {rel(row['path'])}: {row.get('reason') or ''}")
+            continue
+        lines.append("  ".join(_cut(str(f(row)), w).ljust(w) for _, w, f in TABLE) + "  " + rel(row["path"]))
+    return "\n".join(lines)
+
+
+def _csv_value(v):
+    if v is None:
+        return ""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ""
+    if isinstance(v, list):
+        if all(isinstance(x, str) for x in v):
+            return ";".join(v)
+        return json.dumps(v, allow_nan=False, default=str)
+    return v
+
+
+def to_csv(rows: list[dict]) -> str:
+    """Every column of the rows (:data:`velab.catalogue.rows.COLUMNS`); lists as ``a;b``, elements as JSON."""
+    from velab.catalogue.rows import COLUMNS
+
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(COLUMNS)
+    for r in rows:
+        w.writerow([_csv_value(r.get(c)) for c in COLUMNS])
+    return out.getvalue()
