@@ -12,6 +12,13 @@ from velab.cli import main as velab_main  # noqa: E402
 pytestmark = [pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]
 
 
+@pytest.fixture(autouse=True)
+def _cache(tmp_path, monkeypatch):
+    """The catalogue's index in this test's own cache."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.delenv("VELAB_CATALOGUE", raising=False)
+
+
 @pytest.fixture()
 def settings(tmp_path):
     from velab.gui.main_window import make_settings
@@ -128,7 +135,7 @@ def test_settings_persist(qtbot, tmp_path, synth_run):
     qtbot.addWidget(win2)
     assert win2.run_panel.operator_edit.text() == "Ada"
     assert win2.tabs.currentIndex() == 2
-    qtbot.waitUntil(lambda: win2.archive.files.count() >= 1, timeout=10000)  # listed on a worker thread
+    qtbot.waitUntil(lambda: win2.archive.model.rowCount() >= 1, timeout=30000)  # indexed on a worker thread
     assert (win2.width(), win2.height()) == (760, 560)
     win2.close()
 
@@ -156,3 +163,129 @@ def test_gui_cli_without_qt_import():
             "print(any(m.startswith('PySide6') for m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def _catalogue_archive(root, synth_run, n: int):
+    """n runs in nested folders (copies of one run, titled apart), a damaged file and a non-run HDF5 file."""
+    import shutil
+
+    import h5py
+
+    from velab.runfiles import layout as L
+
+    for i in range(n):
+        d = root / f"day{i // 100}"
+        d.mkdir(parents=True, exist_ok=True)
+        p = d / f"run{i:04d}.h5"
+        shutil.copy(synth_run, p)
+        if i < 3:  # a few told apart (editing the test's own copies)
+            with h5py.File(p, "r+") as f:
+                L.set_str(f["entry"], "title", f"special {i}")
+    (root / "broken.h5").write_bytes(b"garbage")
+    with h5py.File(root / "table.h5", "w") as f:
+        f["x"] = [1, 2, 3]
+
+
+def test_catalogue_table_filters_exports_and_trends(qtbot, window, synth_run, tmp_path):
+    import csv
+
+    from velab.gui.archive import JOINT_FIT_TIP
+
+    root = tmp_path / "archive"
+    _catalogue_archive(root, synth_run, 12)
+    arch = window.archive
+    window.tabs.setCurrentWidget(arch)
+    with qtbot.waitSignal(arch.indexed, timeout=60000) as blocker:
+        arch.set_folder(root)
+    assert blocker.args == [13] and arch.model.rowCount() == 13
+    statuses = [arch.model.row(i)["status"] for i in range(13)]
+    assert statuses.count("damaged") == 1 and statuses.count("synthetic") == 12
+    assert "1 damaged" in arch.index_label.text() and "not runs skipped" in arch.index_label.text()
+    # filters: the same as velab runs
+    arch.text_filter.setText("special")
+    qtbot.waitUntil(lambda: arch.model.rowCount() == 3, timeout=5000)
+    arch.text_filter.setText("")
+    arch.status_filter.setCurrentText("damaged")
+    qtbot.waitUntil(lambda: arch.model.rowCount() == 1, timeout=5000)
+    assert arch.model.data(arch.model.index(0, 1)) == "damaged"
+    assert "garbage" in arch.model.data(arch.model.index(0, 0), __import__("PySide6.QtCore").QtCore.Qt.ToolTipRole) \
+        or "not an HDF5 file" in arch.model.row(0)["reason"]
+    arch.status_filter.setCurrentIndex(0)
+    arch.since_filter.setText("not a date")
+    qtbot.waitUntil(lambda: arch.model.rowCount() == 13, timeout=5000)  # ignored, and marked
+    assert "not a date" in arch.since_filter.toolTip()
+    arch.since_filter.setText("")
+    # sort by a column, several selected: export, trends, the joint fit not offered
+    arch.model.sort(13)  # file
+    assert [arch.model.row(i)["path"] for i in range(13)] == sorted(arch.model.row(i)["path"] for i in range(13))
+    sel = arch.table.selectionModel()
+    from PySide6.QtCore import QItemSelectionModel
+
+    for i in range(4):
+        sel.select(arch.model.index(i, 0), QItemSelectionModel.Select | QItemSelectionModel.Rows)
+    assert len(arch.selected_rows()) == 4
+    assert not arch.joint_fit_button.isEnabled() and arch.joint_fit_button.toolTip() == JOINT_FIT_TIP
+    out = tmp_path / "rows.csv"
+    with qtbot.waitSignal(arch.exported, timeout=20000):
+        arch.export_selected_rows(out)
+    rows = list(csv.DictReader(out.read_text().splitlines()))
+    assert [r["path"] for r in rows] == [arch.model.row(i)["path"] for i in range(4)]
+    runs = [r for r in arch.selected_rows() if r["status"] != "damaged"]
+    assert arch.trends.count.text().startswith(f"0 of 4")  # an unfitted run has no wave speed
+    arch.trends.quantity.setCurrentIndex(0)
+    assert len(runs) >= 3
+
+
+def test_trend_points_from_rows():
+    from velab.gui.trends import trend_points
+
+    rows = [
+        {"path": "b", "start_time": "2026-11-21T10:00:00+00:00", "wave_speed_m_s": 350.0, "wave_speed_se_m_s": 0.5,
+         "steady_flow_l_s": 3.6, "elements": [{"J_per_pa": 1e-10, "tau_s": 0.5}], "noise_ratio": 1.1},
+        {"path": "a", "start_time": "2026-11-20T10:00:00+00:00", "wave_speed_m_s": 352.0, "wave_speed_se_m_s": None,
+         "measured_flow_l_s": 3.2, "steady_flow_l_s": 3.6, "elements": [], "noise_ratio": None},
+        {"path": "c", "start_time": None, "status": "damaged", "elements": []},
+    ]
+    xs, ys, ses, paths = trend_points(rows, "wave_speed", "date")
+    assert paths == ["a", "b"] and ys == [352.0, 350.0] and ses == [None, 0.5] and xs[1] - xs[0] == 86400
+    assert trend_points(rows, "wave_speed", "flow")[:2] == ([3.2, 3.6], [352.0, 350.0])  # measured flow first
+    assert trend_points(rows, "tau1", "date")[1] == [0.5] and trend_points(rows, "J2", "date")[1] == []
+    assert trend_points(rows, "noise_ratio", "flow")[1] == [1.1]
+
+
+def test_a_thousand_runs_load_without_blocking_the_gui_thread(qtbot, window, synth_run, tmp_path):
+    """The table fills from the worker thread; a 5 ms timer measures the GUI thread's longest stall."""
+    import time
+
+    from PySide6.QtCore import QTimer
+
+    root = tmp_path / "big"
+    _catalogue_archive(root, synth_run, 1000)
+    arch = window.archive
+    window.tabs.setCurrentWidget(arch)
+    stalls, last = [], [time.perf_counter()]
+
+    def tick():
+        now = time.perf_counter()
+        stalls.append(now - last[0])
+        last[0] = now
+
+    timer = QTimer()
+    timer.setInterval(5)
+    timer.timeout.connect(tick)
+    timer.start()
+    t0 = time.perf_counter()
+    with qtbot.waitSignal(arch.indexed, timeout=300000):
+        arch.set_folder(root)
+    first = time.perf_counter() - t0
+    timer.stop()
+    assert arch.model.rowCount() == 1001
+    worst = max(stalls)
+    # the 250 ms target is the benchmark's (benchmarks/catalogue.py); here a bound that a shared CI host keeps
+    assert worst < 1.0, f"the GUI thread stalled {worst * 1e3:.0f} ms"
+    # the second time the index answers: the first paint comes from it at once
+    t0 = time.perf_counter()
+    with qtbot.waitSignal(arch.indexed, timeout=60000):
+        arch.refresh_list()
+    print(f"1,000 runs in the Archive tab: indexed in {first:.1f} s, longest GUI stall {worst * 1e3:.0f} ms, "
+          f"again from the index {time.perf_counter() - t0:.2f} s")

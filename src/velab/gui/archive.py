@@ -1,29 +1,45 @@
-"""The archive browser: open earlier runs (also one still being written), see metadata and fits,
-re-fit with other settings in the background, export the report figure and a CSV."""
+"""The archive browser: the run catalogue of a folder as a sortable, filterable table (velab.catalogue,
+indexed on a worker thread), open earlier runs (also one still being written), see metadata and fits,
+re-fit one or several in the background, trends of the selected runs, export the report figure, a CSV
+of a run's samples and a CSV of the selected rows."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from PySide6.QtCore import QSettings, Qt, QTimer, Signal
+from PySide6.QtCore import QObject, QSettings, Qt, QTimer, Signal
 from PySide6.QtGui import QFont
-from PySide6.QtWidgets import (QCheckBox, QFileDialog, QFormLayout, QGroupBox,
-                               QHBoxLayout, QLabel, QLineEdit, QListWidget, QListWidgetItem, QPlainTextEdit,
-                               QProgressBar, QPushButton, QScrollArea, QSplitter, QTabWidget, QVBoxLayout,
+from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QFileDialog, QFormLayout, QGroupBox,
+                               QHBoxLayout, QHeaderView, QLabel, QLineEdit, QPlainTextEdit,
+                               QProgressBar, QPushButton, QScrollArea, QSplitter, QTableView, QTabWidget, QVBoxLayout,
                                QWidget)
 
+from velab.catalogue.query import STATUSES, Filters, parse_when
 from velab.gui import tasks
-from velab.gui.archive_io import RefitOptions, export_csv, export_report_figure, list_runs, load_run, refit
+from velab.gui.archive_io import (RefitOptions, export_csv, export_report_figure, export_rows, index_folder, load_run,
+                                  refit, refit_many)
+from velab.gui.catalogue_table import CatalogueModel
 from velab.gui.fit_panel import FitPanel
 from velab.gui.live_plot import LivePlot
 from velab.gui.messages import describe_error
+from velab.gui.trends import TrendsView
 from velab.gui.widgets import ComboBox, DoubleSpinBox, SpinBox
+
+
+class _Rows(QObject):
+    """Carries row batches from the indexing worker thread to the GUI thread (a queued signal)."""
+
+    rows = Signal(object, bool, str)  # rows, replace, folder
+
+
+JOINT_FIT_TIP = "Fit several runs together: a joint fit does not exist in velab yet"
 
 
 class ArchiveBrowser(QWidget):
     """Signals ``message(text, level)`` for the window's message log and banner."""
 
     message = Signal(str, str)
+    indexed = Signal(int)  # rows in the catalogue once a folder's indexing finished
     loaded = Signal(str)  # path, once a run and its fits are shown
     refitted = Signal(str)  # best model of a finished re-fit
     exported = Signal(str)  # path of an exported file
@@ -36,12 +52,20 @@ class ArchiveBrowser(QWidget):
         self.current_fit = None  # (name, SweepResult)
         self.busy = False
         self._loading = False
+        self._generation = 0  # a newer folder or rescan makes an older indexing stop
+        self._relay = _Rows(self)
+        self._relay.rows.connect(self._rows_arrived)
 
-        outer = QHBoxLayout(self)
+        outer = QVBoxLayout(self)
         outer.setContentsMargins(2, 2, 2, 2)
+        self.catalogue_split = QSplitter(Qt.Vertical)
+        outer.addWidget(self.catalogue_split)
+        self.catalogue_split.addWidget(self._catalogue_panel())
         split = QSplitter(Qt.Horizontal)
         self.splitter = split
-        outer.addWidget(split)
+        self.catalogue_split.addWidget(split)
+        self.catalogue_split.setStretchFactor(0, 1)
+        self.catalogue_split.setStretchFactor(1, 2)
 
         # ------------------------------------------------------------ left column
         left = QWidget()
@@ -61,13 +85,6 @@ class ArchiveBrowser(QWidget):
         self.follow = QCheckBox("Follow a run being written (re-read every 2 s)")
         self.follow.setChecked(True)
         ll.addWidget(self.follow)
-        self.folder_label = QLabel()
-        self.folder_label.setWordWrap(True)
-        ll.addWidget(self.folder_label)
-        self.files = QListWidget()
-        self.files.itemActivated.connect(lambda it: self.open(it.data(Qt.UserRole)))
-        self.files.itemClicked.connect(lambda it: self.open(it.data(Qt.UserRole)))
-        ll.addWidget(self.files, 1)
 
         fits_box = QGroupBox("Stored fits")
         fl = QVBoxLayout(fits_box)
@@ -148,6 +165,8 @@ class ArchiveBrowser(QWidget):
         self.tabs.addTab(run_page, "Run")
         self.fit_panel = FitPanel(title="No fit shown")
         self.tabs.addTab(self.fit_panel, "Fit")
+        self.trends = TrendsView()
+        self.tabs.addTab(self.trends, "Trends")
         split.addWidget(self.tabs)
         split.setStretchFactor(0, 0)
         split.setStretchFactor(1, 1)
@@ -157,6 +176,10 @@ class ArchiveBrowser(QWidget):
         self.follow_timer.setInterval(2000)
         self.follow_timer.timeout.connect(self._follow_tick)
         self.follow_timer.start()
+        self.filter_timer = QTimer(self)  # filters apply once typing pauses
+        self.filter_timer.setSingleShot(True)
+        self.filter_timer.setInterval(250)
+        self.filter_timer.timeout.connect(self.apply_filters)
         folder = settings.value("archive/folder", "")
         if folder:
             self.set_folder(folder)
@@ -178,24 +201,206 @@ class ArchiveBrowser(QWidget):
     def set_folder(self, folder) -> None:
         folder = Path(folder)
         self.settings.setValue("archive/folder", str(folder))
-        self.folder_label.setText(f"Runs in {folder}")
+        self.folder_label.setText(f"Runs under {folder}")
+        self.model.set_rows([])
         self.refresh_list(folder)
 
     def refresh_list(self, folder=None) -> None:
-        """List the folder's runs on a worker thread (a network share can be slow), then show them."""
-        folder = Path(folder or self.settings.value("archive/folder", "") or ".")
-        tasks.submit(list_runs, folder, owner=self, on_done=lambda files, f=folder: self._listed(f, files),
-                     on_error=lambda exc: self.message.emit(describe_error(exc)[1], "warning"))
+        """Index the folder's runs (recursively) on a worker thread; rows are shown as they come."""
+        folder = folder or self.settings.value("archive/folder", "")
+        if not folder:
+            return  # no folder chosen yet: nothing to index
+        folder = Path(folder)
+        self._generation += 1
+        gen = self._generation
+        self.index_label.setText("indexing…")
+        emit = self._relay.rows.emit
+        tasks.submit(index_folder, folder, lambda rows, replace: emit(rows, replace, str(folder)),
+                     stop=lambda: gen != self._generation, owner=self,
+                     on_done=lambda listing: self._indexed(gen, listing),
+                     on_error=lambda exc: self._index_failed(gen, exc),
+                     on_progress=lambda d, t, _s: self._index_progress(gen, d, t))
 
-    def _listed(self, folder: Path, files) -> None:
-        if str(folder) != str(self.settings.value("archive/folder", "")):
+    def _rows_arrived(self, rows, replace: bool, folder: str) -> None:
+        if folder != str(self.settings.value("archive/folder", "")):
             return  # another folder was chosen meanwhile
-        self.files.clear()
-        for p in files[:500]:
-            it = QListWidgetItem(p.name)
-            it.setData(Qt.UserRole, str(p))
-            it.setToolTip(str(p))
-            self.files.addItem(it)
+        if replace:
+            self.model.set_rows(rows)
+        else:
+            self.model.add_rows(rows)
+        self._show_count()
+
+    def _index_progress(self, gen, done, total) -> None:
+        if gen == self._generation:
+            self.index_label.setText(f"indexing: {done}/{total} new or changed files read")
+
+    def _indexed(self, gen, listing) -> None:
+        if gen != self._generation:
+            return
+        self.model.set_rows(listing.rows)  # files gone since the index last saw them leave the table
+        self._show_count(f"; {listing.read} file(s) read in {listing.seconds:.1f} s"
+                         + (f"; {len(listing.others)} HDF5 file(s) that are not runs skipped" if listing.others else ""))
+        self.indexed.emit(len(listing.rows))
+
+    def _index_failed(self, gen, exc) -> None:
+        if gen == self._generation:
+            self.index_label.setText("indexing failed")
+            self.message.emit(describe_error(exc)[1], "warning")
+
+    def _show_count(self, extra: str = "") -> None:
+        n_all = len(self.model.all)
+        damaged = sum(1 for r in self.model.all.values() if r.get("status") == "damaged")
+        self.index_label.setText(f"{self.model.rowCount()} of {n_all} runs shown ({damaged} damaged){extra}")
+
+    # ------------------------------------------------------------------ the catalogue table
+    def _catalogue_panel(self) -> QWidget:
+        panel = QWidget()
+        lay = QVBoxLayout(panel)
+        lay.setContentsMargins(0, 0, 0, 0)
+        head = QHBoxLayout()
+        self.folder_label = QLabel()
+        self.rescan_button = QPushButton("Rescan")
+        self.rescan_button.setToolTip("read new and changed run files of the folder again (the index keeps the rest)")
+        self.rescan_button.clicked.connect(lambda: self.refresh_list())
+        self.index_label = QLabel()
+        head.addWidget(self.folder_label)
+        head.addWidget(self.rescan_button)
+        head.addWidget(self.index_label, 1)
+        lay.addLayout(head)
+        filt = QHBoxLayout()
+        self.status_filter = ComboBox()
+        self.status_filter.addItem("any status", "")
+        for st in STATUSES:
+            self.status_filter.addItem(st, st)
+        self.best_filter = QLineEdit()
+        self.best_filter.setPlaceholderText("best: S3, S2…")
+        self.rig_filter = QLineEdit()
+        self.rig_filter.setPlaceholderText("rig")
+        self.since_filter = QLineEdit()
+        self.since_filter.setPlaceholderText("since YYYY-MM-DD")
+        self.until_filter = QLineEdit()
+        self.until_filter.setPlaceholderText("until YYYY-MM-DD")
+        self.text_filter = QLineEdit()
+        self.text_filter.setPlaceholderText("text in title, operator, specimen, notes")
+        self.status_filter.currentIndexChanged.connect(lambda *_: self.filter_timer.start())
+        for w in (self.best_filter, self.rig_filter, self.since_filter, self.until_filter, self.text_filter):
+            w.textChanged.connect(lambda *_: self.filter_timer.start())
+        for w, stretch in ((self.status_filter, 0), (self.best_filter, 0), (self.rig_filter, 0),
+                           (self.since_filter, 0), (self.until_filter, 0), (self.text_filter, 1)):
+            filt.addWidget(w, stretch)
+        lay.addLayout(filt)
+        self.model = CatalogueModel(self)
+        self.table = QTableView()
+        self.table.setModel(self.model)
+        self.table.setSortingEnabled(True)
+        self.table.sortByColumn(0, Qt.DescendingOrder)  # newest first
+        self.table.setSelectionBehavior(QAbstractItemView.SelectRows)
+        self.table.setSelectionMode(QAbstractItemView.ExtendedSelection)
+        self.table.verticalHeader().setVisible(False)
+        self.table.verticalHeader().setDefaultSectionSize(20)
+        self.table.horizontalHeader().setSectionResizeMode(QHeaderView.Interactive)
+        self.table.horizontalHeader().setStretchLastSection(True)
+        self.table.setMinimumHeight(90)
+        self.table.activated.connect(lambda ix: self.open(self.model.row(ix.row())["path"]))
+        self.table.selectionModel().selectionChanged.connect(self._selection_changed)
+        lay.addWidget(self.table, 1)
+        acts = QHBoxLayout()
+        self.open_selected_button = QPushButton("Open")
+        self.open_selected_button.clicked.connect(self._open_selected)
+        self.refit_selected_button = QPushButton("Re-fit selected")
+        self.refit_selected_button.setToolTip("re-fit each selected run in turn with the Re-fit settings below")
+        self.refit_selected_button.clicked.connect(lambda: self.refit_selected())
+        self.joint_fit_button = QPushButton("Fit together")
+        self.joint_fit_button.setEnabled(False)
+        self.joint_fit_button.setToolTip(JOINT_FIT_TIP)
+        self.export_rows_button = QPushButton("Export rows…")
+        self.export_rows_button.setToolTip("the selected rows (every column, as velab runs --csv) as CSV")
+        self.export_rows_button.clicked.connect(lambda: self.export_selected_rows())
+        self.trends_button = QPushButton("Trends")
+        self.trends_button.setToolTip("plot a fitted quantity of the selected runs (all shown when none is selected)")
+        self.trends_button.clicked.connect(lambda: self.tabs.setCurrentWidget(self.trends))
+        for b in (self.open_selected_button, self.refit_selected_button, self.joint_fit_button,
+                  self.export_rows_button, self.trends_button):
+            acts.addWidget(b)
+        acts.addStretch(1)
+        lay.addLayout(acts)
+        return panel
+
+    def filters(self) -> Filters:
+        """The filter fields as velab.catalogue Filters; a date that does not parse is marked and ignored."""
+        when = {}
+        for name, w, end in (("since", self.since_filter, False), ("until", self.until_filter, True)):
+            text = w.text().strip()
+            try:
+                when[name] = parse_when(text, end=end) if text else None
+                w.setStyleSheet("")
+                w.setToolTip("")
+            except ValueError as exc:
+                when[name] = None
+                w.setStyleSheet("color: rgb(190, 30, 30)")
+                w.setToolTip(str(exc))
+        status = self.status_filter.currentData()
+        return Filters(status=(status,) if status else (),
+                       best=tuple(b.strip() for b in self.best_filter.text().split(",") if b.strip()),
+                       rig=self.rig_filter.text().strip(), since=when["since"], until=when["until"],
+                       text=tuple(self.text_filter.text().split()))
+
+    def apply_filters(self) -> None:
+        self.model.set_filters(self.filters())
+        self._show_count()
+        self._selection_changed()
+
+    def selected_rows(self) -> list[dict]:
+        return [self.model.row(ix.row()) for ix in self.table.selectionModel().selectedRows()]
+
+    def _selection_changed(self, *_) -> None:
+        rows = self.selected_rows()
+        self.trends.set_rows(rows or self.model.rows)
+        self._update_buttons()
+        if len(rows) == 1 and rows[0].get("kind") == "run" and str(self.path) != rows[0]["path"]:
+            self.open(rows[0]["path"])
+
+    def _open_selected(self) -> None:
+        rows = self.selected_rows()
+        if rows:
+            self.open(rows[0]["path"])
+
+    def export_selected_rows(self, path=None) -> None:
+        rows = self.selected_rows() or list(self.model.rows)
+        if not rows:
+            self.message.emit("No rows to export: choose a folder of runs first.", "warning")
+            return
+        if path is None:
+            start = str(Path(str(self.settings.value("archive/folder", "") or Path.cwd())) / "runs.csv")
+            path, _ = QFileDialog.getSaveFileName(self, "Export the selected rows", start, "CSV (*.csv)")
+            if not path:
+                return
+        tasks.submit(export_rows, rows, path, owner=self, on_done=self._exported, on_error=self._export_failed)
+
+    def refit_selected(self) -> None:
+        paths = [r["path"] for r in self.selected_rows() if r.get("kind") == "run"]
+        if not paths or self.busy:
+            return
+        opts = self.options()
+        self.busy = True
+        self._update_buttons()
+        self.progress.setRange(0, len(paths))
+        self.progress.setValue(0)
+        self.message.emit(f"Re-fitting {len(paths)} runs: models {opts.models}, window {opts.window_s:g} s", "info")
+        tasks.submit(refit_many, paths, opts, owner=self, on_done=self._refit_many_done,
+                     on_error=self._refit_failed,
+                     on_progress=lambda d, t, s: (self.progress.setRange(0, t), self.progress.setValue(d),
+                                                  self.progress.setFormat(f"{d}/{t}: {s}")))
+
+    def _refit_many_done(self, outcomes) -> None:
+        self.busy = False
+        self._update_buttons()
+        failed = sum(1 for _, line in outcomes if line.startswith("failed"))
+        for p, line in outcomes:
+            self.message.emit(f"Re-fit of {Path(p).name}: {line}", "warning" if line.startswith("failed") else "info")
+        self.progress.setFormat(f"{len(outcomes) - failed} of {len(outcomes)} re-fitted")
+        self.refitted.emit(f"{len(outcomes) - failed}/{len(outcomes)}")
+        self.refresh_list()  # the saved fits change the rows
 
     def open(self, path) -> None:
         """Read the run and its fits on a worker thread, then show them."""
@@ -333,6 +538,8 @@ class ArchiveBrowser(QWidget):
         self.message.emit(text, "info")
         if out.note:
             self.message.emit(out.note, "warning")
+        if out.saved_as:
+            self.refresh_list()  # the run's row shows its new fit
         if out.saved_as and self.loaded_run is not None:
             self.loaded_run.fits[out.saved_as] = r
             self.fit_combo.blockSignals(True)
@@ -380,3 +587,7 @@ class ArchiveBrowser(QWidget):
         self.reload_button.setEnabled(have)
         self.export_csv_button.setEnabled(self.loaded_run is not None)
         self.export_fig_button.setEnabled(self.current_fit is not None or self.loaded_run is not None)
+        if hasattr(self, "table"):
+            runs = [r for r in self.selected_rows() if r.get("kind") == "run"]
+            self.refit_selected_button.setEnabled(bool(runs) and not self.busy)
+            self.open_selected_button.setEnabled(len(runs) >= 1)

@@ -154,3 +154,56 @@ def list_runs(folder) -> list[Path]:
         return []
     files = [p for p in folder.iterdir() if p.suffix.lower() in (".h5", ".hdf5", ".nxs") and p.is_file()]
     return sorted(files, key=lambda p: p.stat().st_mtime, reverse=True)
+
+
+# ------------------------------------------------------------------ the run catalogue (velab.catalogue)
+
+
+def index_folder(folder, on_rows, stop=None, progress=None):
+    """The catalogue of ``folder`` on a worker thread: what the index holds at once, then what changed.
+
+    ``on_rows(rows, replace)`` is called with the index's rows (``replace`` True: the first
+    paint, from the index alone), then with each batch of rows read from new or changed files.
+    Returns the up-to-date Listing. Run files are only read (in worker processes).
+    """
+    from velab.catalogue.index import Catalogue
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataError(f"{folder}: no such folder")
+    with Catalogue(roots=[folder]) as cat:
+        on_rows(cat.cached([folder]).rows, True)
+        # fresh worker processes (fork=False): a fork of the threaded GUI could inherit a lock (h5py's)
+        # that another worker thread holds
+        listing = cat.update([folder], stop=stop, fork=False, on_rows=lambda rows: on_rows(rows, False),
+                             progress=(lambda d, t: progress(d, t, "indexing")) if progress else None)
+    return listing
+
+
+def refit_many(paths, opts: RefitOptions, progress=None) -> list[tuple[str, str]]:
+    """Re-fit each run in turn (as the single re-fit); (path, outcome line) of each, failures included."""
+    from velab.errors import VelabError
+
+    out = []
+    for i, p in enumerate(paths):
+        if progress:
+            progress(i, len(paths), f"re-fitting {Path(p).name}")
+        try:
+            o = refit(p, opts)
+            best = o.result.best
+            line = f"best {best.name} (a = {best.wave_speed_m_s:.1f} m/s)" + (f", saved as {o.saved_as}" if o.saved_as else "")
+            out.append((str(p), line + (f"; {o.note}" if o.note else "")))
+        except VelabError as exc:
+            out.append((str(p), f"failed: {exc}"))
+    if progress:
+        progress(len(paths), len(paths), "done")
+    return out
+
+
+def export_rows(rows, path) -> Path:
+    """The catalogue rows as CSV (every column, as ``velab runs --csv``)."""
+    from velab.catalogue.query import to_csv
+
+    path = Path(path)
+    path.write_text(to_csv(list(rows)))
+    return path
