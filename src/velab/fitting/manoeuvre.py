@@ -39,10 +39,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from velab.config import Rig
+from velab.config import GRAVITY_M_S2, Rig
 from scipy.signal import butter, sosfiltfilt
 
 from velab.errors import DataError
+from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator
 from velab.fitting.friction import TimeDomainModel, equivalent_friction
 from velab.model import ValveHeadModel, creep_scale, flow_perturbation, manoeuvre_band_hz, series_impedance
@@ -57,9 +58,16 @@ COUPLING_SPAN_FACTOR = 3.0  # the coupling's head is filtered over this multiple
 COUPLING_BAND_FACTOR = 2.0  # the coupling's head is low-passed at this multiple of the manoeuvre's band
 REFRESHES = 1  # friction-correction refreshes of the closure fit (time-domain laws only)
 START_ITERATIONS = 8  # each start of the closure fit is taken this many steps before the better one goes on
-PARAM_NAMES = ("beta_per_s", "t_half_s", "power", "loss_share", "coupling")
+PARAM_NAMES = ("beta_per_s", "t_half_s", "power", "loss_share", "coupling", "tail")
+NV = len(PARAM_NAMES)
 # the two starts of the closure: a real butterfly discharging to air, and the imposed sigmoid flow
 STARTS = ((2.0, 0.05, 1.0), (1.0, 1.0, 0.0))
+# the grid of characteristic powers and loss shares the Joukowsky starts are taken from
+START_POWERS = (0.5, 1.0, 1.5, 2.0, 3.0)
+START_SHARES = (0.01, 0.05, 0.2, 1.0)
+REFINE_ITERATIONS = 25
+REFINE_RATE_PER_BAND = 8.0  # the whole-window refinement runs at this multiple of the manoeuvre's band
+T50_MAX_FACTOR = 4.0  # the flow's half-closure instant is sought up to this multiple of the commanded one (+ 1 s)
 
 
 @dataclass(frozen=True)
@@ -72,6 +80,7 @@ class ValveInput:
     se: dict = field(default_factory=dict)  # and their standard errors
     text: str = ""
     k: int = 0  # nuisance parameters fitted (added to every model's count)
+    gain: float = math.nan  # n ln(F before / F after) of its refinement on the whole window (refine_closure)
 
     def describe(self) -> dict:
         return {"source": self.source, "params": dict(self.params), "se": dict(self.se), "text": self.text,
@@ -82,13 +91,22 @@ def sigmoid(u) -> np.ndarray:
     return 0.5 * (1.0 - np.tanh(0.5 * np.asarray(u, dtype=float)))  # 1 / (1 + exp(u)), no overflow
 
 
-def closure_opening(t, beta: float, t_half: float, power: float, share: float) -> np.ndarray:
-    """T(sigmoid(beta (t - t_half))) for t >= 0, 1 before the trigger."""
+def characteristic(x, power: float, tail: float = 0.0) -> np.ndarray:
+    """phi(x) = (1 - w) x^n + w x: a power law whose last few per cent of stroke may close linearly
+    (``tail`` w; a manufacturer's table is often linear near shut where a power law is not)."""
+    x = np.asarray(x, dtype=float)
+    with np.errstate(divide="ignore", over="ignore", under="ignore", invalid="ignore"):
+        xn = np.where(x > 0, np.exp(power * np.log(np.where(x > 0, x, 1.0))), 0.0)
+    return (1.0 - tail) * xn + tail * x
+
+
+def closure_opening(t, beta: float, t_half: float, power: float, share: float, tail: float = 0.0) -> np.ndarray:
+    """T(sigmoid(beta (t - t_half))) for t >= 0, 1 before the trigger; T(x) = 1/sqrt((1-s) + s/phi(x)^2)."""
     t = np.asarray(t, dtype=float)
-    x = sigmoid(beta * (t - t_half))
+    phi = characteristic(sigmoid(beta * (t - t_half)), power, tail)
     with np.errstate(divide="ignore", over="ignore", under="ignore"):
-        inv = np.where(x > 0, np.exp(-2.0 * power * np.log(np.where(x > 0, x, 1.0))), np.inf)
-        tau = np.where(x > 0, 1.0 / np.sqrt((1.0 - share) + share * inv), 0.0)
+        inv = np.where(phi > 0, 1.0 / np.where(phi > 0, phi, 1.0) ** 2, np.inf)
+        tau = np.where(phi > 0, 1.0 / np.sqrt((1.0 - share) + share * inv), 0.0)
     return np.where(t >= 0, tau, 1.0)
 
 
@@ -108,13 +126,42 @@ def coupling_head(t, h, rig: Rig) -> np.ndarray:
     return sosfiltfilt(sos, h)
 
 
+def half_flow_offset(power: float, share: float, tail: float = 0.0) -> float:
+    """u50 with T(sigmoid(u50)) = 1/2: the flow is half closed at t50 = t_half + u50 / beta."""
+    phi50 = math.sqrt(share / (3.0 + share))
+    if tail <= 0.0:
+        x50 = phi50 ** (1.0 / power)
+    else:  # phi is increasing in x: bisection
+        lo, hi = 0.0, 1.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if float(characteristic(mid, power, tail)) < phi50 else (lo, mid)
+        x50 = 0.5 * (lo + hi)
+    return math.log(1.0 / x50 - 1.0)
+
+
+def to_solver(valve) -> list[float]:
+    """(beta, t_half, n, s, kappa) -> the solver's (ln beta, t50, ln n, ln s, kappa). The flow's own
+    half-closure instant t50 is what the record shows (the Joukowsky head's half-way point); with it
+    as a variable instead of the position's t_half, the shape (n, s) no longer drags the timing."""
+    beta, t_half, power, share, kappa, tail = valve
+    return [math.log(beta), t_half + half_flow_offset(power, share, tail) / beta, math.log(power), math.log(share),
+            kappa, tail]
+
+
+def from_solver(v) -> tuple:
+    """Inverse of :func:`to_solver`."""
+    beta, power, share = math.exp(v[0]), math.exp(v[2]), math.exp(v[3])
+    return beta, v[1] - half_flow_offset(power, share, v[5]) / beta, power, share, v[4], v[5]
+
+
 def closure_flow(t, h, rig: Rig, params) -> np.ndarray:
     """q(t) of the parametric closure (``PARAM_NAMES`` order) with the head rise h (``coupling_head``)."""
-    beta, t_half, power, share, kappa = params
+    beta, t_half, power, share, kappa, tail = params
     c = orifice_coupling(h, rig.valve_head_m)
     with np.errstate(divide="ignore"):
         ck = np.where(c > 0, c ** kappa, 0.0 if kappa > 0 else 1.0)
-    q = rig.steady_flow_m3_s * (closure_opening(t, beta, t_half, power, share) * ck - 1.0)
+    q = rig.steady_flow_m3_s * (closure_opening(t, beta, t_half, power, share, tail) * ck - 1.0)
     return np.where(np.asarray(t) >= 0, q, 0.0)
 
 
@@ -130,7 +177,20 @@ def position_flow(t, h, position_pct, rig: Rig) -> np.ndarray:
     return np.where(t >= 0, q, 0.0)
 
 
+def closing_position(t, position_pct, rig: Rig) -> np.ndarray:
+    """The recorded position as the valve's stroke: low-passed like the coupling's head, then its
+    running minimum after the trigger (a closure only closes). Near shut a steep characteristic turns
+    the feedback's noise into flow (a quick-opening valve passes 6 % of Q0 at 0.02 % open with a 5 %
+    loss share); the running minimum reaches the shut valve and stays there."""
+    t = np.asarray(t, dtype=float)
+    p = coupling_head(t, np.asarray(position_pct, dtype=float), rig)
+    after = t >= 0
+    p[after] = np.minimum.accumulate(p[after])
+    return np.clip(p, 0.0, 100.0)
+
+
 def from_position(t, h, position_pct, rig: Rig) -> ValveInput:
+    position_pct = closing_position(t, position_pct, rig)
     v = rig.valve
     text = ("flow at the valve from the recorded valve position: "
             + ("Q0 p/100 (the rig's imposed-flow valve)" if v.law == "imposed" else
@@ -148,7 +208,7 @@ def early_window_s(rig: Rig, window_s: float) -> float:
 class _ClosureProblem:
     """Residuals of the early record against the frequency model driven by the parametric closure,
     plus a fixed time-domain correction (friction), in the variables
-    x = (ln a, ln J'_1, ln tau_1, ln beta, t_half, ln n, ln s, kappa).
+    x = (ln a, ln J'_1, ln tau_1, ln beta, t50, ln n, ln s, kappa, tail) (velab.fitting.manoeuvre.to_solver).
 
     The model is built once; a new wall changes the impedance, a new closure the flow's spectrum
     (``ValveHeadModel.flow_sums``): the Jacobian's columns are finite differences of either, in one
@@ -167,7 +227,7 @@ class _ClosureProblem:
         a = math.exp(x[0])
         J = np.exp(x[1:2])
         tau = np.exp(x[2:3])
-        valve = (math.exp(x[3]), x[4], math.exp(x[5]), math.exp(x[6]), x[7])
+        valve = from_solver(x[3 : 3 + NV])
         return a, J, tau, valve
 
     def flow(self, x) -> np.ndarray:
@@ -191,7 +251,7 @@ class _ClosureProblem:
             xp[i] += self.STEP
             ap, Jp, taup, _ = self.split(xp)
             rows_z.append(self.vm.impedance(ap, Jp, taup))
-        for i in range(WALL, WALL + len(PARAM_NAMES)):  # the closure: the flow moves
+        for i in range(WALL, WALL + NV):  # the closure: the flow moves
             xp = np.array(x, dtype=float)
             xp[i] += self.STEP
             rows_s.append(self.vm.flow_sums(self.flow(xp)))
@@ -227,16 +287,16 @@ def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None)
     m = rig.manoeuvre
     a0 = _scan_wave_speed(prob, rig)
     lo = np.array([math.log(a0 * 0.8), math.log(1e-6), math.log(1e-3),
-                   math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), 0.0])
+                   math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), 0.0, 0.0])
     hi = np.array([math.log(a0 * 1.25), math.log(5.0), math.log(10.0),
-                   math.log(m.beta_per_s * 5), 3.0 * m.half_closure_s + 1.0, math.log(6.0), 0.0, 1.0])
+                   math.log(m.beta_per_s * 5), T50_MAX_FACTOR * m.half_closure_s + 1.0, math.log(6.0), 0.0, 1.0, 1.0])
     # both starts are taken a few steps (the friction correction at the rig's sigmoid), the better one
     # is solved to the end with the correction refreshed at its optimum
-    x_rig = [math.log(a0), math.log(0.05), math.log(0.05), math.log(m.beta_per_s), m.half_closure_s]
-    prob.refresh(np.clip(np.array(x_rig + [0.0, 0.0, 0.0]), lo, hi))
+    wall0 = [math.log(a0), math.log(0.05), math.log(0.05)]
+    prob.refresh(np.clip(np.array(wall0 + to_solver((m.beta_per_s, m.half_closure_s, 1.0, 1.0, 0.0, 0.0))), lo, hi))
     tries = [levenberg_marquardt(prob.residual, prob.jacobian,
-                                 np.array(x_rig + [math.log(power), math.log(share), kappa]), lo, hi,
-                                 max_iter=START_ITERATIONS) for power, share, kappa in STARTS]
+                                 np.clip(np.array(wall0 + to_solver(v)), lo, hi), lo, hi, max_iter=START_ITERATIONS)
+             for v in joukowsky_starts(prob.t, prob.d, prob.h, rig, a0)]
     sol = min(tries, key=lambda s: float(s.fun @ s.fun))
     for it in range(1 + (REFRESHES if tm is not None else 0)):
         if it:
@@ -310,6 +370,49 @@ def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, f
     return _Solution(x, r, J, it)
 
 
+def joukowsky_starts(t, d, hc, rig: Rig, a: float, keep: int = 3) -> list[tuple]:
+    """Starts for the closure: before the first reflection returns (2L/a) the head at the valve is
+    the Joukowsky head of the flow change, so 1 - h / (B Q0), B = a/(gA), is the flow ratio (creep
+    lowers it a little). Every (power, loss share, coupling) of a small grid gets its (beta, t_half)
+    fitted to that curve; the ``keep`` best (beta, t_half, power, share, coupling) are returned."""
+    t = np.asarray(t, dtype=float)
+    n = int(np.searchsorted(t, 0.95 * 2.0 * rig.pipe.length_m / a))
+    if n < 8:
+        return [(rig.manoeuvre.beta_per_s, rig.manoeuvre.half_closure_s, p, s, k, 0.0) for p, s, k in STARTS]
+    B = a / (GRAVITY_M_S2 * rig.pipe.area_m2)
+    q0 = rig.steady_flow_m3_s
+    tt, r_obs, c = t[:n], 1.0 - np.asarray(d[:n]) / (B * q0), orifice_coupling(hc[:n], rig.valve_head_m)
+    below = np.flatnonzero(r_obs < 0.5)
+    t50 = float(tt[below[0]]) if below.size else rig.manoeuvre.half_closure_s
+    beta0 = rig.manoeuvre.beta_per_s
+    found = []
+    for power in START_POWERS:
+        for share in START_SHARES:
+            for kappa in (0.0, 1.0):
+                ck = c ** kappa
+
+                def res(x, power=power, share=share, ck=ck):
+                    b, th, *_ = from_solver([x[0], x[1], math.log(power), math.log(share), 0.0, 0.0])
+                    return closure_opening(tt, b, th, power, share) * ck - r_obs
+
+                def jac(x, res=res):
+                    r0 = res(x)
+                    cols = []
+                    for i in range(2):
+                        xp = np.array(x, dtype=float)
+                        xp[i] += 1e-6
+                        cols.append((res(xp) - r0) / 1e-6)
+                    return np.array(cols).T
+
+                lo2 = np.array([math.log(beta0 / 5), 0.0])
+                hi2 = np.array([math.log(beta0 * 5), T50_MAX_FACTOR * rig.manoeuvre.half_closure_s + 1.0])
+                sol = levenberg_marquardt(res, jac, np.clip([math.log(beta0), t50], lo2, hi2), lo2, hi2, max_iter=30)
+                v = from_solver([sol.x[0], sol.x[1], math.log(power), math.log(share), kappa, 0.0])
+                found.append((float(sol.fun @ sol.fun), v))
+    found.sort(key=lambda f: f[0])
+    return [v for _, v in found[:keep]]
+
+
 def _standard_errors(sol, F: float, n: int) -> np.ndarray:
     J = sol.jac
     try:
@@ -323,7 +426,7 @@ def _scan_wave_speed(prob: _ClosureProblem, rig: Rig) -> float:
     """Elastic pipe with the rig's sigmoid as an imposed flow: the wave speed that best lines up the
     early fronts (a start for the closure fit: the fronts' timing sets it)."""
     a_nom = rig.nominal_wave_speed_m_s
-    q = closure_flow(prob.t, prob.h, rig, (rig.manoeuvre.beta_per_s, rig.manoeuvre.half_closure_s, 1.0, 1.0, 0.0))
+    q = closure_flow(prob.t, prob.h, rig, (rig.manoeuvre.beta_per_s, rig.manoeuvre.half_closure_s, 1.0, 1.0, 0.0, 0.0))
     vm, sums, none = prob.vm, prob.vm.flow_sums(q), np.zeros(0)
 
     def F(a):
@@ -347,24 +450,28 @@ def refine_closure(t, d, rig: Rig, vi: ValveInput, fit) -> ValveInput:
     every model under it."""
     if vi.source != "fitted":
         return vi
-    t = np.asarray(t, dtype=float)
-    d = np.asarray(d, dtype=float)
-    hc = _coupling(t, d, rig)
+    t_full = np.asarray(t, dtype=float)
+    hc_full = _coupling(t_full, np.asarray(d, dtype=float), rig)
+    # on the record low-passed and decimated to REFINE_RATE_PER_BAND x the manoeuvre's band: the model
+    # has nothing above it (a closure's spectrum falls exponentially) and the solve is q x cheaper
+    q = max(1, int((1.0 / float(t_full[1] - t_full[0])) // (REFINE_RATE_PER_BAND * manoeuvre_band_hz(rig))))
+    t, d, hc = t_full[::q], lowpass_decimate(np.asarray(d, dtype=float), q), hc_full[::q]
     m = rig.manoeuvre
     a = fit.wave_speed_m_s
     J0 = creep_scale(rig, a) / np.asarray(fit.E_pa, dtype=float)
     tau0 = np.asarray(fit.tau_s, dtype=float)
     k = J0.size
     tm = TimeDomainModel(rig, t)
-    vm = ValveHeadModel(rig, t, band_hz=None, flow=vi.flow)
+    flow0 = vi.flow[::q]
+    vm = ValveHeadModel(rig, t, band_hz=None, flow=flow0)
     W = series_impedance(vm.s_band, rig)
     if tm.active:
-        ev = HeadEvaluator(rig, t, band_hz=None, flow=vi.flow)
-        W = W + equivalent_friction(ev, (a, J0, tau0), tm.head(a, J0, tau0, flow=tm_flow(t, vi.flow)))(vm.s_band, rig)
+        ev = HeadEvaluator(rig, t, band_hz=None, flow=flow0)
+        W = W + equivalent_friction(ev, (a, J0, tau0), tm.head(a, J0, tau0, flow=tm_flow(t, flow0)))(vm.s_band, rig)
 
     def split(x):
         return math.exp(x[0]), np.exp(x[1 : 1 + k]), np.exp(x[1 + k : 1 + 2 * k]), \
-            (math.exp(x[-5]), x[-4], math.exp(x[-3]), math.exp(x[-2]), x[-1])
+            from_solver(x[-NV:])
 
     def head_fd(x):
         a_, J_, tau_, v = split(x)
@@ -394,24 +501,28 @@ def refine_closure(t, d, rig: Rig, vi: ValveInput, fit) -> ValveInput:
 
     p = vi.params
     x = np.concatenate([[math.log(a)], np.log(J0), np.log(tau0),
-                        [math.log(p["beta_per_s"]), p["t_half_s"], math.log(p["power"]), math.log(p["loss_share"]),
-                         p["coupling"]]])
+                        to_solver([p.get(k, 0.0) for k in PARAM_NAMES])])
     lo = np.concatenate([[math.log(a * 0.9)], np.full(k, math.log(1e-8)), np.full(k, math.log(1e-4)),
-                         [math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), 0.0]])
+                         [math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), 0.0, 0.0]])
     hi = np.concatenate([[math.log(a * 1.1)], np.full(k, math.log(10.0)), np.full(k, math.log(1e4)),
-                         [math.log(m.beta_per_s * 5), 3.0 * m.half_closure_s + 1.0, math.log(6.0), 0.0, 1.0]])
+                         [math.log(m.beta_per_s * 5), T50_MAX_FACTOR * m.half_closure_s + 1.0, math.log(6.0), 0.0, 1.0,
+                          1.0]])
     x = np.clip(x, lo, hi)
     sol = None
+    F0 = None
     for _ in range(2 if tm.active else 1):
         if tm.active:
             a_, J_, tau_, v = split(x)
             corr = tm.head(a_, J_, tau_, flow=tm_flow(t, closure_flow(t, hc, rig, v))) - head_fd(x)
-        sol = levenberg_marquardt(residual, jacobian, x, lo, hi)
+        if F0 is None:
+            r0 = residual(x)
+            F0 = float(r0 @ r0) / r0.size
+        sol = levenberg_marquardt(residual, jacobian, x, lo, hi, max_iter=REFINE_ITERATIONS)
         x = sol.x
     res = sol.fun
     F = float(res @ res) / res.size
     rho = max(0.0, min(float(np.corrcoef(res[:-1], res[1:])[0, 1]) if res.size > 2 else 0.0, 0.99))
-    se = _standard_errors(sol, F, res.size)[-5:] * math.sqrt((1 + rho) / (1 - rho))
+    se = _standard_errors(sol, F, res.size)[-NV:] * math.sqrt((1 + rho) / (1 - rho))
     valve = split(x)[3]
     params = dict(zip(PARAM_NAMES, (float(v) for v in valve)))
     ses = {name: float(se[i] * params[name]) if name in ("beta_per_s", "power", "loss_share") else float(se[i])
@@ -422,7 +533,8 @@ def refine_closure(t, d, rig: Rig, vi: ValveInput, fit) -> ValveInput:
             f"{params['power']:.3g}, valve loss share {params['loss_share']:.3g}, orifice coupling "
             f"{params['coupling']:.3g} (1: discharge to air, 0: imposed flow); fitted over {t[-1] + t[1] - t[0]:.4g} s "
             f"with the wall")
-    return ValveInput("fitted", closure_flow(t, hc, rig, valve), params, ses, text, k=len(PARAM_NAMES))
+    return ValveInput("fitted", closure_flow(t_full, hc_full, rig, valve), params, ses, text, k=len(PARAM_NAMES),
+                      gain=t_full.size * math.log(F0 / F) if F > 0 else math.inf)
 
 
 def tm_flow(t, q):
@@ -463,7 +575,7 @@ def valve_input(t, d, rig: Rig, window_s: float, *, position_pct=None, mode: str
         return from_position(t, hc, position_pct, rig)
     old = closure.describe() if isinstance(closure, ValveInput) else closure
     if old and old.get("source") == "fitted":
-        params = {k: float(old["params"][k]) for k in PARAM_NAMES}
+        params = {k: float(old["params"].get(k, 0.0)) for k in PARAM_NAMES}
         return ValveInput("fitted", closure_flow(t, hc, rig, [params[k] for k in PARAM_NAMES]), params,
                           dict(old.get("se", {})), old.get("text", ""), k=len(PARAM_NAMES))
     return fit_closure(t, d, rig, window_s, TimeDomainModel(rig, t), coupling=hc)
@@ -486,8 +598,8 @@ def result_flow(settings: dict, t, h, rig: Rig, position_pct=None) -> np.ndarray
         if position_pct is None:  # (a figure without the position record: the commanded one stands in)
             m = rig.manoeuvre
             position_pct = commanded_position_pct(t, m.beta_per_s, m.gamma)
-        return position_flow(t, hc, position_pct, rig)
+        return position_flow(t, hc, closing_position(t, position_pct, rig), rig)
     if source == "fitted":
-        return closure_flow(t, hc, rig, [float(man["params"][k]) for k in PARAM_NAMES])
+        return closure_flow(t, hc, rig, [float(man["params"].get(k, 0.0)) for k in PARAM_NAMES])
     return None
 

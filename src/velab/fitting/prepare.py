@@ -30,7 +30,7 @@ from scipy.signal import firwin, resample_poly
 from velab.config import Rig
 from velab.errors import DataError
 from velab.fitting.adequacy import assess, baseline_noise
-from velab.fitting.friction import fit_rig, fitted_head
+from velab.fitting.friction import fit_rig
 from velab.fitting.lead import lead_window_s, matches, options_key
 from velab.fitting.manoeuvre import refine_closure, valve_input
 from velab.fitting.results import SweepResult
@@ -199,7 +199,7 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
         refined = refine_closure(rec.t, rec.h, frig, vi, result.best)
         if refine == "only":
             result.settings["manoeuvre_refined"] = refined.describe()
-        elif _refit_gain(rec, frig, result, refined) >= REFINE_MIN_GAIN:
+        elif refined.gain >= REFINE_MIN_GAIN:
             again = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=refined.flow, **(sweep_options | {"lead": result}))
             again.settings["lead"] = None  # (a continuation of this fit's own first pass, not of a lead fit)
             again.duration_s += result.duration_s
@@ -215,14 +215,6 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
     result.notes.extend(rec.notes)
     assess(result, rec, rig)  # noise ratios and warnings (misfit, cavitation, bound)
     return result
-
-
-def _refit_gain(rec: PreparedRecord, rig: Rig, result: SweepResult, refined) -> float:
-    """n ln(F / F'): what the refined closure gains for the best model's wall (its head under the
-    refined flow, with the rig's friction laws), against the best model's F."""
-    h = fitted_head(rec.t, rig, result.best, flow=refined.flow)
-    F = float(np.mean((h - rec.h) ** 2))
-    return rec.h.size * math.log(result.best.F / F) if F > 0 else math.inf
 
 
 def fit_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | None, *, record_rate_hz: float,
