@@ -103,7 +103,8 @@ def test_the_fit_process_runs_the_lead(tmp_path):
 @pytest.mark.parametrize("rig_name,truth", [("perugia", "S3"), ("imperial", "S2")])
 def test_the_continuation_names_what_a_one_step_sweep_names(rig_name, truth):
     """Time-domain (MOC, quadratic friction) truths: the lead + continuation and a one-step sweep
-    end in the same basins: the same best model (the truth), F of every model within 1e-5."""
+    end in the same basins: the same best model (the truth), F of every model within 1e-4 (1e-2 for
+    models more than 10 AIC units behind)."""
     rig = load_rig(rig_name)
     t, h = truth_record(rig, truth, seed=5)
     kw = dict(t_s=t, head_m=h + rig.steady_head_m, trigger_time_s=0.0, rig=rig, window_s=20.0, record_rate_hz=1000.0)
@@ -113,8 +114,12 @@ def test_the_continuation_names_what_a_one_step_sweep_names(rig_name, truth):
     assert two.best.name == one.best.name == truth, two.report(elements=False)
     assert abs(two.best.wave_speed_m_s - one.best.wave_speed_m_s) < 0.01
     assert two.best.F / SIGMA**2 <= 1.05
+    # the fitted closure (velab.fitting.manoeuvre) is refined with the best wall over the lead's 16 s in
+    # two steps and over the whole 20 s in one: the models land a little apart (measured: the best within
+    # 2e-5 of F, models thousands of AIC units away within 1.2e-3: their misfit depends on the closure)
     for a, b in zip(one.models, two.models):
-        assert abs(b.F / a.F - 1) < 1e-5, (a.name, a.F, b.F)
+        tol = 1e-4 if a.delta_aic <= 10 else 1e-2
+        assert abs(b.F / a.F - 1) < tol, (a.name, a.F, b.F)
 
 
 def _settings(tmp_path, rate, **kw):

@@ -27,7 +27,7 @@ def sweep(tmp_path_factory):
     from velab.runfile import read_run
 
     path = tmp_path_factory.mktemp("runs") / "a.h5"
-    assert velab_main(["synth", "--material", "A", "--duration", "4", "--friction", "linear", "-o", str(path)]) == 0
+    assert velab_main(["synth", "--material", "A", "--duration", "4", "--friction", "linear", "--valve", "imposed", "-o", str(path)]) == 0
     run = read_run(path)
     t, h = run.fit_window(3.0)
     return t, h, run.rig, fit_sweep(t, h, run.rig, models=range(7), window_s=3.0, reduced=True, starts=1, polish=False)

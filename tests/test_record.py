@@ -69,6 +69,10 @@ def test_material_A_online_fit_names_S3(tmp_path):
     assert fit["S3"].delta_aic <= 10.0 or slow_ramp, fit.report(elements=True)
     assert fit["S2"].delta_aic > 10 and fit["S1"].delta_aic > 10
     assert abs(fit["S3"].wave_speed_m_s - A_TRUE) < 0.5
+    # the simulated valve is a real one (orifice law): the fit took the manoeuvre from the measured
+    # position and describes the record at its noise (issue 24)
+    assert fit.settings["manoeuvre"]["source"] == "position"
+    assert fit[summary.best_model].noise_ratio <= 1.5 and not [w for w in fit.warnings if w["code"] == "misfit"]
     # the run file: completed, the fit stored, the time axis from the device clock, trigger measured
     run = read_run(summary.path)
     assert run.status == "completed" and not run.incomplete

@@ -39,7 +39,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import special
 
 LAMINAR_RE = 2300.0
 
@@ -107,6 +106,8 @@ def weighting_laplace(p, reynolds: float) -> np.ndarray:
     big = np.abs(p) > 1e-4
     x = np.sqrt(p[big])
     # I0/I2 with exponentially scaled Bessel functions (no overflow for large |x|)
+    from scipy import special  # (0.3 s of import: only when the unsteady friction is evaluated)
+
     ratio = special.ive(0, x) / special.ive(2, x)
     out[big] = 0.25 * (ratio - 1.0) - 2.0 / p[big]
     small = ~big
@@ -145,6 +146,8 @@ def weighting_exponentials(reynolds: float, step: float = 0.5) -> tuple[np.ndarr
         u0, scale = 0.0, math.sqrt(b)
         m_exact, n_exact = np.zeros(0), np.zeros(0)
     else:
+        from scipy import special  # (0.3 s of import: only when Zielke's weighting function is built)
+
         zeros = special.jn_zeros(2, _ZIELKE_EXACT_TERMS)
         b = 0.0
         u0 = scale = zeros[-1] + math.pi / 2  # midpoint between the last kept zero and the next
