@@ -148,7 +148,7 @@ def main() -> None:
     t_ref = best_time(lambda: march_reference(lin, J, tau, q1, n, dt1, a, "linear", "none"), budget_s=2.0,
                       min_repeats=1)
     cases = [
-        ("moc_solve, 1 ms, linear", lambda: moc_solve(lin, mat, T, 1e-3)),
+        ("moc_solve, 1 ms, linear", lambda: moc_solve(lin, mat, T, 1e-3, valve="imposed")),
         ("moc_head, 2 ms, linear", lambda: moc_head(lin, a, J, tau, t)),
         ("moc_head, 2 ms, quadratic", lambda: moc_head(rig, a, J, tau, t)),
         ("moc_head, 1 ms, quadratic", lambda: moc_head(rig, a, J, tau, t, dt_s=1e-3)),
@@ -169,7 +169,7 @@ def main() -> None:
     print(f"accuracy at {T:g} s against the full-band frequency model, linear friction (Joukowsky head {hj:.3f} m):")
     d = band.head(mat) - valve_head(t, rig, mat)
     print(f"  band 'auto'          : max {np.abs(d).max():.4f} m, RMS {np.sqrt(np.mean(d**2)):.5f} m")
-    r = moc_solve(lin, mat, T, 1e-3)
+    r = moc_solve(lin, mat, T, 1e-3, valve="imposed")
     d = r.head_m - valve_head(np.arange(int(40.0 / r.dt_s)) * r.dt_s, lin, mat)[: r.t_s.size]
     print(f"  moc_solve 1 ms (grid): max {np.abs(d).max():.5f} m = {np.abs(d).max() / hj:.1e} hJ, "
           f"RMS {np.sqrt(np.mean(d**2)):.6f} m")

@@ -65,6 +65,7 @@ def describe(r: Run) -> str:
     lines.append(f"  rig          {rig.name}: L {p.length_m:g} m, D {p.inner_diameter_m * 1e3:g} mm, "
                  f"e {p.wall_thickness_m * 1e3:g} mm, alpha {p.constraint_alpha:g}, Q0 {rig.steady_flow_m3_s * 1e3:g} l/s")
     lines.append(f"  friction     {rig.friction_description}")
+    lines.append(f"  valve        {rig.valve.describe()}")
     lines.append(f"  manoeuvre    beta {rig.manoeuvre.beta_per_s:g} 1/s, gamma {rig.manoeuvre.gamma:g} "
                  f"(closure 90->10 % in {rig.manoeuvre.closure_time_s:.3f} s)"
                  + (f", end position {r.manoeuvre['end_position']:g} %" if "end_position" in r.manoeuvre else ""))
