@@ -29,6 +29,11 @@ bytes after the reply), wrong_unit (reply from another unit id), disconnect
 (scheduled only: the endpoint goes away; comes back at the end of the window, never
 without a duration); qualifiers: count (only the next N requests), writes_only (only
 write requests: commands and settings; polls go on).
+
+``BrokenGateway``: a Modbus TCP gateway between a client and a simulated device that flips
+bits of one register in read replies while a condition holds (a payload corruption: Modbus
+TCP has no checksum, no protocol check can see it; docs/recording.md, "Redundant
+measurements").
 """
 
 from __future__ import annotations
@@ -156,3 +161,127 @@ def _validate_device_faults(faults: dict, where: str) -> None:
         StreamFaults().set(**faults)
     except (ValueError, TypeError):
         raise first from None
+
+
+class BrokenGateway:
+    """A Modbus TCP gateway that corrupts read replies' payloads: the fault no protocol check can see.
+
+    Sits between a client and a Modbus TCP server (a simulated device): every request goes through
+    unchanged; in the reply to a read (function 3 or 4) that covers ``register``, that register's
+    word is XORed with ``xor`` while ``active()`` is true (asked once per reply, e.g. "the valve is
+    mid-stroke"). MBAP header, length, transaction id, unit and function code stay as they were, and
+    Modbus TCP has no checksum: the client gets a well-formed reply with a plausible wrong value
+    (a valve position's float32 high word ^ 0x0080 halves or doubles it: 50 % open reads 100 %).
+    ``corrupted`` counts the replies changed. Real sockets, one thread per direction per connection.
+    """
+
+    def __init__(self, upstream: tuple[str, int], register: int, xor: int, active=lambda: True,
+                 host: str = "127.0.0.1"):
+        import socket
+
+        self.upstream, self.register, self.xor, self.active = upstream, int(register), int(xor) & 0xFFFF, active
+        self.corrupted = 0
+        self._listener = socket.create_server((host, 0))
+        self.host, self.port = host, self._listener.getsockname()[1]
+        self._socks: list = []
+        self._threads: list[threading.Thread] = []
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+
+    def start(self) -> "BrokenGateway":
+        self._spawn(self._accept)
+        return self
+
+    def _spawn(self, fn, *args) -> None:
+        th = threading.Thread(target=fn, args=args, name="velab-sim-gateway", daemon=True)
+        with self._lock:
+            self._threads.append(th)
+        th.start()
+
+    def _accept(self) -> None:
+        import socket
+
+        while not self._stopping.is_set():
+            try:
+                client, _ = self._listener.accept()
+                server = socket.create_connection(self.upstream, timeout=5.0)
+                server.settimeout(None)
+            except OSError:
+                return  # listener closed (stop) or the device is gone: the client sees a closed link
+            pending: dict[int, tuple[int, int, int]] = {}  # transaction id -> (function, address, count)
+            with self._lock:
+                self._socks += [client, server]
+            self._spawn(self._pump, client, server, pending, True)
+            self._spawn(self._pump, server, client, pending, False)
+
+    @staticmethod
+    def _frame(sock) -> bytes | None:
+        """One MBAP frame (header + PDU), or None when the link closed."""
+        def exactly(n):
+            buf = b""
+            while len(buf) < n:
+                chunk = sock.recv(n - len(buf))
+                if not chunk:
+                    return None
+                buf += chunk
+            return buf
+        head = exactly(7)
+        if head is None:
+            return None
+        body = exactly(max(0, int.from_bytes(head[4:6], "big") - 1))
+        return None if body is None else head + body
+
+    def _pump(self, src, dst, pending: dict, requests: bool) -> None:
+        try:
+            while True:
+                frame = self._frame(src)
+                if frame is None:
+                    break
+                tid, fc = int.from_bytes(frame[0:2], "big"), frame[7] if len(frame) > 7 else 0
+                if requests:
+                    if fc in (3, 4) and len(frame) >= 12:
+                        pending[tid] = (fc, int.from_bytes(frame[8:10], "big"), int.from_bytes(frame[10:12], "big"))
+                else:
+                    frame = self._corrupt(frame, pending.pop(tid, None))
+                dst.sendall(frame)
+        except OSError:
+            pass  # one side closed: close both (below), as a gateway losing a link does
+        finally:
+            for s in (src, dst):
+                _shut(s)
+
+    def _corrupt(self, frame: bytes, request) -> bytes:
+        if request is None or frame[7] != request[0]:
+            return frame  # an exception reply, or a reply to something else: untouched
+        _, address, count = request
+        k = self.register - address
+        if not (0 <= k < count) or len(frame) < 9 + 2 * (k + 1) or not self.xor or not self.active():
+            return frame
+        i = 9 + 2 * k  # MBAP 7, function, byte count, then the registers
+        word = int.from_bytes(frame[i:i + 2], "big") ^ self.xor
+        self.corrupted += 1
+        return frame[:i] + word.to_bytes(2, "big") + frame[i + 2:]
+
+    def stop(self) -> None:
+        self._stopping.set()
+        for s in [self._listener] + self._socks:
+            _shut(s)
+        for th in list(self._threads):
+            th.join(2.0)
+
+    def __enter__(self) -> "BrokenGateway":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def _shut(sock) -> None:
+    """shutdown() first: a close() alone does not wake a thread blocked in recv()/accept() on Linux."""
+    import socket
+
+    for call in (lambda: sock.shutdown(socket.SHUT_RDWR), sock.close):
+        try:
+            call()
+        except OSError:
+            pass

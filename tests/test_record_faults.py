@@ -18,6 +18,7 @@ import h5py
 import numpy as np
 import pytest
 
+from record_helpers import CWF, run_bounded, thread_errors  # noqa: F401 - a fixture
 from velab.recording import Recorder, RecordSettings, RunRefused
 from velab.runfile import read_run
 
@@ -230,3 +231,47 @@ def test_disk_full_mid_run_stops_cleanly_and_keeps_the_samples(tmp_path):
     assert run.n_samples >= seen
     assert np.array_equal(run.channels["sample_index"], np.arange(run.n_samples))
     assert np.allclose(np.diff(run.time_s), 1e-4)
+
+
+@pytest.mark.parametrize("xor", [0x0080, 0], ids=["corrupted", "clean"])
+def test_valve_reply_corrupted_mid_stroke_is_a_position_mismatch(tmp_path, thread_errors, xor):
+    """A broken Modbus TCP gateway between the recorder and the valve actuator flips the exponent's
+    low bit of the reported position (float32 high word ^ 0x0080: 30 % open reads 15 %) while the
+    valve is mid-stroke: well-formed replies with a plausible wrong value, which no protocol check
+    can see (Modbus TCP has no checksum). The ADC's position channel, another instrument, is right:
+    the comparison names the fault and the run ends completed-with-faults, never plain completed.
+    xor = 0: the same gateway passing replies untouched: completed, no fault at all (no false alarm).
+
+    A slow closure (beta 2/s, the actuator's minimum: about 3 s from 95 % to 5 %) on a 3x clock, so
+    that several status polls (every 0.15 s wall) land inside the stroke."""
+    from velab.simulators.bench import SimulatedBench
+    from velab.simulators.clock import make_clock
+    from velab.simulators.faults import BrokenGateway
+
+    sim = SimulatedBench.from_config("default", ephemeral=True, clock=make_clock("scaled:3")).start()
+    ep = next(e for e in sim.endpoints if e.device == "valve" and e.transport == "tcp").bench_settings()
+    rig = sim.rig
+    gw = BrokenGateway((ep["host"], ep["port"]), register=20, xor=xor,  # 20: the position's high word
+                       active=lambda: 5.0 < float(rig.valve_position([rig.clock.now()])[0]) < 95.0).start()
+    try:
+        s = RecordSettings(duration_s=6.0, pretrigger_s=0.5, beta_per_s=2.0, fit=False, out_dir=tmp_path)
+        rec = Recorder(sim.bench(valve={"host": gw.host, "port": gw.port}), rig.rig, s, sim=sim, owns_sim=True)
+        faults: list = []
+        out = run_bounded(rec, faults)
+    finally:
+        gw.stop()
+    assert out.error is None and thread_errors == []
+    summary, run = out.summary, read_run(out.summary.path)
+    if not xor:
+        assert summary.status == "completed" and faults == [] and gw.corrupted == 0
+        assert run.status == "completed"
+        return
+    assert gw.corrupted >= 2  # several mid-stroke replies went through the broken gateway
+    assert summary.status == CWF and summary.exit_code == 6
+    mism = [f for f in faults if f["kind"] == "position_mismatch"]
+    assert len(mism) == 1 and faults == mism  # once per run (the worst), and nothing else was wrong
+    f = mism[0]
+    assert f["device"] == "valve" and f["role"] == "valve" and f["deviation_pct"] > f["tolerance_pct"] == 2.0
+    assert 0.0 < f["t_s"] < 6.0 and f["polls_compared"] >= 5
+    assert run.status == CWF and "position mismatch" in run.status_reason
+    assert any(k == "fault" and "position mismatch" in m for _, k, m in run.events)

@@ -18,6 +18,7 @@ from velab.recording.devices import check_steady_flow, check_steady_head
 from velab.recording.layout import bench_snapshot, commanded_rig, create_run_file, run_file_name
 from velab.recording.online_fit import HALTED, OnlineFit
 from velab.recording.pressure import PressureSource
+from velab.recording.redundancy import RedundancyMonitor, head_mismatch, head_tolerance_m
 from velab.recording.safety import ceiling_head, check_output_dir, predict_surge
 from velab.recording.slow import SlowChannels
 from velab.recording.timeline import Timeline
@@ -52,6 +53,7 @@ class RunControl:
         self._halted = False
         self._fit_error = ""
         self._valve_lost = False  # the safe-state command could not reach the actuator
+        self._redundancy: RedundancyMonitor | None = None  # redundant channels, compared at the end
 
     def _run_active(self) -> bool:
         return self._writer is not None and not self._finished.is_set()
@@ -114,15 +116,25 @@ class RunControl:
         self._source = source
         self._log("operator", f"armed by {s.operator or 'operator'}: {pred.message}")
         self._fit = OnlineFit(commanded_rig(self.rig, beta, gamma), s, fs, self._emit, self._message)
+        mon = self._redundancy = RedundancyMonitor()
+        put = self._writer.put
+
+        def write(op):  # the ADC's valve-position channel, as written, for the redundancy check too
+            if op[0] == "append":
+                mon.adc(op[1], op[2]["valve_position"], op[2]["valve_position_quality"],
+                        still=self._timeline.trigger_idx is None)
+            put(op)
         self._timeline = Timeline(s, fs, (beta, gamma, end), ceiling, source.pressure_channel, source.valve_channel,
-                                  self.hooks, self._writer.put, self._window_closed,
+                                  self.hooks, write, self._window_closed,
                                   on_baseline=lambda: self._submit(lambda: None),
                                   lead_window_s=self._fit.lead_window_s(), on_lead=self._lead_ready)
         valve = self.devices[self.roles["valve"]]
         self._slow = SlowChannels(valve, self.roles["valve"], self.devices[self.roles["flowmeter"]], self.hooks,
                                   self._writer.put, lambda: self._timeline.now_axis,
                                   lambda: self._timeline.trigger_idx is not None, s.stall_timeout_s,
-                                  on_valve=lambda st: setattr(self, "_valve_state", st.state))
+                                  on_valve=lambda st: (setattr(self, "_valve_state", st.state), mon.valve(st)),
+                                  on_flow=lambda r: mon.flow(r.value) if r.quality.value == "ok"
+                                  and self._timeline.trigger_idx is None else None)
         # 5. start the stream, then arm the actuator
         try:
             actual = source.start(fs, s.stall_timeout_s, self._timeline.process, self.hooks)
@@ -311,6 +323,7 @@ class RunControl:
             self._fault("recorder", "slow-channel thread did not end within 5 s", "error")
         tl = self._timeline
         tl.finish()
+        self._compare_redundant()  # before the status is decided: a disagreement flags the run
         if self._trigger_fut is not None:
             fut, self._trigger_fut = self._trigger_fut, None
             fut.set_exception(VelabError(f"trigger cancelled: the run ended before the baseline was in "
@@ -337,6 +350,34 @@ class RunControl:
         threading.Thread(target=self._conclude, args=(status, full_reason), daemon=True,
                          name="velab-recorder-conclude").start()
         return None
+
+    def _compare_redundant(self) -> None:
+        """Redundant measurements compared (velab.recording.redundancy): the actuator's position
+        against the ADC's channel, the steady flow against Q0 (faults: the run is flagged), the
+        steady head against the rig's (a warning in the file: the data are the transducer's)."""
+        mon, tl = self._redundancy, self._timeline
+        if mon is None or tl is None:
+            return
+        try:
+            f, n = mon.position_finding(tl.trigger_time, tl.trigger_from_feedback)
+            if f is not None:
+                self._fault("valve", f.message, f.kind, deviation_pct=round(f.deviation, 3),
+                            tolerance_pct=f.tolerance, t_s=f.at_s, polls_compared=n, **f.extras)
+            f = mon.flow_finding(self.rig.steady_flow_m3_s, self.settings.flow_tolerance)
+            if f is not None:
+                self._fault("flowmeter", f.message, f.kind, deviation=round(f.deviation, 5), tolerance=f.tolerance,
+                            **f.extras)
+            tr = self.rig.transducer
+            steady = tl.steady_head(None)
+            f = head_mismatch(steady if steady is not None else math.nan, self.rig.steady_head_m,
+                              head_tolerance_m(tr.accuracy_fs, tr.full_scale_pa))
+            if f is not None:  # a note, not a mark: see docs/recording.md, "Redundant measurements"
+                line = f"{self.roles.get('pressure', 'pressure')}: {f.message}"
+                self._log("warning", line)
+                self._emit("message", f"warning: {line}")
+        except Exception as exc:  # noqa: BLE001 - a bug here must not lose the run: say it, flag it
+            log.exception("redundancy check")
+            self._fault("recorder", f"redundant-measurement check failed: {type(exc).__name__}: {exc}", "error")
 
     def _decide_fit(self, status: str) -> None:
         """The fit, or why there is none (a run never ends without one or the other)."""

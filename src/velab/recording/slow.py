@@ -30,11 +30,12 @@ def valve_event(device: str, st) -> dict:
 
 class SlowChannels:
     def __init__(self, valve, valve_name: str, flowmeter, hooks, write, now_axis, triggered, stall_timeout_s: float,
-                 on_valve=None):
+                 on_valve=None, on_flow=None):
         self.valve, self.valve_name, self.flowmeter = valve, valve_name, flowmeter
         self.hooks, self.write, self.now_axis, self.triggered = hooks, write, now_axis, triggered
         self.stall_timeout_s = stall_timeout_s
         self.on_valve = on_valve or (lambda st: None)
+        self.on_flow = on_flow or (lambda r: None)  # each flow Reading (the redundancy check's steady flow)
         self.valve_answering = True
         self.valve_error = ""  # why the last valve poll failed
         self._stop = threading.Event()
@@ -84,6 +85,7 @@ class SlowChannels:
             r = self.flowmeter.read_flow()
             readings["flow"] = r
             self.write(("slow", "flow", t, r.value, time.time()))
+            self.on_flow(r)
             if r.quality.value != "ok" and r.quality.value not in self._flow_quality_seen:
                 self._flow_quality_seen.add(r.quality.value)
                 self.hooks.fault("flowmeter", f"flowmeter reading {r.quality.value} at t = {t:.2f} s", "quality",
