@@ -44,7 +44,9 @@ from scipy.signal import butter, sosfiltfilt
 
 from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate
-from velab.fitting.engine import HeadEvaluator
+from velab.fitting.engine import HeadEvaluator, gram, sumsq
+from velab.fitting.solvers import levenberg_marquardt
+from velab.fitting.stats import lag1
 from velab.fitting.friction import TimeDomainModel, equivalent_friction
 from velab.model import ValveHeadModel, creep_scale, flow_perturbation, manoeuvre_band_hz, series_impedance
 from velab.valvelaw import commanded_position_pct, orifice_coupling
@@ -63,9 +65,9 @@ NV = len(PARAM_NAMES)
 # the two starts of the closure: a real butterfly discharging to air, and the imposed sigmoid flow
 STARTS = ((2.0, 0.05, 1.0), (1.0, 1.0, 0.0))
 # the grid of characteristic powers and loss shares the Joukowsky starts are taken from
-START_POWERS = (0.5, 1.0, 1.5, 2.0, 3.0)
-START_SHARES = (0.01, 0.05, 0.2, 1.0)
-REFINE_ITERATIONS = 25
+START_POWERS = (0.75, 1.5, 3.0)
+START_SHARES = (0.02, 0.2, 1.0)
+REFINE_ITERATIONS = 15
 REFINE_RATE_PER_BAND = 8.0  # the whole-window refinement runs at this multiple of the manoeuvre's band
 T50_MAX_FACTOR = 4.0  # the flow's half-closure instant is sought up to this multiple of the commanded one (+ 1 s)
 
@@ -129,14 +131,22 @@ def coupling_head(t, h, rig: Rig) -> np.ndarray:
 def half_flow_offset(power: float, share: float, tail: float = 0.0) -> float:
     """u50 with T(sigmoid(u50)) = 1/2: the flow is half closed at t50 = t_half + u50 / beta."""
     phi50 = math.sqrt(share / (3.0 + share))
-    if tail <= 0.0:
-        x50 = phi50 ** (1.0 / power)
-    else:  # phi is increasing in x: bisection
+    x50 = phi50 ** (1.0 / power)
+    if tail > 0.0:  # (1 - w) x^n + w x = phi50: phi is increasing and convex or concave, Newton from x^n's root
         lo, hi = 0.0, 1.0
-        for _ in range(60):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if float(characteristic(mid, power, tail)) < phi50 else (lo, mid)
-        x50 = 0.5 * (lo + hi)
+        for _ in range(40):
+            f = (1.0 - tail) * x50**power + tail * x50 - phi50
+            if f > 0:
+                hi = x50
+            else:
+                lo = x50
+            df = (1.0 - tail) * power * x50 ** (power - 1.0) + tail
+            x_new = x50 - f / df if df > 0 else 0.5 * (lo + hi)
+            if not lo < x_new < hi:  # (a Newton step out of the bracket: bisect)
+                x_new = 0.5 * (lo + hi)
+            if abs(x_new - x50) < 1e-15:
+                break
+            x50 = x_new
     return math.log(1.0 / x50 - 1.0)
 
 
@@ -297,7 +307,7 @@ def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None)
     tries = [levenberg_marquardt(prob.residual, prob.jacobian,
                                  np.clip(np.array(wall0 + to_solver(v)), lo, hi), lo, hi, max_iter=START_ITERATIONS)
              for v in joukowsky_starts(prob.t, prob.d, prob.h, rig, a0)]
-    sol = min(tries, key=lambda s: float(s.fun @ s.fun))
+    sol = min(tries, key=lambda s: sumsq(s.fun))
     for it in range(1 + (REFRESHES if tm is not None else 0)):
         if it:
             prob.refresh(sol.x)
@@ -321,53 +331,6 @@ def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None)
             f"{params['loss_share']:.3g}, orifice coupling {params['coupling']:.3g} (1: discharge to air, "
             f"0: imposed flow), fitted on the first {t[ne - 1] + t[1] - t[0]:.3g} s")
     return ValveInput("fitted", q, params, ses, text, k=len(PARAM_NAMES))
-
-
-@dataclass
-class _Solution:
-    x: np.ndarray
-    fun: np.ndarray
-    jac: np.ndarray
-    iterations: int
-
-
-def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, ftol: float = 1e-7) -> _Solution:
-    """A small bounded Levenberg-Marquardt (steps clipped to the box, Marquardt's diagonal scaling):
-    ten parameters and a few thousand residuals, where scipy's trust-region solver spends its time in
-    an SVD per iteration."""
-    x = np.clip(np.asarray(x0, dtype=float), lo, hi)
-    r = residual(x)
-    F = float(r @ r)
-    lam = 1e-3
-    J = jacobian(x)
-    it = 0
-    for it in range(1, max_iter + 1):
-        A = J.T @ J
-        g = J.T @ r
-        D = np.maximum(np.diag(A), 1e-30)
-        improved = False
-        while lam < 1e12:
-            try:
-                step = np.linalg.solve(A + lam * np.diag(D), -g)
-            except np.linalg.LinAlgError:
-                lam *= 10.0
-                continue
-            xn = np.clip(x + step, lo, hi)
-            rn = residual(xn)
-            Fn = float(rn @ rn)
-            if Fn < F:
-                improved = True
-                break
-            lam *= 4.0
-        if not improved:
-            break
-        gain = (F - Fn) / F
-        x, r, F = xn, rn, Fn
-        lam = max(lam / 3.0, 1e-12)
-        J = jacobian(x)
-        if gain < ftol:
-            break
-    return _Solution(x, r, J, it)
 
 
 def joukowsky_starts(t, d, hc, rig: Rig, a: float, keep: int = 3) -> list[tuple]:
@@ -406,9 +369,9 @@ def joukowsky_starts(t, d, hc, rig: Rig, a: float, keep: int = 3) -> list[tuple]
 
                 lo2 = np.array([math.log(beta0 / 5), 0.0])
                 hi2 = np.array([math.log(beta0 * 5), T50_MAX_FACTOR * rig.manoeuvre.half_closure_s + 1.0])
-                sol = levenberg_marquardt(res, jac, np.clip([math.log(beta0), t50], lo2, hi2), lo2, hi2, max_iter=30)
+                sol = levenberg_marquardt(res, jac, np.clip([math.log(beta0), t50], lo2, hi2), lo2, hi2, max_iter=15)
                 v = from_solver([sol.x[0], sol.x[1], math.log(power), math.log(share), kappa, 0.0])
-                found.append((float(sol.fun @ sol.fun), v))
+                found.append((sumsq(sol.fun), v))
     found.sort(key=lambda f: f[0])
     return [v for _, v in found[:keep]]
 
@@ -416,7 +379,7 @@ def joukowsky_starts(t, d, hc, rig: Rig, a: float, keep: int = 3) -> list[tuple]
 def _standard_errors(sol, F: float, n: int) -> np.ndarray:
     J = sol.jac
     try:
-        cov = np.linalg.pinv(J.T @ J) * F * n / max(n - J.shape[1], 1)
+        cov = np.linalg.pinv(gram(np.ascontiguousarray(J.T))) * F * n / max(n - J.shape[1], 1)
     except np.linalg.LinAlgError:
         return np.full(J.shape[1], math.nan)
     return np.sqrt(np.maximum(np.diag(cov), 0.0))
@@ -516,12 +479,12 @@ def refine_closure(t, d, rig: Rig, vi: ValveInput, fit) -> ValveInput:
             corr = tm.head(a_, J_, tau_, flow=tm_flow(t, closure_flow(t, hc, rig, v))) - head_fd(x)
         if F0 is None:
             r0 = residual(x)
-            F0 = float(r0 @ r0) / r0.size
+            F0 = sumsq(r0) / r0.size
         sol = levenberg_marquardt(residual, jacobian, x, lo, hi, max_iter=REFINE_ITERATIONS)
         x = sol.x
     res = sol.fun
-    F = float(res @ res) / res.size
-    rho = max(0.0, min(float(np.corrcoef(res[:-1], res[1:])[0, 1]) if res.size > 2 else 0.0, 0.99))
+    F = sumsq(res) / res.size
+    rho = max(0.0, min(lag1(res), 0.99))
     se = _standard_errors(sol, F, res.size)[-NV:] * math.sqrt((1 + rho) / (1 - rho))
     valve = split(x)[3]
     params = dict(zip(PARAM_NAMES, (float(v) for v in valve)))

@@ -41,8 +41,6 @@ from velab.model import manoeuvre_band_hz
 # sigmoid's flow spectrum is below 1e-8 of its DC value): 930 Hz at the reference rig
 FIT_RATE_PER_BAND = 30.0
 STEADY_HEAD_S = 1.0  # the steady head is the mean over this long before the trigger
-# a one-step fit is calibrated again under the refined closure if that gains at least this in n ln F
-REFINE_MIN_GAIN = 0.5
 FIR_TAPS_PER_Q = 20
 
 
@@ -184,22 +182,25 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
 
     A fitted closure is refined on the whole window with the best model's wall
     (``manoeuvre.refine_closure``). ``refine``: "continue" -- then every model is calibrated again
-    from its optimum under the refined closure (a continuation) if the refinement gained at least
-    REFINE_MIN_GAIN in n ln F; "only" -- the refined closure is stored for the continuation of this
-    lead fit (``settings["manoeuvre_refined"]``). A continuation (``lead`` given) takes the closure its
-    lead refined."""
+    from its optimum under the refined closure (a continuation); "only" -- the refined closure is
+    stored for the continuation of this lead fit (``settings["manoeuvre_refined"]``). A continuation
+    (``lead`` given) takes the closure its lead refined."""
     lead = sweep_options.get("lead")
     closure = None
     if isinstance(lead, SweepResult):
         closure = lead.settings.get("manoeuvre_refined") or lead.settings.get("manoeuvre")
     frig = fit_rig(rig, sweep_options.get("friction"), sweep_options.get("friction_unsteady"))
     vi = valve_input(rec.t, rec.h, frig, rec.window_s, position_pct=rec.position, mode=manoeuvre, closure=closure)
-    result = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=vi.flow, **sweep_options)
-    if vi.source == "fitted" and closure is None and result.models:
+    # a closure still to be refined: this sweep only seeds a continuation (the lead's, or this fit's
+    # own), which makes the time-domain polish
+    refining = vi.source == "fitted" and closure is None
+    result = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=vi.flow, time_domain_polish=not refining,
+                       **sweep_options)
+    if refining and result.models:
         refined = refine_closure(rec.t, rec.h, frig, vi, result.best)
         if refine == "only":
             result.settings["manoeuvre_refined"] = refined.describe()
-        elif refined.gain >= REFINE_MIN_GAIN:
+        else:
             again = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=refined.flow, **(sweep_options | {"lead": result}))
             again.settings["lead"] = None  # (a continuation of this fit's own first pass, not of a lead fit)
             again.duration_s += result.duration_s

@@ -241,3 +241,53 @@ class Stage:
         )
         x = pm.project(r.x)
         return Sol(x, self.F(pm, x), pm)
+
+
+@dataclass
+class LMSolution:
+    x: np.ndarray
+    fun: np.ndarray
+    jac: np.ndarray
+    iterations: int
+
+
+def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, ftol: float = 1e-7) -> LMSolution:
+    """A small bounded Levenberg-Marquardt (steps clipped to the box, Marquardt's diagonal scaling):
+    ten parameters and a few thousand residuals, where scipy's trust-region solver spends its time in
+    an SVD per iteration."""
+    x = np.clip(np.asarray(x0, dtype=float), lo, hi)
+    r = residual(x)
+    F = sumsq(r)
+    lam = 1e-3
+    J = jacobian(x)
+    it = 0
+    for it in range(1, max_iter + 1):
+        # sums over the samples in fixed blocks (velab.fitting.engine): a threaded BLAS would sum in an
+        # order that depends on the machine's load, and the fit process must reproduce this one bit for bit
+        Jt = np.ascontiguousarray(J.T)
+        A = gram(Jt)
+        g = np.array([dot(row, r) for row in Jt])
+        D = np.maximum(np.diag(A), 1e-30)
+        improved = False
+        while lam < 1e12:
+            try:
+                step = np.linalg.solve(A + lam * np.diag(D), -g)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            xn = np.clip(x + step, lo, hi)
+            rn = residual(xn)
+            Fn = sumsq(rn)
+            if Fn < F:
+                improved = True
+                break
+            lam *= 4.0
+        if not improved:
+            break
+        gain = (F - Fn) / F
+        x, r, F = xn, rn, Fn
+        lam = max(lam / 3.0, 1e-12)
+        J = jacobian(x)
+        if gain < ftol:
+            break
+    return LMSolution(x, r, J, it)
