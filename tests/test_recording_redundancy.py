@@ -149,3 +149,12 @@ def test_the_steady_flow_is_the_mean_of_the_readings_before_the_trigger():
         m.flow(q)
     f = m.flow_finding(3.64e-3, 0.05)
     assert f is not None and f.extras["steady_flow_m3_s"] == pytest.approx(3.30e-3) and "3 readings" in f.message
+
+
+def test_an_over_range_reply_is_a_bound_and_still_compared():
+    """A flipped exponent bit can make 64 % open read 128 %: the driver says over range (a
+    measurement, a bound), which alone flags nothing; the comparison does."""
+    m = monitor_with_stroke()
+    m.valve(status("RUNNING", 128.0, 0.16, Quality.OVER_RANGE))
+    f, n = m.position_finding(0.0, True)
+    assert n == 1 and f is not None and f.extras["reported_pct"] == 128.0

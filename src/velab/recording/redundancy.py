@@ -178,7 +178,8 @@ class RedundancyMonitor:
     def valve(self, st) -> None:
         """An actuator status (ValveStatus) as polled."""
         with self._lock:
-            self._polls.append((st.state.name, float(st.position.value), st.position.quality.value == "ok",
+            # over / under range is still a measurement (a bound): 128 % open is compared, and disagrees
+            self._polls.append((st.state.name, float(st.position.value), st.position.quality.is_measurement,
                                 float(st.time_since_trigger_s)))
 
     def flow(self, value_m3_s: float) -> None:
@@ -200,7 +201,7 @@ class RedundancyMonitor:
         out, n = [], 0
         for state, reported, ok, tst in polls:
             if not ok:
-                continue  # NaN / out of range / FAULT: the driver's quality said it already
+                continue  # NaN, or the actuator in FAULT: no position to compare
             if state in self.MOVING:
                 if trigger_s is None or not trigger_measured:
                     continue
