@@ -6,6 +6,7 @@ import numpy as np
 
 from velab.config import Rig
 from velab.fitting.adequacy import best_residuals
+from velab.fitting.creep import creep_curve, creep_of
 from velab.fitting.results import SweepResult
 from velab.fitting.friction import fitted_head
 from velab.fitting.manoeuvre import result_flow
@@ -13,7 +14,8 @@ from velab.model import phi
 
 
 def report_figure(t, h, rig: Rig, result: SweepResult, path, position_pct=None) -> None:
-    """Write a figure: measured vs fitted head; delta AIC vs m; J vs tau; |phi(omega)|; and across the
+    """Write a figure: measured vs fitted head; delta AIC vs m; the retarded creep compliance J(t) - J0
+    of every model with the best one's 95 % band (velab.fitting.creep); |phi(omega)|; and across the
     bottom the best model's residuals against time with the record's noise band (+- the pretrigger
     baseline's standard deviation, velab.fitting.adequacy) and the fit's warnings.
 
@@ -59,12 +61,25 @@ def report_figure(t, h, rig: Rig, result: SweepResult, path, position_pct=None) 
 
     a2 = ax[1, 0]
     for f in full:
-        if f.m:
-            a2.loglog(f.tau_s, f.J_per_pa, "o-", ms=4, label=f.name)
-    a2.set_xlabel("τ (s)")
-    a2.set_ylabel("J (1/Pa)")
-    a2.set_title("calibrated creep elements")
-    a2.legend(fontsize=7)
+        if not f.m or all(f.negligible or (False,)):
+            continue  # a model whose every element vanished: ~1e-25 1/Pa, ten decades below the others
+        c = creep_of(result, f)
+        ok = c.J_per_pa > 0
+        line, = a2.loglog(c.t_s[ok], c.J_per_pa[ok], lw=2.0 if f is best else 0.9, label=f.name,
+                          zorder=3 if f is best else 2)
+        if f is best and c.has_band:
+            a2.fill_between(c.t_s[ok], c.lower[ok], c.upper[ok], color=line.get_color(), alpha=0.25, lw=0,
+                            label=f"{f.name} 95 % band")
+        if f is best:  # the elements' retardation times on the best curve
+            tau = np.array([t for t, neg in zip(f.tau_s, f.negligible or (False,) * f.m) if not neg])
+            tau = tau[(tau >= c.t_s[0]) & (tau <= c.t_s[-1])] if c.t_s.size else tau[:0]
+            if tau.size:
+                a2.plot(tau, creep_curve(f, tau).J_per_pa, "o", ms=4, color=line.get_color())
+    a2.set_xlabel("t (s)")
+    a2.set_ylabel("J(t) − J0 (1/Pa)")
+    a2.set_title(f"retarded creep compliance (dots: {best.name}'s τ_k)")
+    if a2.lines:
+        a2.legend(fontsize=7)
 
     a3 = ax[1, 1]
     omega = 2 * np.pi * np.logspace(-2, 2, 300)

@@ -61,6 +61,30 @@ def _support(result, f) -> str:
     return f.support + (" (misfit)" if is_misfit(result, f) else "")
 
 
+def creep_lines(result) -> list[str]:
+    """The best model's retarded creep compliance J(t) - J0 with its 95 % band at the decades between
+    the lower retardation-time bound and the window (velab.fitting.creep), one line each."""
+    from velab.fitting.creep import creep_curve, creep_range, decades
+
+    best = result.best
+    if not best.m:
+        return [f"creep of {best.name}: none (an elastic wall: J(t) = J0)"]
+    lo, hi = creep_range(result)
+    times = decades(lo, hi)
+    if not times:
+        return []
+    c = creep_curve(best, times)
+    head = (f"creep of {best.name}: J(t) - J0 (1/Pa), 95 % band from the parameter covariance "
+            "(inflated for correlated residuals; fixed parameters add none)")
+    if not c.has_band:
+        head = f"creep of {best.name}: J(t) - J0 (1/Pa); no band (the fit holds no covariance)"
+    lines = [head]
+    for t, J, lo_, hi_ in zip(c.t_s, c.J_per_pa, c.lower, c.upper):
+        band = f"  [{lo_:.3e}, {hi_:.3e}]" if c.has_band else ""
+        lines.append(f"  t = {t:g} s: {J:.3e}{band}")
+    return lines
+
+
 def format_report(result, elements: bool = True) -> str:
     sel = result.selection
     warnings = warning_lines(result)
@@ -116,6 +140,10 @@ def format_report(result, elements: bool = True) -> str:
     fr = result.settings.get("friction")
     if isinstance(fr, dict) and fr.get("text"):
         lines.append("friction: " + fr["text"])
+    creep = creep_lines(result)
+    if creep:
+        lines.append("")
+        lines.extend(creep)
     lag = result.best.lag1_autocorr
     lines.append("")
     lines.append(

@@ -60,6 +60,19 @@ def _warnings(v) -> list[dict]:
             for w in (v if isinstance(v, list) else []) if isinstance(w, dict)]
 
 
+def _cov_x(v, m: int, reduced: bool) -> list | None:
+    """A stored covariance in x as a square list of lists (null -> NaN: a fixed parameter), or None
+    when absent (a fit stored before it was kept) or not the model's size."""
+    size = 1 + (m if reduced else 2 * m)
+    try:
+        C = np.array([[math.nan if x is None else float(x) for x in row] for row in v], dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if C.shape != (size, size):
+        return None
+    return C.tolist()
+
+
 def _nan_tuple(v, m):
     v = tuple(float(x) if x is not None else math.nan for x in (v or ()))
     return v if len(v) == m else (math.nan,) * m
@@ -109,6 +122,10 @@ class ModelFit:
     split_elements: int = 0  # live elements whose retardation time another one already has
     friction: dict = field(default_factory=dict)  # friction correction of this model (see friction.py)
     noise_ratio: float | None = None  # F / the pretrigger baseline's noise variance (velab.fitting.adequacy)
+    # covariance of x = (ln a, ln J'_k[, ln tau_k]) in the elements' order (sorted by tau), inflated by
+    # n/n_eff; NaN rows/columns for parameters held fixed; None for fits stored before it was kept.
+    # The creep band comes from it (velab.fitting.creep).
+    cov_x: list | None = None
 
     @property
     def rss(self) -> float:
@@ -171,6 +188,7 @@ class ModelFit:
             "note": self.note or None,
             "friction": dict(self.friction),
             "noise_ratio": self.noise_ratio,
+            "cov_x": [list(row) for row in self.cov_x] if self.cov_x is not None else None,
             "evaluations": self.evaluations, "jacobians": self.jacobians, "starts": self.starts,
         }
 
@@ -207,6 +225,7 @@ class ModelFit:
             equivalent_to=str(d.get("equivalent_to") or ""), split_elements=int(d.get("split_elements") or 0),
             friction=dict(d.get("friction") or {}),
             noise_ratio=_optional(d.get("noise_ratio")),
+            cov_x=_cov_x(d.get("cov_x"), m, bool(d.get("reduced", False))) if d.get("cov_x") is not None else None,
         )
 
 
@@ -310,13 +329,26 @@ class SweepResult:
             "best": self.best.name,
             "duration_s": self.duration_s,
             "evaluations": self.evaluations,
-            "models": [f.to_dict() for f in self.models],
+            "models": [self._model_dict(f) for f in self.models],
             "notes": list(self.notes),
             "baseline_noise_m": self.baseline_noise_m,
             "baseline_lag1": self.baseline_lag1,
             "adequacy": dict(self.adequacy),
             "warnings": [dict(w) for w in self.warnings],
         }
+
+    def creep(self, fit: ModelFit | None = None, t_s=None):
+        """J(t) - J0 of ``fit`` (default: the best model) with its 95 % band, from the lower
+        retardation-time bound to the window (velab.fitting.creep)."""
+        from velab.fitting.creep import creep_of
+
+        return creep_of(self, fit if fit is not None else self.best, t_s)
+
+    def _model_dict(self, f: ModelFit) -> dict:
+        d = f.to_dict()
+        # the creep curve is derived (recomputed from the elements and cov_x when read back)
+        d["creep"] = self.creep(f).to_dict()
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "SweepResult":

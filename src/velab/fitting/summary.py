@@ -69,6 +69,11 @@ def summarise(stage: Stage, sol: Sol, name: str, rig: Rig, bounds: FitBounds, *,
     def sel(v):
         return tuple(float(v[i]) for i in order)
 
+    # the covariance in x, its elements in the ModelFit's order (sorted by tau): the creep band
+    # (velab.fitting.creep) is computed from it later, also on a fit read back from a run file
+    perm = [0] + [1 + int(i) for i in order] + ([1 + m + int(i) for i in order] if pm.tau_free else [])
+    cov_x = [[float(v) for v in row] for row in cov[np.ix_(perm, perm)]]
+
     tau_se = [se["tau"][i] * tau[i] if pm.tau_free else math.nan for i in range(m)]
     return ModelFit(
         name=name, m=m, k=pm.size, reduced=bool(pm.fixed_tau), n=n, F=F, wave_speed_m_s=a,
@@ -79,4 +84,5 @@ def summarise(stage: Stage, sol: Sol, name: str, rig: Rig, bounds: FitBounds, *,
         J_rel_se=sel([se["J_rel"][i] * J[i] for i in range(m)]),
         negligible=tuple(bool(negligible[i]) for i in order), element_gain=sel(gain),
         at_bounds=hits, equivalent_to=equivalent, split_elements=k_split, friction=dict(friction or {}),
+        cov_x=cov_x,
     )

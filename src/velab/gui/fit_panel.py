@@ -2,8 +2,8 @@
 
 Plots (pyqtgraph): measured and fitted head for the models ticked in the table, and below it the best
 model's residuals against time with the record's noise band (+- the pretrigger baseline's standard
-deviation: velab.fitting.adequacy); delta AIC against m; the calibrated creep elements J against tau (decade labels only,
-negligible elements left out); |phi(omega)|. The model curves are computed by
+deviation: velab.fitting.adequacy); delta AIC against m; the retarded creep compliance J(t) - J0 of every full
+model against t, the best one's with its 95 % band (velab.fitting.creep; decade labels only); |phi(omega)|. The model curves are computed by
 :func:`fit_view_data` on a worker thread (it is model evaluation over the whole window);
 the panel only draws, and only when it is on screen. The fit's warnings (misfit, cavitation, bound)
 are a red line under the header: a fit that arrives while the Run page
@@ -22,6 +22,7 @@ from PySide6.QtGui import QBrush, QColor, QFont
 from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QTableWidget, QTableWidgetItem, QVBoxLayout,
                                QWidget)
 
+from velab.fitting.creep import creep_of
 from velab.fitting.friction import fitted_head
 from velab.fitting.manoeuvre import result_flow
 from velab.gui import tasks
@@ -59,6 +60,10 @@ def fit_view_data(t, h, rig, result) -> dict:
             continue
         if f.m:
             phis[f.name] = np.abs(phi(omega, rig, mat))
+    # J(t) - J0 with its band, from the lower retardation-time bound to the window; a model whose every
+    # element vanished creeps by ~1e-25 1/Pa and would stretch the log axis by ten decades: left out
+    creep = {f.name: creep_of(result, f) for f in result.models
+             if f.m and not f.reduced and not all(f.negligible or (False,))}
     try:  # the best model's residuals at the fit rate, as the fitter saw them (comparable to the noise band)
         from velab.fitting.adequacy import best_residuals
 
@@ -66,12 +71,20 @@ def fit_view_data(t, h, rig, result) -> dict:
     except Exception:  # a model the time grid cannot hold: no residual plot
         res_t = res = np.zeros(0)
     return {"t": td, "h": h[::q], "curves": curves, "freq_hz": omega / (2 * np.pi), "phi": phis, "result": result,
-            "res_t": res_t, "res": res}
+            "res_t": res_t, "res": res, "creep": creep}
 
 
 class DecadeAxis(pg.AxisItem):
     """A log axis labelled at decades (0.01, 0.1, 1, 1e-12 ...), and at 2 and 5 x 10^k only when it
     spans less than a decade: pyqtgraph's labels at every 2..9 x 10^k overlapped."""
+
+    _major = True  # whether pyqtgraph's last tick levels had a decade level besides the minor one
+
+    def tickValues(self, minVal, maxVal, size):
+        levels = super().tickValues(minVal, maxVal, size)
+        # over a few decades pyqtgraph gives the minor level alone (the creep J(t) - J0 spans two)
+        self._major = any(spacing is not None for spacing, _ in levels)
+        return levels
 
     def tickStrings(self, values, scale, spacing):
         if not self.logMode:
@@ -79,7 +92,10 @@ class DecadeAxis(pg.AxisItem):
         values = list(values)
         if spacing is None:  # pyqtgraph's minor level: k + log10(1..9), the decades included again
             wide = bool(values) and max(values) - min(values) >= 1.0
-            return ["" if wide or _is_decade(v) or round(_mantissa(v)) not in (2, 5) else _fmt(v) for v in values]
+            if wide and not self._major:  # no decade level: the decades are labelled here
+                return [_fmt(v) if _is_decade(v) else "" for v in values]
+            return ["" if wide or (_is_decade(v) and self._major) or (not _is_decade(v) and round(_mantissa(v)) not in (2, 5))
+                    else _fmt(v) for v in values]
         return [_fmt(v) if _is_decade(v) else "" for v in values]
 
 
@@ -145,7 +161,7 @@ class FitPanel(QWidget):
         lay.addWidget(self.plots, 1)
         self.p_head = self.plots.addPlot(row=0, col=0, title="measured and fitted head")
         self.p_aic = self.plots.addPlot(row=0, col=1, rowspan=2, title="ΔAIC against m")
-        self.p_creep = self.plots.addPlot(row=0, col=2, rowspan=2, title="creep elements J against τ",
+        self.p_creep = self.plots.addPlot(row=0, col=2, rowspan=2, title="creep J(t) − J₀, best ± 95 %",
                                           axisItems={"left": DecadeAxis("left"), "bottom": DecadeAxis("bottom")})
         self.p_phi = self.plots.addPlot(row=0, col=3, rowspan=2, title="|φ(ω)|",
                                         axisItems={"left": DecadeAxis("left"), "bottom": DecadeAxis("bottom")})
@@ -161,8 +177,8 @@ class FitPanel(QWidget):
         self.p_res.setLabel("left", "h − model", units="m")
         self.p_aic.setLabel("bottom", "m (Kelvin-Voigt elements)")
         self.p_aic.setLabel("left", "log10(1 + ΔAIC)")
-        self.p_creep.setLabel("bottom", "τ (s)")
-        self.p_creep.setLabel("left", "J (1/Pa)")
+        self.p_creep.setLabel("bottom", "t (s)")
+        self.p_creep.setLabel("left", "J(t) − J₀ (1/Pa)")
         self.p_creep.setLogMode(x=True, y=True)
         self.p_phi.setLabel("bottom", "f (Hz)")
         self.p_phi.setLabel("left", "|φ|")
@@ -366,20 +382,29 @@ class FitPanel(QWidget):
             self.p_aic.addItem(pg.InfiniteLine(pos=np.log10(1 + level), angle=0,
                                                pen=pg.mkPen("#999", style=style),
                                                label=f"ΔAIC = {level}", labelOpts={"position": where, "color": "#777"}))
+
+    def _draw_creep(self) -> None:
+        """J(t) - J0 of every full model; the best one thick, over its 95 % band."""
         self.p_creep.clear()
         self.creep_legend.clear()
-        for f, row in zip(result.models, model_rows(result)):
-            if f.m and not f.reduced:
-                tau = np.array(f.tau_s)
-                J = np.array(f.J_per_pa)
-                neg = np.array(row.negligible or (False,) * tau.size, dtype=bool)
-                # a negligible (vanished) element's J is meaningless and would stretch the log axis by
-                # ten decades: it is left out here (the table's notes name it)
-                ok = np.isfinite(tau) & np.isfinite(J) & (tau > 0) & (J > 0) & ~neg
-                order = np.argsort(tau[ok])
-                c = self._color(f.name)
-                self.p_creep.plot(tau[ok][order], J[ok][order], pen=pg.mkPen(c, width=2 if f is best else 1),
-                                  symbol="o", symbolSize=7, symbolPen=c, symbolBrush=c, name=f.name)
+        if not self.data or self.result is None:
+            return
+        best = self.result.best.name
+        curves = self.data.get("creep") or {}
+        for name in sorted(curves, key=lambda n: n == best):  # the best one drawn last, on top
+            c = curves[name]
+            ok = np.isfinite(c.J_per_pa) & (c.J_per_pa > 0)
+            if not ok.any():
+                continue
+            color = self._color(name)
+            if name == best and c.has_band:
+                lo = self.p_creep.plot(c.t_s, c.lower, pen=pg.mkPen(color, width=1, style=Qt.DotLine))
+                hi = self.p_creep.plot(c.t_s, c.upper, pen=pg.mkPen(color, width=1, style=Qt.DotLine))
+                fill = QColor(color)
+                fill.setAlpha(60)
+                self.p_creep.addItem(pg.FillBetweenItem(lo, hi, brush=pg.mkBrush(fill)))
+            self.p_creep.plot(c.t_s[ok], c.J_per_pa[ok], pen=pg.mkPen(color, width=2.5 if name == best else 1),
+                              name=name)
 
     def _curves_ready(self, data: dict, serial: int) -> None:
         if serial != self._serial:
@@ -415,6 +440,7 @@ class FitPanel(QWidget):
     def _draw_curves(self) -> None:
         self._draw_head()
         self._draw_residuals()
+        self._draw_creep()
         self.p_phi.clear()
         for name, ph in self.data["phi"].items():
             best = self.result is not None and name == self.result.best.name
