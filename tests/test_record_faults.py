@@ -6,6 +6,7 @@ over real sockets); in-process tests inject faults into the running SimulatedBen
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -18,7 +19,7 @@ import h5py
 import numpy as np
 import pytest
 
-from record_helpers import CWF, run_bounded, thread_errors  # noqa: F401 - a fixture
+from record_helpers import CWF, fast_sim, recorder, run_bounded, short_settings, thread_errors  # noqa: F401 - a fixture
 from velab.recording import Recorder, RecordSettings, RunRefused
 from velab.runfile import read_run
 
@@ -275,3 +276,43 @@ def test_valve_reply_corrupted_mid_stroke_is_a_position_mismatch(tmp_path, threa
     assert 0.0 < f["t_s"] < 6.0 and f["polls_compared"] >= 5
     assert run.status == CWF and "position mismatch" in run.status_reason
     assert any(k == "fault" and "position mismatch" in m for _, k, m in run.events)
+
+
+def test_steady_flow_off_q0_during_the_baseline_is_a_flow_mismatch(tmp_path, thread_errors):
+    """The readiness check saw Q0; from the arm on the meter shows 10 % less (the downstream valve
+    moved, or the meter drifted): a plausible, OK reading, which only the comparison with the rig's
+    Q0 catches. A 4 s baseline, so that several slow polls (1.8 s apart on the fast clock) fall in it."""
+    rec = recorder(fast_sim(), short_settings(tmp_path, pretrigger_s=4.0))
+    q0 = rec.rig.steady_flow_m3_s
+    rec.sim.schedule_fault("rig", at="arm", duration_s=4.0, flow_value=0.9 * q0)
+    faults: list = []
+    out = run_bounded(rec, faults)
+    assert out.error is None and thread_errors == []
+    assert out.summary.status == CWF
+    assert [f["kind"] for f in faults] == ["flow_mismatch"]
+    f = faults[0]
+    assert f["device"] == "flowmeter" and f["role"] == "flowmeter"
+    assert f["deviation"] == pytest.approx(0.10, abs=1e-4) and f["tolerance"] == pytest.approx(0.055)
+    run = read_run(out.summary.path)
+    assert run.status == CWF and "flow mismatch" in run.status_reason
+
+
+def test_steady_head_off_the_rig_is_a_warning_in_the_file_not_a_fault(tmp_path, thread_errors):
+    """The rig file says the reservoir is 2 m higher than the simulated rig's: the transducer's
+    steady head disagrees with the prediction by more than its accuracy + the reservoir margin
+    (0.59 m): a warning in the file and a message, and the run is not flagged (the data are the
+    transducer's; the fit takes the measured steady head)."""
+    sim = fast_sim()
+    rig = dataclasses.replace(sim.rig.rig, reservoir_head_m=sim.rig.rig.reservoir_head_m + 2.0)
+    rec = Recorder(sim.bench(), rig, short_settings(tmp_path), sim=sim, owns_sim=True)
+    messages: list = []
+    rec.add_listener(lambda ev: messages.append(ev.data) if ev.kind == "message" else None)
+    faults: list = []
+    out = run_bounded(rec, faults)
+    assert out.error is None and thread_errors == []
+    assert out.summary.status == "completed" and faults == []
+    warn = [m for m in messages if "head mismatch" in str(m)]
+    assert len(warn) == 1 and warn[0].startswith("warning: ") and "2.00 m apart" in warn[0]
+    run = read_run(out.summary.path)
+    assert run.status == "completed"
+    assert [m for _, k, m in run.events if k == "warning"] == [warn[0][len("warning: "):]]
