@@ -162,8 +162,9 @@ def test_zero_flow_after_the_closure_is_not_a_fault(tmp_path):
     with h5py.File(summary.path, "r") as fh:
         flow = fh["entry/instrument/flow/value"][()]
     # flowing at the first poll (on a loaded host it may fall inside the 0.14 s closure), then polled
-    # at zero flow several times
-    assert flow[0] > 1e-3 and np.count_nonzero(flow == 0.0) >= 3
+    # at zero flow several times (the simulated transient leaves residues of ~1e-19 m3/s after the
+    # closure at some instants: zero for any meter)
+    assert flow[0] > 1e-3 and np.count_nonzero(np.abs(flow) < 1e-9) >= 3
 
 
 def test_stuck_flowmeter_is_refused_by_the_readiness_check(tmp_path):
