@@ -83,6 +83,9 @@ class ValveInput:
     text: str = ""
     k: int = 0  # nuisance parameters fitted (added to every model's count)
     gain: float = math.nan  # n ln(F before / F after) of its refinement on the whole window (refine_closure)
+    # other closures of the first part, with the coupling on the other side (its strength trades against
+    # the characteristic there): the whole-window refinement also starts from them
+    alternatives: tuple = ()
 
     def describe(self) -> dict:
         return {"source": self.source, "params": dict(self.params), "se": dict(self.se), "text": self.text,
@@ -307,7 +310,11 @@ def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None)
     tries = [levenberg_marquardt(prob.residual, prob.jacobian,
                                  np.clip(np.array(wall0 + to_solver(v)), lo, hi), lo, hi, max_iter=START_ITERATIONS)
              for v in joukowsky_starts(prob.t, prob.d, prob.h, rig, a0)]
-    sol = min(tries, key=lambda s: sumsq(s.fun))
+    tries.sort(key=lambda s: sumsq(s.fun))
+    sol = tries[0]
+    coupled = sol.x[WALL + 4] >= 0.5
+    other = [s for s in tries if (s.x[WALL + 4] >= 0.5) != coupled]
+    alternatives = tuple(dict(zip(PARAM_NAMES, (float(v) for v in prob.split(s.x)[3]))) for s in other[:1])
     for it in range(1 + (REFRESHES if tm is not None else 0)):
         if it:
             prob.refresh(sol.x)
@@ -330,10 +337,10 @@ def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None)
             f"{params['t_half_s'] * 1e3:.4g} ms, characteristic power {params['power']:.3g}, valve loss share "
             f"{params['loss_share']:.3g}, orifice coupling {params['coupling']:.3g} (1: discharge to air, "
             f"0: imposed flow), fitted on the first {t[ne - 1] + t[1] - t[0]:.3g} s")
-    return ValveInput("fitted", q, params, ses, text, k=len(PARAM_NAMES))
+    return ValveInput("fitted", q, params, ses, text, k=len(PARAM_NAMES), alternatives=alternatives)
 
 
-def joukowsky_starts(t, d, hc, rig: Rig, a: float, keep: int = 3) -> list[tuple]:
+def joukowsky_starts(t, d, hc, rig: Rig, a: float, keep: int = 2) -> list[tuple]:
     """Starts for the closure: before the first reflection returns (2L/a) the head at the valve is
     the Joukowsky head of the flow change, so 1 - h / (B Q0), B = a/(gA), is the flow ratio (creep
     lowers it a little). Every (power, loss share, coupling) of a small grid gets its (beta, t_half)
@@ -373,7 +380,11 @@ def joukowsky_starts(t, d, hc, rig: Rig, a: float, keep: int = 3) -> list[tuple]
                 v = from_solver([sol.x[0], sol.x[1], math.log(power), math.log(share), kappa, 0.0])
                 found.append((sumsq(sol.fun), v))
     found.sort(key=lambda f: f[0])
-    return [v for _, v in found[:keep]]
+    out = [v for _, v in found[:keep]]
+    # and the best with the coupling on the other side (the two trade against the characteristic)
+    coupled = out[0][4] >= 0.5
+    out += [v for _, v in found if (v[4] >= 0.5) != coupled][:1]
+    return out
 
 
 def _standard_errors(sol, F: float, n: int) -> np.ndarray:
@@ -462,26 +473,36 @@ def refine_closure(t, d, rig: Rig, vi: ValveInput, fit) -> ValveInput:
         hs = vm.head_of(vm.impedance(a_, J_, tau_, W), np.array(rows_s))
         return ((np.vstack([hz, hs]) - h0) / _ClosureProblem.STEP).T
 
-    p = vi.params
-    x = np.concatenate([[math.log(a)], np.log(J0), np.log(tau0),
-                        to_solver([p.get(k, 0.0) for k in PARAM_NAMES])])
     lo = np.concatenate([[math.log(a * 0.9)], np.full(k, math.log(1e-8)), np.full(k, math.log(1e-4)),
                          [math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), 0.0, 0.0]])
     hi = np.concatenate([[math.log(a * 1.1)], np.full(k, math.log(10.0)), np.full(k, math.log(1e4)),
                          [math.log(m.beta_per_s * 5), T50_MAX_FACTOR * m.half_closure_s + 1.0, math.log(6.0), 0.0, 1.0,
                           1.0]])
-    x = np.clip(x, lo, hi)
-    sol = None
-    F0 = None
+    # starts: the first part's closure (and its alternatives), and the prototypes of a butterfly
+    # discharging to air and of an imposed sigmoid at the same flow half-closure instant: the first part
+    # does not tell the shapes apart, the whole window does (from the wrong basin, a slow element took the
+    # difference: J(5 s) 20-60 % off on material A). Each is taken a few steps; the best goes on.
+    v0 = to_solver([vi.params.get(name, 0.0) for name in PARAM_NAMES])
+    starts = [v0] + [to_solver([p.get(name, 0.0) for name in PARAM_NAMES]) for p in vi.alternatives]
+    starts += [[math.log(m.beta_per_s), v0[1], math.log(power), math.log(share), kappa, 0.0]
+               for power, share, kappa in STARTS]
+    wall = np.concatenate([[math.log(a)], np.log(J0), np.log(tau0)])
+    if tm.active:  # the correction at the first closure, for the comparison of the starts
+        a_, J_, tau_, v = split(np.concatenate([wall, v0]))
+        corr = tm.head(a_, J_, tau_, flow=tm_flow(t, closure_flow(t, hc, rig, v))) - head_fd(np.concatenate([wall, v0]))
+    F0 = sumsq(residual(np.clip(np.concatenate([wall, v0]), lo, hi))) / d.size
+    tries = [levenberg_marquardt(residual, jacobian, np.clip(np.concatenate([wall, v]), lo, hi), lo, hi,
+                                 max_iter=START_ITERATIONS) for v in starts]
+    best = min(tries, key=lambda sol: sumsq(sol.fun))
+    x = best.x
     for _ in range(2 if tm.active else 1):
         if tm.active:
             a_, J_, tau_, v = split(x)
             corr = tm.head(a_, J_, tau_, flow=tm_flow(t, closure_flow(t, hc, rig, v))) - head_fd(x)
-        if F0 is None:
-            r0 = residual(x)
-            F0 = sumsq(r0) / r0.size
-        sol = levenberg_marquardt(residual, jacobian, x, lo, hi, max_iter=REFINE_ITERATIONS)
-        x = sol.x
+        best = levenberg_marquardt(residual, jacobian, x, lo, hi, max_iter=REFINE_ITERATIONS)
+        x = best.x
+    sol = best
+    x = sol.x
     res = sol.fun
     F = sumsq(res) / res.size
     rho = max(0.0, min(lag1(res), 0.99))

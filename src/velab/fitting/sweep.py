@@ -659,6 +659,10 @@ def _polish_candidates(sw: _Sweep, order) -> list[str]:
             elif aic[job] - best <= MOC_POLISH_AIC and len(done) < MOC_POLISH_MAX:
                 sw.final[job] = sw.polish_time_domain(sw.current(before))
                 done.append(model_name(*job))
+            if prev_job is not None and sw.final[job].sol.pm.m == sw.final[prev_job].sol.pm.m + 1 and \
+                    sw.final[job].sol.F > sw.final[prev_job].sol.F:
+                # a polished smaller model below this one: this one contains it (F never increases with m)
+                sw.final[job] = sw.embedded(pm, sw.current(sw.final[prev_job]), before.refreshes)
             prev_job, prev_before = job, before
     return done
 
