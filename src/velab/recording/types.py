@@ -37,7 +37,7 @@ class RecorderEvent:
 
 
 FAULT_KINDS = ("no_response", "quality", "actuator_fault", "samples_lost", "storage", "error", "stuck", "protocol",
-               "disconnected")
+               "disconnected", "position_mismatch", "flow_mismatch")  # (the last two: velab.recording.redundancy)
 
 
 class Fault(dict):
