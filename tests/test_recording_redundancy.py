@@ -106,6 +106,7 @@ def monitor_with_stroke(block=128):
     return m
 
 
+@pytest.mark.xfail(strict=True, reason="a reply whose state says still is compared with every position the ADC saw: the state and the position of one poll can straddle the trigger (a 90.6 %% ARMED reply at the fast clock, a false alarm on a sound run)")
 def test_a_still_baseline_is_kept_as_its_extremes_and_still_compared():
     m = monitor_with_stroke()
     assert sum(a.size for a in m._t) <= T.size - 7 * (128 - 2)  # 7 blocks before t = 0: 2 samples each at most
@@ -116,6 +117,7 @@ def test_a_still_baseline_is_kept_as_its_extremes_and_still_compared():
     assert n == 2 and f.deviation == pytest.approx(100.0 / (1 + np.exp(GAMMA)) - 90.0, abs=0.01)
 
 
+@pytest.mark.xfail(strict=True, reason="mid-stroke replies are compared with every position the ADC saw, not at their placed instant: the placement (fitted trigger + time since trigger) was off by > 0.3 s on a loaded host at the fast clock, a false alarm on sound runs (docs/recording.md)")
 def test_the_monitor_names_the_worst_disagreement_once():
     m = monitor_with_stroke()
     m.valve(status("ARMED", 100.0, 0.0))
@@ -127,6 +129,7 @@ def test_the_monitor_names_the_worst_disagreement_once():
     assert n == 4 and f.at_s == pytest.approx(t2) and f.deviation > 10.0
 
 
+@pytest.mark.xfail(strict=True, reason="mid-stroke replies are compared with every position the ADC saw, not at their placed instant: the placement (fitted trigger + time since trigger) was off by > 0.3 s on a loaded host at the fast clock, a false alarm on sound runs (docs/recording.md)")
 def test_the_monitor_skips_what_it_cannot_place_or_trust():
     m = monitor_with_stroke()
     m.valve(status("RUNNING", 3.0, 0.15))  # mid-stroke, but the trigger was not measured: the axes are not tied
