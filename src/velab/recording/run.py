@@ -297,7 +297,16 @@ class RunControl:
             else:
                 state = valve.read_status().state
             if state in (ValveState.ARMED, ValveState.RUNNING, None):
-                valve.abort()
+                try:
+                    valve.abort()
+                except DEVICE_ERRORS as exc:
+                    # a stroke that ended between the status read and the abort is refused ("no running
+                    # manoeuvre"): the valve is at rest, which is the safe state; anything else is a fault
+                    after = valve.read_status().state if state is not None else None
+                    if after not in (ValveState.DONE, ValveState.HOLDING, ValveState.ABORTED, ValveState.IDLE):
+                        raise
+                    self._log("operator", f"actuator: {after.name} before the abort arrived ({exc}): at rest")
+                    return
                 self._log("operator", {ValveState.ARMED: "actuator: armed manoeuvre cancelled (abort)",
                                        ValveState.RUNNING: "actuator: manoeuvre stopped where it is (abort)",
                                        None: "actuator: abort commanded (state unknown)"}[state])

@@ -278,6 +278,12 @@ class Timeline:
                 self._pos_v.append(pos[sel])
             if passed and self._pos_t:
                 self._measure_trigger()
+        if self._fit_n + t.size > self._fit_t.size and not self.window_closed:
+            # sized from the trigger's estimate at the command: a measured trigger later than that (a late
+            # command at the fast clock on a loaded host: seconds of axis) needs more; the window is kept whole
+            grow = max(2 * self._fit_t.size, self._fit_n + t.size)  # (doubling: a copy now and then)
+            self._fit_t, self._fit_h, self._fit_p = (np.concatenate([a[:self._fit_n], np.empty(grow - self._fit_n)])
+                                                     for a in (self._fit_t, self._fit_h, self._fit_p))
         k = min(t.size, self._fit_t.size - self._fit_n)
         self._fit_t[self._fit_n:self._fit_n + k] = t[:k]
         self._fit_h[self._fit_n:self._fit_n + k] = head[:k]
