@@ -320,8 +320,6 @@ def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None)
             prob.refresh(sol.x)
         sol = levenberg_marquardt(prob.residual, prob.jacobian, sol.x, lo, hi)
     F = float(np.mean(sol.fun ** 2))
-    best = (F, sol, prob.corr)
-    F, sol, _ = best
     x = sol.x
     _, _, _, valve = prob.split(x)
     se = _standard_errors(sol, F, prob.d.size)
