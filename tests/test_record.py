@@ -18,7 +18,7 @@ import pytest
 
 from velab.errors import SafetyError, VelabError
 from velab.recording import Recorder, RecordSettings, RunRefused
-from velab.runfile import read_run
+from velab.runfiles.reader import read_run
 
 A_TRUE = 353.73
 

@@ -21,7 +21,7 @@ import pytest
 
 from record_helpers import CWF, fast_sim, recorder, run_bounded, short_settings, thread_errors  # noqa: F401 - a fixture
 from velab.recording import Recorder, RecordSettings, RunRefused
-from velab.runfile import read_run
+from velab.runfiles.reader import read_run
 
 
 def _spawn(out: Path, *extra):

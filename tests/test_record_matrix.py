@@ -20,7 +20,7 @@ import pytest
 from record_helpers import ABORTED, CWF, DEADLINE_S, FAILED, thread_errors  # noqa: F401 - a fixture
 from velab.errors import VelabError
 from velab.recording import Recorder, RecordSettings
-from velab.runfile import read_run
+from velab.runfiles.reader import read_run
 from velab.simulators.bench import SimulatedBench
 from velab.simulators.clock import make_clock
 

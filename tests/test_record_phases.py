@@ -14,7 +14,7 @@ import pytest
 from velab.errors import VelabError
 from velab.recording import Recorder, RecorderEvent, RecordSettings
 from velab.runfiles.layout import read_json
-from velab.runfile import read_run
+from velab.runfiles.reader import read_run
 from velab.simulators.bench import SimulatedBench
 from velab.simulators.clock import make_clock
 

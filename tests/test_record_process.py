@@ -19,7 +19,7 @@ from pathlib import Path
 import h5py
 import pytest
 
-from velab.runfile import read_run
+from velab.runfiles.reader import read_run
 
 CLI = [sys.executable, "-m", "velab.cli"]
 

@@ -23,7 +23,7 @@ import pytest
 
 from record_helpers import ABORTED, CWF, FAILED, fast_sim, recorder, run_bounded, short_settings, thread_errors  # noqa: F401
 from velab.drivers.blocks import QUALITY_CODES
-from velab.runfile import read_run
+from velab.runfiles.reader import read_run
 from velab.simulators.bench import load_sim_config
 
 pytestmark = pytest.mark.timeout(120)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from velab.runfile import read_run
+from velab.runfiles.reader import read_run
 
 CLI = [sys.executable, "-m", "velab.cli"]
 DEFAULT = Path(__file__).resolve().parents[1] / "configs" / "sim" / "default.toml"

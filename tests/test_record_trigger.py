@@ -16,7 +16,7 @@ import re
 import pytest
 
 from record_helpers import CWF, FAILED, fast_sim, recorder, run_bounded, short_settings, thread_errors  # noqa: F401
-from velab.runfile import read_run
+from velab.runfiles.reader import read_run
 
 pytestmark = pytest.mark.timeout(120)
 TRANSPORTS = {"tcp": None, "rtu": ("rtu-pty", "socket", "tcp")}  # the valve's endpoint (bench preference)

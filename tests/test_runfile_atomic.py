@@ -127,7 +127,7 @@ def test_sigkill_of_velab_fit_at_random_instants(big_run, tmp_path):
 RECORDER_SAVE = textwrap.dedent(
     """
     import sys
-    from velab.fitting.store import save_fit      # what the recorder calls for its online fit
+    from velab.runfiles.fits import save_fit      # what the recorder calls for its online fit
     from velab.runfiles import read_fit_dict, open_run_file
     with open_run_file(sys.argv[1]) as fh:
         doc = read_fit_dict(fh["entry/fits/seed"])

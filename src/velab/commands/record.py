@@ -10,6 +10,7 @@ the worst run decides. Progress goes to stderr; the summary to stdout (JSON with
 from __future__ import annotations
 
 import math
+import queue
 import shutil
 import signal
 import sys
@@ -176,13 +177,11 @@ class _Progress:
             self.line(f"fit ({tag}, {d['window_s']:g} s window): best {r.best.name}, a = {r.best.wave_speed_m_s:.2f} m/s")
 
     def _loop(self) -> None:
-        import queue as _q
-
         last = 0.0
         while not self.stop_ev.is_set():
             try:
                 ev = self.rec.events.get(timeout=0.1)
-            except _q.Empty:
+            except queue.Empty:
                 ev = None
             if ev is not None:
                 self.handle(ev)

@@ -1,4 +1,8 @@
-"""Fit results in a run file: moved to :mod:`velab.runfiles.fits` (kept for existing imports)."""
+"""Deprecated: fit results in a run file are :mod:`velab.runfiles.fits`.
+
+Left only while velab.commands.fit and velab.gui.archive_io still import it; delete it with them
+(it is the last edge of the fitting -> runfiles -> fitting cycle).
+"""
 
 from velab.runfiles.fits import (  # noqa: F401
     default_fit_name,

@@ -6,20 +6,24 @@ import sys
 import traceback
 from pathlib import Path
 
+import pyqtgraph as pg
+from PySide6.QtWidgets import QApplication
+
+from velab import recording as rec
+from velab.config import load_rig
+from velab.drivers.base import DeviceError
+from velab.drivers.bench import load_bench
 from velab.errors import VelabError
+from velab.gui.main_window import MainWindow, make_settings
 from velab.recording.settings import RecordSettings
 
 
 def ensure_app():
-    from PySide6.QtWidgets import QApplication
-
     app = QApplication.instance()
     if app is None:
         app = QApplication(sys.argv[:1])
         app.setOrganizationName("velab")
         app.setApplicationName("velab-gui")
-    import pyqtgraph as pg
-
     pg.setConfigOptions(background="w", foreground="k", antialias=False, exitCleanup=False)
     return app
 
@@ -32,7 +36,6 @@ def preload(simulate: bool) -> None:
     import scipy.signal  # noqa: F401 - the online fit's decimation
 
     import velab.fitting  # noqa: F401
-    import velab.fitting.store  # noqa: F401
     import velab.model  # noqa: F401 - the fit panel's model curves
 
     if simulate:
@@ -40,18 +43,6 @@ def preload(simulate: bool) -> None:
         from velab.moc import warm_up
 
         warm_up()
-
-
-def freeze_heap() -> None:
-    """Collect, then move every object alive now (modules, Qt wrappers, the window) out of the cyclic
-    garbage collector's reach (``gc.freeze``). A full collection of the ~250 000 objects of a running
-    window took 65-170 ms with the GIL held, on whichever thread triggered it (the GUI thread, or an
-    engine or simulator thread, which the GUI thread then waited for); afterwards a collection scans
-    only what was made since (docs/gui.md, "Latency")."""
-    import gc
-
-    gc.collect()
-    gc.freeze()
 
 
 def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "default", material=None, rig=None,
@@ -63,9 +54,6 @@ def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "
     loads the bench); it creates the run folder if needed. Raises VelabError for a bad
     configuration or a missing recorder engine.
     """
-    from velab import recording as rec
-    from velab.config import load_rig
-
     preload(simulate)
     if simulate:
         from velab.simulators.bench import load_sim_config
@@ -81,9 +69,6 @@ def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "
         return make, the_rig
     if config is None:
         raise VelabError("give --config BENCH.toml or --simulate")
-    from velab.drivers.base import DeviceError
-    from velab.drivers.bench import load_bench
-
     try:
         bench = load_bench(config)
     except DeviceError as exc:
@@ -110,14 +95,10 @@ def _coerce(settings: dict) -> dict:
 
 
 def _rig(name):
-    from velab.config import load_rig
-
     return load_rig(name or "perugia")
 
 
 def run_gui(args) -> int:
-    from velab.gui.main_window import MainWindow, make_settings
-
     app = ensure_app()
     qs = make_settings(getattr(args, "settings", None))
     factory, rig, label, startup_error = None, None, "archive only", None

@@ -17,7 +17,7 @@ import threading
 import time
 from typing import Any, Callable
 
-from velab.config import Rig
+from velab.rig import Rig
 from velab.drivers.bench import open_device
 from velab.drivers.valve import ValveState
 from velab.errors import VelabError

@@ -11,8 +11,8 @@ import datetime as _dt
 from importlib import metadata
 from pathlib import Path
 
-from velab.config import Manoeuvre, Rig
-from velab.runfile import HEAD, Channel, RunWriter
+from velab.rig import Manoeuvre, Rig
+from velab.runfiles.writer import HEAD, Channel, RunWriter
 
 VERSIONED = ("velab", "numpy", "scipy", "h5py", "pymodbus", "pyserial")
 INST = "instrument/pressure_transducer"

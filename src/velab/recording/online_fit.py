@@ -24,7 +24,7 @@ from concurrent.futures import TimeoutError as FutureTimeout
 
 import numpy as np
 
-from velab.config import Rig
+from velab.rig import Rig
 from velab import fit_worker
 from velab.fitting.lead import lead_window_s
 

@@ -24,6 +24,7 @@ from velab.recording.slow import SlowChannels
 from velab.recording.timeline import Timeline
 from velab.recording.types import DEVICE_ERRORS, DeviceFailure, RunRefused, RunSummary
 from velab.recording.writer import BYTES_PER_SAMPLE, WriterStage
+from velab.runfiles.fits import save_fit
 
 log = logging.getLogger(__name__)
 PROGRESS_S = 0.25  # wall seconds between progress (countdown) events
@@ -422,8 +423,6 @@ class RunControl:
             result, error, latency = fit.result, fit.error, fit.latency_s
             if result is not None and self.path is not None:
                 try:
-                    from velab.fitting.store import save_fit  # scipy (velab.fitting): only when there is a fit
-
                     save_fit(self.path, result, name="online")
                 except Exception as exc:  # noqa: BLE001 - the fit is still in the summary
                     error = f"fit not saved in the run file: {exc}"

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from velab.cavitation import predict_downsurge
-from velab.config import Rig
+from velab.rig import Rig
 from velab.drivers.base import GRAVITY_M_S2, Quality
 from velab.drivers.blocks import MEASUREMENT_CODES, QUALITY_CODE, QUALITY_CODES
 from velab.recording.settings import RecordSettings

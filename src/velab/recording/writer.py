@@ -1,4 +1,4 @@
-"""The writer stage: the only thread that touches the run file (``velab.runfile.RunWriter``, SWMR).
+"""The writer stage: the only thread that touches the run file (``velab.runfiles.writer.RunWriter``, SWMR).
 
 Operations arrive on a queue (``put(op)``): ``("append", t, channels)``, ``("event", t, kind,
 text)``, ``("gap", sample, lost)``, ``("trigger", t)``, ``("value", path, v)``, ``("slow",
@@ -19,6 +19,11 @@ import sys
 import threading
 import time
 
+try:
+    import resource
+except ImportError:  # not POSIX: no file-size limit to read
+    resource = None
+
 log = logging.getLogger(__name__)
 BYTES_PER_SAMPLE = 62  # all fast channels of the run file, per sample, with chunk slack
 
@@ -27,14 +32,12 @@ def storage_room(path) -> int | None:
     """Bytes the file at ``path`` can still grow by: free disk space and the process's RLIMIT_FSIZE."""
     try:
         room = shutil.disk_usage(os.path.dirname(os.path.abspath(path))).free
-        try:
-            import resource
-
-            soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
-            if soft != resource.RLIM_INFINITY:
+        soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0] if resource else None
+        if soft is not None and soft != resource.RLIM_INFINITY:
+            try:
                 room = min(room, soft - os.path.getsize(path))
-        except (ImportError, OSError, ValueError):
-            pass
+            except (OSError, ValueError):
+                pass
         return int(room)
     except OSError:
         return None

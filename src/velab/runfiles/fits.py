@@ -15,7 +15,6 @@ and it can only add or replace a group under ``/entry/fits``.
 
 from __future__ import annotations
 
-import dataclasses
 import datetime as _dt
 import json
 import math
@@ -197,38 +196,11 @@ def _read_legacy(g: h5py.Group) -> dict:
             "best": L.to_str(a.get("best_model", "")), "date": L.to_str(a.get("date", "")), "models": models}
 
 
-def _from_fields(cls, d: dict, renames: dict, extra: dict):
-    """``cls(**...)`` from the dict fields named like the dataclass fields; others ignored."""
-    kw = dict(extra)
-    for f in dataclasses.fields(cls):
-        key = renames.get(f.name, f.name)
-        if key in d and f.name not in kw:
-            v = d[key]
-            if isinstance(v, list) and str(f.type).startswith("tuple"):
-                v = tuple(v)
-            kw[f.name] = v
-    for f in dataclasses.fields(cls):  # required fields missing from an older or damaged file
-        if f.name not in kw and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-            kw[f.name] = math.nan if "float" in str(f.type) else () if str(f.type).startswith("tuple") else 0
-    return cls(**kw)
-
-
 def sweep_from_dict(d: dict):
     """A SweepResult from its ``to_dict()`` form (as stored), tolerant of missing and extra fields."""
-    from velab.fitting.results import ModelFit, SweepResult  # lazy: scipy is heavy for `velab info`
+    from velab.fitting.results import SweepResult  # lazy: the fitting package (scipy) is heavy for `velab info`
 
-    if hasattr(SweepResult, "from_dict"):
-        return SweepResult.from_dict(d)
-    n = int(d.get("n", 0))
-    models = []
-    for m in d.get("models", []):
-        els = m.get("elements") or []
-        extra = {"E_pa": tuple(float(e["E"]) for e in els), "eta_pa_s": tuple(float(e["eta"]) for e in els),
-                 "n": int(m.get("n", n)), "reduced": bool(m.get("reduced", False))}
-        models.append(_from_fields(ModelFit, m, {"wave_speed_m_s": "wave_speed"}, extra))
-    models.sort(key=lambda f: (f.reduced, f.m))
-    return _from_fields(SweepResult, d, {"window_s": "window"},
-                        {"models": models, "settings": d.get("settings") or {}, "notes": list(d.get("notes") or [])})
+    return SweepResult.from_dict(d)
 
 
 def read_fit_group(g: h5py.Group):

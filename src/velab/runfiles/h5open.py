@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Iterator
 
 import h5py
+from h5py import h5f, h5p
 
 from velab.errors import DataError
 from velab.runfiles import superblock as sb_
@@ -70,8 +71,6 @@ _set_attempts = _libhdf5()
 def _swmr_reader(path: Path) -> h5py.File:
     if _set_attempts is None:
         return h5py.File(_ClearedFlags(path), "r")
-    from h5py import h5f, h5p
-
     fapl = h5p.create(h5p.FILE_ACCESS)
     fapl.set_libver_bounds(h5f.LIBVER_EARLIEST, h5f.LIBVER_LATEST)
     fapl.set_file_locking(False, True)

@@ -13,7 +13,9 @@ written into the rig snapshot and into ``/entry/manoeuvre`` from one object.
 from __future__ import annotations
 
 import os
+import platform
 import time as _time
+from importlib import metadata
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +23,8 @@ import h5py
 import numpy as np
 
 from velab.version import __version__
-from velab.config import Manoeuvre, Material, Rig
+from velab.config import Material
+from velab.rig import Manoeuvre, Rig
 from velab.errors import DataError
 from velab.runfiles import layout as L
 from velab.runfiles.layout import udunits
@@ -45,9 +48,6 @@ DEFAULT_CHANNELS = (HEAD,)
 
 def software_versions() -> dict[str, str]:
     """Versions of velab and the libraries a run's numbers depend on."""
-    from importlib import metadata
-    import platform
-
     out = {"velab": __version__, "python": platform.python_version(), "HDF5": h5py.version.hdf5_version}
     for dist in ("numpy", "scipy", "h5py", "pymodbus", "pyserial"):
         try:
