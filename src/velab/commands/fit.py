@@ -59,6 +59,10 @@ def register(sub) -> None:
     p.add_argument("--name", default=None, help="fit group name under /entry/fits: 1-64 letters, digits, _ . + - "
                    "(default: from method and window)")
     p.add_argument("--no-save", action="store_true", help="do not write the fit into the run file")
+    p.add_argument("--joint", action="store_true",
+                   help="calibrate ONE wall on all the runs together (runs of one pipe: a campaign): each run keeps "
+                   "its steady state, manoeuvre, friction at its Q0 and noise; the fit is saved into every run, naming "
+                   "the others (docs/fitting.md, 'Joint fits')")
     p.add_argument("--jobs", type=int_range(1, 256), default=1, help="runs fitted in parallel (processes; default 1)")
     p.add_argument("--scheduler", type=scheduler_address, default=None, metavar="ADDRESS",
                    help="fit the runs on a Dask cluster, e.g. tcp://10.0.0.5:8786 (needs the velab[cluster] extra; "
@@ -144,6 +148,8 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
 
 def run(args: argparse.Namespace) -> int:
     opts = _options(args)
+    if getattr(args, "joint", False):
+        return _run_joint(args, opts)
     if len(args.runs) == 1 and not args.scheduler:
         path = args.runs[0]
         with ProgressLine.for_args(args) as progress:
@@ -175,3 +181,86 @@ def _run_batch(args, opts: dict) -> int:
         print(report.table(batch))
     report.print_failures(batch)
     return report.exit_code(batch)
+
+
+# options of a single fit that a joint fit does not take (the joint search is its own)
+_NOT_JOINT = (("reduced", "--reduced"), ("starts", "--starts"), ("no_polish", "--no-polish"),
+              ("scheduler", "--scheduler"))
+
+
+def _joint_sources(args, window_s):
+    """The runs of a joint fit read and checked before anything is fitted or written: a missing or damaged
+    file, a window a run does not hold, a run given twice or runs of different pipes -> DataError naming it."""
+    from velab.fitting.joint import CampaignRun, check_same_pipe
+    from velab.runfile import read_run
+
+    if len(args.runs) < 2:
+        raise DataError("--joint needs two or more runs")
+    for key, option in _NOT_JOINT:
+        if getattr(args, key, None):
+            raise DataError(f"{option} does not apply to a joint fit (--joint)")
+    if args.jobs != 1:
+        raise DataError("--jobs does not apply to a joint fit (--joint: one fit over all the runs)")
+    if args.method != "auto":
+        raise DataError(f"--method {args.method}: a joint fit has its own search (--joint takes the default)")
+    sources, seen = [], {}
+    for path in args.runs:
+        run = read_run(path)
+        run.fit_window(window_s)  # gaps, NaN, a window longer than the run: named with the file
+        src = CampaignRun.from_run(run)
+        key = Path(path).resolve()
+        if key in seen or src.head_sha256 in seen.values():
+            raise DataError(f"{path}: given twice (the same run, or the same record in another file)")
+        seen[key] = src.head_sha256
+        sources.append(src)
+    check_same_pipe(sources)
+    return sources
+
+
+def _run_joint(args, opts: dict) -> int:
+    """velab fit RUN1 RUN2 ... --joint: one wall over all the runs (velab.fitting.joint)."""
+    from velab.fitting.joint import JOINT_KIND, fit_joint, runs_report
+    from velab.runfile import RunStillOpen
+    from velab.runfiles.fits import save_fit, validate_fit_name
+
+    sources = _joint_sources(args, opts["window_s"])
+    with ProgressLine.for_args(args) as progress:
+        def cb(done, total, name):
+            progress.update(f"velab fit --joint ({len(sources)} runs): {done}/{total} models, fitted {name}")
+
+        result = fit_joint(sources, opts["window_s"], models=opts["models"], selection=opts["selection"],
+                           manoeuvre=opts["manoeuvre"], tau_min_s=opts["tau_min_s"], tau_max_s=opts["tau_max_s"],
+                           friction=opts["friction"], friction_unsteady=opts["friction_unsteady"], progress=cb)
+    result.settings["window_s_requested"] = opts["window_s"]
+    name = None
+    if opts["save"]:
+        name = validate_fit_name(opts["name"] or f"joint_w{opts['window_s']:g}s")
+        saved = []
+        for i, src in enumerate(sources):
+            # every run holds the whole joint fit and names the others by path and content hash
+            doc = result.to_dict() | {"run_index": i, "other_runs": [
+                {"path": o.path, "head_sha256": o.head_sha256} for j, o in enumerate(sources) if j != i]}
+            try:
+                save_fit(src.path, doc, name, kind=JOINT_KIND)
+                saved.append(src.path)
+            except RunStillOpen as exc:
+                result.notes.append(f"not saved into {src.path}: {exc}")
+            except OSError as exc:
+                raise DataError(f"{src.path}: cannot write the joint fit into the run: {exc}"
+                                + (f" (already saved into {', '.join(saved)})" if saved else "")) from None
+    if opts["plot"]:
+        from velab.fitting.campaign import campaign_figure
+
+        try:
+            campaign_figure(result, opts["plot"])
+        except OSError as exc:
+            raise DataError(f"{opts['plot']}: cannot write the figure: {exc.strerror or exc}") from None
+    if args.json:
+        write_json({"paths": [s.path for s in sources], "fit_name": name, **result.to_dict()})
+    else:
+        print("joint fit of " + ", ".join(s.path for s in sources))
+        print(result.report())
+        print(runs_report(result))
+        if name:
+            print(f"saved as /entry/fits/{name} in each of the {len(sources)} runs")
+    return ExitCode.OK

@@ -37,4 +37,35 @@ def run(args: argparse.Namespace) -> int:
         if i:
             print()
         print(describe(read_run(path)))
+        for line in joint_lines(path):
+            print(line)
     return 0
+
+
+def joint_lines(path) -> list[str]:
+    """The joint fits stored in a run (velab fit --joint): which runs they were made with (path and content
+    hash), the joint wall, and how this run and the others sat under it."""
+    import math
+
+    from velab.runfiles.summary import read_fits
+
+    out = []
+    for name, d in read_fits(path).items():
+        if d.get("fit_kind") != "joint" and not d.get("joint"):
+            continue
+        runs = d.get("runs") if isinstance(d.get("runs"), list) else []
+        best = next((m for m in d.get("models", []) if m.get("name") == d.get("best")), {})
+        a, se = best.get("wave_speed"), best.get("wave_speed_se")
+        wall = f"a = {a:.2f} +- {se:.2g} m/s" if isinstance(a, (int, float)) and isinstance(se, (int, float)) else ""
+        out.append(f"  joint fit {name}: {len(runs)} runs, best {d.get('best', '?')} {wall}")
+        me = d.get("run_index")
+        for i, r in enumerate(runs):
+            if not isinstance(r, dict):
+                continue
+            ratio = r.get("noise_ratio")
+            ratio = f"F/noise {ratio:.3g}" if isinstance(ratio, (int, float)) and math.isfinite(ratio) else "F/noise -"
+            who = "this run" if i == me else "other run"
+            out.append(f"    {who}: {r.get('path', '?')} (head sha256 {str(r.get('head_sha256', ''))[:16]}...), "
+                       f"Q0 {1e3 * float(r.get('steady_flow_m3_s') or math.nan):.3g} l/s, {ratio}"
+                       + (", DISAGREES with the joint wall" if r.get("disagrees") else ""))
+    return out

@@ -32,7 +32,8 @@ import numpy as np
 
 from velab.config import Rig
 from velab.errors import DataError
-from velab.fitting.adequacy import assess
+from velab.fitting.adequacy import assess, bound_message
+from velab.fitting.creep import creep_curve
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator, sumsq
 from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
@@ -383,10 +384,11 @@ class _JointSweep:
             ar += r.n * math.log(ar1_innovation_var(res, rho)) - math.log(1 - rho_c * rho_c)
         rho_p = float(np.clip(np.average(rhos, weights=[r.n for r in self.runs]), -0.999, 0.999))
         F = math.exp(fin.loglik(self.runs) / n_tot)
-        ratios = [F_r / r.noise_var for r, F_r in zip(self.runs, fin.F_runs) if r.noise_var]
+        ratio = None
+        if all(r.noise_var for r in self.runs):
+            ratio = math.exp(sum(r.n * math.log(F_r / r.noise_var) for r, F_r in zip(self.runs, fin.F_runs)) / n_tot)
         return replace(f, n=n_tot, F=F, k=f.k + k_nuisance, lag1_autocorr=rho_p,
-                       innovation_var=math.exp((ar + math.log(1 - rho_p * rho_p)) / n_tot),
-                       noise_ratio=float(np.exp(np.mean(np.log(ratios)))) if len(ratios) == len(self.runs) else None)
+                       innovation_var=math.exp((ar + math.log(1 - rho_p * rho_p)) / n_tot), noise_ratio=ratio)
 
 
 def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, models=range(MAX_M + 1),
@@ -446,9 +448,13 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     result.runs, result.warnings = _per_run(runs, sw, sw.final[best.m], best, bounds, selection)
     result.record_rate_hz = max(r.rec.record_rate_hz for r in runs)
     result.anti_alias_filter = "per run (runs[].anti_alias_filter)"
-    noise = [r.noise_var for r in runs]
-    result.baseline_noise_m = math.sqrt(float(np.mean(noise))) if all(noise) else None
-    result.adequacy = {"per_run": True}
+    if all(r.noise_var for r in runs):
+        # pooled as F is (n-weighted geometric mean), so that a model's noise_ratio is F / noise^2
+        result.baseline_noise_m = math.exp(sum(r.n * math.log(r.noise_var) for r in runs) / (2 * result.n))
+    result.adequacy = {"baseline_samples": int(sum(r.rec.baseline_samples for r in runs)), "misfit_bound": None,
+                       "per_run": "the misfit rule is applied to each run (runs[].misfit_bound, runs[].disagrees)"}
+    if best.at_bounds:
+        result.warnings.append({"code": "bound", "message": bound_message(best)})
     result.notes.append(f"joint fit of {len(runs)} runs: one wall (a, J_k, tau_k) shared; per run its own steady state, "
                         f"friction at its Q0, flow at the valve ({k_nuis} nuisance parameters in all, counted in k) "
                         f"and noise; -2 ln L = sum over runs of n_r ln F_r (each run's variance its own)")
@@ -503,7 +509,8 @@ def _per_run(runs, sw: _JointSweep, fin: _Model, best: ModelFit, bounds, selecti
             "warnings": [w["code"] for w in sr.warnings],
             "manoeuvre": r.vi.describe(),
             "own": {"model": best.name, "wave_speed": own.wave_speed_m_s, "wave_speed_se": own.wave_speed_se_m_s,
-                    "F": own.F, "elements": own.elements(), "cov_x": own.cov_x},
+                    "F": own.F, "elements": own.elements(), "cov_x": own.cov_x,
+                    "creep": creep_curve(own, t_min_s=bounds.tau_min_s, t_max_s=r.rec.window_s).to_dict()},
         })
     return out, warnings
 
@@ -525,3 +532,19 @@ def _own_wall(sw: _JointSweep, i: int, fin: _Model, m: int, bounds) -> ModelFit:
     p = pm.unpack(x)
     data = r.rec.h - heads + r.ev_f.head(*p) if r.tm.active else r.rec.h
     return summarise(Stage(r.ev_f, data), Sol(x, math.nan, pm), model_name(m), r.rig, bounds)
+
+
+def runs_report(result: JointResult) -> str:
+    """The text table of a joint fit's runs: each run's n, Q0, F/noise under the joint wall, whether it
+    disagrees, and its own wave speed under the best model."""
+    lines = [f"runs (each under the joint {result.best.name} wall; own a: the wall fitted on that run alone):",
+             f"  {'run':<32}{'n':>7}{'Q0 (l/s)':>10}{'F/noise':>9}{'bound':>7}  {'own a (m/s)':>18}  disagrees"]
+    for r in result.runs:
+        own = r.get("own") or {}
+        ratio, bound = r.get("noise_ratio"), r.get("misfit_bound")
+        a, se = own.get("wave_speed", math.nan), own.get("wave_speed_se", math.nan)
+        lines.append(f"  {str(r.get('path', '?'))[-32:]:<32}{int(r.get('n', 0)):>7}"
+                     f"{1e3 * float(r.get('steady_flow_m3_s', math.nan)):>10.3g}"
+                     f"{ratio if ratio is not None else math.nan:>9.3g}{bound if bound is not None else math.nan:>7.3g}"
+                     f"  {a:>9.2f} +- {se:<6.2g}  {'YES' if r.get('disagrees') else 'no'}")
+    return "\n".join(lines)

@@ -134,8 +134,9 @@ def _read_value(obj):
     return v
 
 
-def write_fit_group(parent: h5py.Group, name: str, result) -> h5py.Group:
-    """Write ``result`` (a SweepResult or its ``to_dict()``) as the NXprocess ``parent/name``."""
+def write_fit_group(parent: h5py.Group, name: str, result, kind: str | None = None) -> h5py.Group:
+    """Write ``result`` (a SweepResult or its ``to_dict()``) as the NXprocess ``parent/name``; ``kind``
+    (e.g. "joint": a fit over several runs, velab.fitting.joint) goes into the attribute ``velab_fit_kind``."""
     validate_fit_name(name)
     d = _as_dict(result)
     if name in parent:
@@ -143,6 +144,8 @@ def write_fit_group(parent: h5py.Group, name: str, result) -> h5py.Group:
     g = parent.create_group(name)
     stage("writing")
     g.attrs["NX_class"] = "NXprocess"
+    if kind:
+        g.attrs["velab_fit_kind"] = kind
     L.write_str(g, "program", "velab")
     L.write_str(g, "version", __version__)
     L.write_str(g, "date", _dt.datetime.now(_dt.timezone.utc).astimezone().isoformat(timespec="seconds"))
@@ -174,6 +177,8 @@ def read_fit_dict(g: h5py.Group) -> dict:
             d[key[6:] if key.startswith("velab_") and key[6:] in ("program", "version", "date") else key] = _read_value(obj)
     d["models"] = [m for _, m in sorted(models, key=lambda im: im[0])]
     d["date"] = L.read_str(g, "date")
+    if "velab_fit_kind" in g.attrs:
+        d["fit_kind"] = L.to_str(g.attrs["velab_fit_kind"])
     return d
 
 
@@ -208,8 +213,9 @@ def read_fit_group(g: h5py.Group):
     return sweep_from_dict(read_fit_dict(g))
 
 
-def save_fit(path: str | os.PathLike, result, name: str | None = None) -> str:
+def save_fit(path: str | os.PathLike, result, name: str | None = None, *, kind: str | None = None) -> str:
     """Add (or replace) the fit ``name`` in the run at ``path``, atomically; returns the name.
+    ``kind``: stored as the group's ``velab_fit_kind`` attribute ("joint" for a fit over several runs).
 
     Only ``/entry/fits/<name>`` changes; the recorded data stay bit-identical.
     Raises RunStillOpen for a run still flagged open for writing, DataError
@@ -221,5 +227,5 @@ def save_fit(path: str | os.PathLike, result, name: str | None = None) -> str:
         if "fits" not in e:
             g = e.create_group("fits")
             g.attrs["NX_class"] = "NXcollection"
-        write_fit_group(e["fits"], name, result)
+        write_fit_group(e["fits"], name, result, kind)
     return name
