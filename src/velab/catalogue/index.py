@@ -15,11 +15,14 @@ two listings, is read again by the next one.
 Safe with several readers and a recorder at once: WAL journal (readers never wait
 for a writer), a busy timeout, each batch of rows one ``BEGIN IMMEDIATE``
 transaction. A damaged or foreign index file is deleted and rebuilt without a word
-(it holds nothing that is not in the run files). Run files are only ever read.
+(it holds nothing that is not in the run files), under a lock file and only when it
+is still damaged under that lock; "locked" or "busy" is never taken for damage (a
+fresh index being set up by another process is waited for). Run files are only ever read.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -136,33 +139,71 @@ class Catalogue:
     def _connect(self) -> sqlite3.Connection:
         db = sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_MS / 1000, isolation_level=None,
                              check_same_thread=False)
-        db.execute(f"PRAGMA busy_timeout={BUSY_TIMEOUT_MS}")
-        if self.path != ":memory:":
-            db.execute("PRAGMA journal_mode=WAL")
-            db.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: a crash loses at most the last batch
-        version = db.execute("PRAGMA user_version").fetchone()[0]
-        if version != _version():
-            db.execute("BEGIN IMMEDIATE")
-            db.execute("DROP TABLE IF EXISTS files")
-            db.execute("CREATE TABLE files (path TEXT PRIMARY KEY, size INTEGER, mtime_ns INTEGER, ino INTEGER, "
-                       "kind TEXT, row TEXT, indexed REAL)")
-            db.execute(f"PRAGMA user_version={_version()}")
-            db.execute("COMMIT")
-        db.execute("SELECT count(*) FROM files").fetchone()
+        try:
+            db.execute(f"PRAGMA busy_timeout={BUSY_TIMEOUT_MS}")
+            if self.path != ":memory:":
+                # changing the journal mode can answer "locked" without waiting while another
+                # process creates the same fresh file: retried, never taken for damage
+                _retry(lambda: db.execute("PRAGMA journal_mode=WAL"))
+                db.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: a crash loses at most the last batch
+            if not _retry(lambda: _ready(db)):
+                _retry(lambda: self._create(db))
+            db.execute("SELECT count(*) FROM files").fetchone()
+        except BaseException:
+            db.close()
+            raise
         return db
+
+    @staticmethod
+    def _create(db: sqlite3.Connection) -> None:
+        """The table, made (or remade for another version) in one transaction, the version re-read under its lock:
+        a process that created it meanwhile is not undone."""
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            if not _ready(db):
+                db.execute("DROP TABLE IF EXISTS files")
+                db.execute("CREATE TABLE IF NOT EXISTS files (path TEXT PRIMARY KEY, size INTEGER, "
+                           "mtime_ns INTEGER, ino INTEGER, kind TEXT, row TEXT, indexed REAL)")
+                db.execute(f"PRAGMA user_version={_version()}")
+            db.execute("COMMIT")
+        except BaseException:
+            if db.in_transaction:
+                db.execute("ROLLBACK")
+            raise
 
     def _open(self) -> sqlite3.Connection:
         try:
+            return _retry(self._connect)
+        except sqlite3.DatabaseError as exc:
+            if not _damaged(exc):  # still locked after the retries, or cannot be written: not kept this time
+                return self._in_memory(exc)
+            try:
+                return self._rebuild()
+            except sqlite3.DatabaseError as exc2:  # cannot be written there either: in memory
+                return self._in_memory(exc2)
+
+    def _in_memory(self, exc: Exception) -> sqlite3.Connection:
+        log.warning("catalogue %s cannot be used (%s): not kept this time", self.path, exc)
+        self.path = ":memory:"
+        return self._connect()
+
+    def _rebuild(self) -> sqlite3.Connection:
+        """A damaged or foreign index deleted and made again, under a lock file.
+
+        Damage is judged again under the lock: another process may have rebuilt it
+        meanwhile, and deleting that fresh index would pull it from under its users.
+        """
+        if self.path == ":memory:":
             return self._connect()
-        except sqlite3.DatabaseError as exc:  # "file is not a database", "malformed": rebuild it
-            log.debug("catalogue %s unusable (%s): rebuilt", self.path, exc)
-            self._remove()
+        with _lock(self.path + ".lock"):
             try:
                 return self._connect()
-            except sqlite3.DatabaseError as exc2:  # cannot be written there either: in memory
-                log.warning("catalogue %s cannot be used (%s): not kept this time", self.path, exc2)
-                self.path = ":memory:"
-                return self._connect()
+            except sqlite3.DatabaseError as exc:
+                if not _damaged(exc):
+                    raise
+                log.debug("catalogue %s unusable (%s): rebuilt", self.path, exc)
+            self._remove()
+            return _retry(self._connect)
 
     def _remove(self) -> None:
         if self.path == ":memory:":
@@ -190,12 +231,25 @@ class Catalogue:
             r = os.path.abspath(os.fspath(r))
             q = "SELECT path, size, mtime_ns, ino, kind, row FROM files WHERE "
             if os.path.isdir(r):
-                cur = self.db.execute(q + "path >= ? AND path < ?", _prefix_range(r))
+                rows = self._query(q + "path >= ? AND path < ?", _prefix_range(r))
             else:
-                cur = self.db.execute(q + "path = ?", (r,))
-            for p, *rest in cur:
+                rows = self._query(q + "path = ?", (r,))
+            for p, *rest in rows:
                 out[p] = tuple(rest)
         return out
+
+    def _query(self, sql: str, params=()) -> list:
+        """Rows of a read; the table gone or the file damaged under us (another process rebuilt it): opened
+        again, read again once (an empty index then, the rows come back from the files)."""
+        try:
+            return self.db.execute(sql, params).fetchall()
+        except sqlite3.DatabaseError as exc:
+            if not (_damaged(exc) or "no such table" in str(exc)):
+                raise
+            log.debug("catalogue %s unusable while reading (%s): opened again", self.path, exc)
+            self.db.close()
+            self.db = self._rebuild() if _damaged(exc) else self._open()
+            return self.db.execute(sql, params).fetchall()
 
     def cached(self, roots: Iterable[str | os.PathLike]) -> Listing:
         """What the index holds under the roots, without looking at the files (the GUI's first paint)."""
@@ -274,25 +328,72 @@ class Catalogue:
         self._write(lambda db: db.executemany("INSERT OR REPLACE INTO files VALUES (?, ?, ?, ?, ?, ?, ?)", values))
 
     def _write(self, fn) -> None:
-        """One write transaction; an index found damaged meanwhile is rebuilt (the rows come back next time)."""
-        try:
-            self.db.execute("BEGIN IMMEDIATE")
+        """One write transaction. Busy past the timeout: this batch is not kept. The table gone (another
+        process rebuilt a damaged index under us) or the file damaged: opened again and the batch retried once."""
+        for attempt in (0, 1):
             try:
-                fn(self.db)
-                self.db.execute("COMMIT")
-            except BaseException:
-                self.db.execute("ROLLBACK")
-                raise
-        except sqlite3.OperationalError as exc:
-            if "locked" in str(exc) or "busy" in str(exc):  # another process held it past the timeout
-                log.warning("catalogue %s busy: this listing's rows are not kept (%s)", self.path, exc)
+                self.db.execute("BEGIN IMMEDIATE")
+                try:
+                    fn(self.db)
+                    self.db.execute("COMMIT")
+                except BaseException:
+                    if self.db.in_transaction:
+                        self.db.execute("ROLLBACK")
+                    raise
                 return
-            raise
+            except sqlite3.DatabaseError as exc:
+                if _busy(exc):
+                    log.warning("catalogue %s busy: this listing's rows are not kept (%s)", self.path, exc)
+                    return
+                if attempt or not (_damaged(exc) or "no such table" in str(exc)):
+                    raise
+                log.debug("catalogue %s unusable while writing (%s): opened again", self.path, exc)
+                self.db.close()
+                self.db = self._rebuild() if _damaged(exc) else self._open()
+
+
+def _ready(db: sqlite3.Connection) -> bool:
+    """The index is of this version and has its table (a version number alone survives a dropped table)."""
+    return db.execute("PRAGMA user_version").fetchone()[0] == _version() and \
+        db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'files'").fetchone() is not None
+
+
+def _busy(exc: BaseException) -> bool:
+    return getattr(exc, "sqlite_errorname", "") in ("SQLITE_BUSY", "SQLITE_LOCKED") or \
+        any(w in str(exc) for w in ("database is locked", "database table is locked", "busy"))
+
+
+def _damaged(exc: BaseException) -> bool:
+    """A file that is not (or no longer) an SQLite database: the only reason to delete an index."""
+    return getattr(exc, "sqlite_errorname", "") in ("SQLITE_NOTADB", "SQLITE_CORRUPT") or \
+        any(w in str(exc) for w in ("file is not a database", "malformed"))
+
+
+def _retry(fn, tries: int = 8):
+    """fn() again after a short, growing pause while SQLite answers busy or locked (a fresh file being set up)."""
+    for i in range(tries):
+        try:
+            return fn()
         except sqlite3.DatabaseError as exc:
-            log.debug("catalogue %s damaged (%s): rebuilt", self.path, exc)
-            self.db.close()
-            self._remove()
-            self.db = self._open()
+            if not _busy(exc) or i == tries - 1:
+                raise
+            time.sleep(0.02 * 2 ** i)
+
+
+@contextlib.contextmanager
+def _lock(path: str):
+    """An exclusive lock file (fcntl) around the rebuild; none where fcntl is missing."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
 
 
 def _listing(rows: dict[str, dict], files: int, read: int, removed: int, path: str, seconds: float = 0.0) -> Listing:
