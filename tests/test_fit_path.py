@@ -13,7 +13,8 @@ from velab.commands.fit import fit_file
 from velab.config import load_material, load_rig
 from velab.errors import DataError
 from velab.fitting import fit_record, prepare_record
-from velab.fitting.prepare import STEADY_HEAD_S, decimate_head, fit_decimation
+from velab.fitting.prepare import decimate_head, fit_decimation
+from velab.fitting.window import BASELINE_S
 from velab.recording import Recorder, RecordSettings
 from velab.recording.timeline import PRE_TRIGGER_KEPT_S
 from velab.fitting.results import SweepResult
@@ -51,26 +52,28 @@ def test_online_fit_is_reproduced_by_velab_fit(tmp_path, rate):
 
 
 def test_recorder_keeps_what_the_steady_head_needs():
-    assert PRE_TRIGGER_KEPT_S >= STEADY_HEAD_S + 1.0
+    assert PRE_TRIGGER_KEPT_S >= BASELINE_S + 1.0
 
 
 def test_prepare_record_window_steady_head_and_errors():
     rig = load_rig("perugia")
     fs = 1000.0
-    t = np.arange(-2000, 5000) / fs + 0.25  # trigger at 0.25 s on the run's axis
+    t = np.arange(-5000, 5000) / fs + 0.25  # trigger at 0.25 s on the run's axis
     head = np.full(t.size, 30.0)
     head[t >= 0.25] += np.sin(np.arange((t >= 0.25).sum()) / 50.0)
-    head[t < 0.25 - STEADY_HEAD_S] = 1e6  # before the steady-head span: not used
+    head[t < 0.25 - BASELINE_S - 0.5e-3] = 1e6  # before the baseline: not used
+    head[:3750] = -1e6  # before a break in the baseline (t = -1 s): not used either
+    head[3750] = np.nan
     rec = prepare_record(t, head, 0.25, rig, 3.0, record_rate_hz=fs)
     assert rec.steady_head_m == 30.0 and rec.decimation == 1 and rec.h.size == 3000
     assert rec.t[0] == pytest.approx(0.0, abs=1e-12) and rec.h[0] == 0.0
     with pytest.raises(DataError, match="longer than the record"):
         prepare_record(t, head, 0.25, rig, 6.0, record_rate_hz=fs)
     bad = head.copy()
-    bad[3000] = np.nan
+    bad[6000] = np.nan  # 1 s after the trigger
     with pytest.raises(DataError, match="NaN"):
         prepare_record(t, bad, 0.25, rig, 3.0, record_rate_hz=fs)
-    gap = np.delete(np.arange(t.size), 2500)
+    gap = np.delete(np.arange(t.size), 5500)
     with pytest.raises(DataError, match="not uniform"):
         prepare_record(t[gap], head[gap], 0.25, rig, 3.0, record_rate_hz=fs)
 

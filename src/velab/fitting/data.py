@@ -8,6 +8,7 @@ import numpy as np
 import scipy.fft as sfft
 
 from velab.errors import DataError
+from velab.fitting.window import MIN_WINDOW_SAMPLES, enough_samples, window_slice
 
 
 def prepare_window(t_s, h_m, window_s: float | None):
@@ -19,13 +20,13 @@ def prepare_window(t_s, h_m, window_s: float | None):
     h = np.asarray(h_m, dtype=float)
     if t.ndim != 1 or h.shape != t.shape:
         raise DataError(f"time and head must be 1-D arrays of equal length (got {t.shape} and {h.shape})")
-    if t.size < 16:
+    if not enough_samples(t.size):
         raise DataError(f"record too short to calibrate ({t.size} samples)")
     dt = np.diff(t)
     step = float(np.median(dt))
     if not step > 0 or np.max(np.abs(dt - step)) > 1e-3 * step:
         raise DataError("time axis is not uniformly sampled")
-    i0 = int(np.searchsorted(t, -0.5 * step))
+    i0 = window_slice(t, 0.0, 0.0, 1.0 / step).start
     if i0 >= t.size:
         raise DataError("record has no samples after the trigger")
     if window_s is None:
@@ -36,10 +37,9 @@ def prepare_window(t_s, h_m, window_s: float | None):
         available = t[-1] - t[i0] + step
         if window_s > available * (1 + 1e-9) + 1e-9:
             raise DataError(f"window {window_s:g} s is longer than the record ({available:.6g} s after the trigger)")
-        i1 = i0 + int(round(window_s / step))
-        i1 = min(i1, t.size)
+        i1 = window_slice(t, 0.0, window_s, 1.0 / step).stop
     tw, hw = t[i0:i1], h[i0:i1]
-    if tw.size < 16:
+    if tw.size < MIN_WINDOW_SAMPLES:
         raise DataError(f"window too short to calibrate ({tw.size} samples after the trigger)")
     bad = ~np.isfinite(hw)
     if bad.any():

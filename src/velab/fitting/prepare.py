@@ -4,8 +4,9 @@
 ``velab fit``, the recorder's online fit and the GUI archive's re-fit all call it (through
 ``fit_record``), so an offline re-fit of a recorded run reproduces its online fit exactly:
 
-1. steady head: mean of the finite head samples in the last ``STEADY_HEAD_S`` before the
-   trigger (the recorder keeps that much before the trigger; the rig's steady head if none);
+1. steady head: mean of the baseline, the finite head samples of the last ``BASELINE_S`` before
+   the trigger after the last non-finite one (the rig's steady head if none); velab.fitting.window
+   states this rule and the window's for every caller (the recorder, the run-file reader);
 2. window: samples with trigger - dt/2 <= t < trigger + window - dt/2, time from the trigger;
 3. anti-alias decimation to the fit rate: q = the largest whole divisor of the record rate
    with record rate / q >= FIT_RATE_PER_BAND x the manoeuvre's band, zero-phase FIR (scipy.signal.firwin, Hamming, 20 q + 1 taps, the
@@ -27,12 +28,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import firwin, resample_poly
 
-from velab.config import Rig
+from velab.rig import Rig
 from velab.errors import DataError
 from velab.fitting.adequacy import assess, baseline_noise
 from velab.fitting.friction import fit_rig
 from velab.fitting.lead import lead_window_s, matches, options_key
 from velab.fitting.manoeuvre import refine_closure, valve_input
+from velab.fitting.window import MIN_WINDOW_SAMPLES, baseline_slice, steady_head, window_slice
 from velab.fitting.results import SweepResult
 from velab.fitting.sweep import fit_sweep
 from velab.model import manoeuvre_band_hz
@@ -40,7 +42,6 @@ from velab.model import manoeuvre_band_hz
 # the fit rate is at least this multiple of the manoeuvre's band (the frequency above which the
 # sigmoid's flow spectrum is below 1e-8 of its DC value): 930 Hz at the reference rig
 FIT_RATE_PER_BAND = 30.0
-STEADY_HEAD_S = 1.0  # the steady head is the mean over this long before the trigger
 FIR_TAPS_PER_Q = 20
 
 
@@ -103,14 +104,6 @@ def decimate_head(h: np.ndarray, q: int) -> np.ndarray:
     return resample_poly(np.asarray(h, dtype=float), 1, q, window=b, padtype="line")
 
 
-def steady_head(t: np.ndarray, head: np.ndarray, trigger_time_s: float, fallback: float) -> float:
-    """Mean of the finite head samples in [trigger - STEADY_HEAD_S, trigger)."""
-    i0, i1 = np.searchsorted(t, [trigger_time_s - STEADY_HEAD_S, trigger_time_s])
-    pre = head[i0:i1]
-    pre = pre[np.isfinite(pre)]
-    return float(pre.mean()) if pre.size else float(fallback)
-
-
 def prepare_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | None, *,
                    record_rate_hz: float, position_pct=None) -> PreparedRecord:
     """The calibration data of a record: ``t_s`` on the run's axis (s, increasing), ``head_m`` the
@@ -128,8 +121,8 @@ def prepare_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float
     if not math.isfinite(trigger_time_s):
         raise DataError("trigger time is not a number")
     dt = 1.0 / record_rate_hz
-    steady = steady_head(t, head, trigger_time_s, rig.steady_head_m)
-    i0 = int(np.searchsorted(t, trigger_time_s - 0.5 * dt))
+    steady = steady_head(t, head, trigger_time_s, rig.steady_head_m, record_rate_hz)
+    i0 = window_slice(t, trigger_time_s, 0.0, record_rate_hz).start
     avail = (float(t[-1]) - trigger_time_s + dt) if t.size and i0 < t.size else 0.0
     if window_s is None:
         window_s = avail
@@ -137,9 +130,9 @@ def prepare_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float
         raise DataError(f"fit window must be positive, got {window_s:g} s")
     if window_s > avail + 0.5 * dt:
         raise DataError(f"fit window {window_s:g} s is longer than the record after the trigger ({avail:.6g} s)")
-    i1 = int(np.searchsorted(t, trigger_time_s + window_s - 0.5 * dt))
+    i1 = window_slice(t, trigger_time_s, window_s, record_rate_hz).stop
     tw = t[i0:i1] - trigger_time_s
-    if tw.size < 16:
+    if tw.size < MIN_WINDOW_SAMPLES:
         raise DataError(f"window too short to calibrate ({tw.size} samples after the trigger)")
     steps = np.diff(tw)
     if np.abs(steps - dt).max() > 1e-3 * dt + 1e-9:
@@ -153,7 +146,7 @@ def prepare_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float
     hd = decimate_head(hw, q)
     td = tw[::q][: hd.size]
     # the baseline through the window's filter and decimation, so that its variance and F compare
-    base = baseline_noise(head[:i0] - steady, lambda x: decimate_head(x, q), FIR_TAPS_PER_Q // 2 if q > 1 else 0)
+    base = baseline_noise(head[baseline_slice(t, head, trigger_time_s, record_rate_hz)] - steady, lambda x: decimate_head(x, q), FIR_TAPS_PER_Q // 2 if q > 1 else 0)
     pos, notes = _window_position(position_pct, t, i0, i1, q, td.size)
     return PreparedRecord(td, hd[: td.size], float(window_s), float(trigger_time_s), steady, float(record_rate_hz), q,
                           anti_alias_filter(q), notes=notes, baseline_noise_m=base.std_m, baseline_lag1=base.lag1,
@@ -276,7 +269,7 @@ def _stage_progress(progress, stage: int, suffix: str):
 
 
 def fit_run(run, window_s: float | None, **sweep_options) -> SweepResult:
-    """``fit_record`` on a run read back from its file (velab.runfile.Run): what ``velab fit`` and the
+    """``fit_record`` on a run read back from its file (velab.runfiles.reader.Run): what ``velab fit`` and the
     GUI archive's re-fit call. Lost samples inside the window are refused (a gap cannot be fitted)."""
     run.fit_window(window_s)  # the reader's own checks of the window (gaps, NaN), with the file's name
     return fit_record(run.time_s, run.head_m, run.trigger_time_s, run.rig, window_s,

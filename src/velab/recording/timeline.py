@@ -19,12 +19,13 @@ import numpy as np
 
 from velab.drivers.blocks import QUALITY_CODE, QUALITY_CODES
 from velab.drivers.base import Quality
+from velab.fitting.window import BASELINE_S, steady_head, window_slice
 from velab.recording.online_fit import MIN_FIT_WINDOW_S
 from velab.recording.safety import OK, ceiling_crossing, describe_codes, finite_max
 
-# samples kept from before the trigger is marked, for the fit's steady head: the fit path takes the
-# mean over the last velab.fitting.prepare.STEADY_HEAD_S (1 s) before the (measured) trigger
-PRE_TRIGGER_KEPT_S = 3.0
+# samples kept from before the trigger is marked: the fit path's baseline (velab.fitting.window), and
+# 1 s for the trigger's estimate being ahead of the last sample processed when it was marked
+PRE_TRIGGER_KEPT_S = BASELINE_S + 1.0
 
 
 def trigger_from_position(t: np.ndarray, pos_pct: np.ndarray, beta: float, gamma: float, end_pct: float) -> float | None:
@@ -83,8 +84,6 @@ class Timeline:
         self.gaps = 0
         self.flagged = 0
         self.peak = -math.inf
-        self._pre_sum = 0.0
-        self._pre_n = 0
         self.trigger_idx: int | None = None
         self.trigger_time: float | None = None
         self.trigger_measured = False  # the feedback was looked at (whether or not a stroke was seen)
@@ -117,7 +116,20 @@ class Timeline:
         return self.gidx >= self.n_pre
 
     def steady_head(self, fallback: float | None) -> float | None:
-        return self._pre_sum / self._pre_n if self._pre_n else fallback
+        """The fit path's steady head (velab.fitting.window) of the baseline recorded so far: before
+        the trigger, or before now if it is not marked yet; ``fallback`` if there is none."""
+        with self._lock:
+            t, h = self._record()
+            trigger = self.trigger_time if self.trigger_time is not None else self.now_axis
+        value = steady_head(t, h, trigger, math.nan, self.fs)
+        return value if math.isfinite(value) else fallback
+
+    def _record(self) -> tuple[np.ndarray, np.ndarray]:
+        """(axis, head) kept: the baseline's blocks, then the window's samples so far (a copy)."""
+        n = self._fit_n
+        ts = [b[0] for b in self._pre_blocks] + ([self._fit_t[:n]] if n else [])
+        hs = [b[1] for b in self._pre_blocks] + ([self._fit_h[:n]] if n else [])
+        return (np.concatenate(ts), np.concatenate(hs)) if ts else (np.empty(0), np.empty(0))
 
     # ---------------------------------------------------------------- the trigger (control thread)
     def mark_trigger(self, now_host: float, clock_scale: float = 1.0) -> float:
@@ -216,11 +228,6 @@ class Timeline:
         self._quality(p_codes, "pressure", self.pch, t)
         if has_v:
             self._quality(vq, "valve", self.vch, t)
-        if self.trigger_idx is None or self.trigger_idx >= self.gidx:
-            sel = ok & np.isfinite(head) & (g < (self.trigger_idx if self.trigger_idx is not None else g[-1] + 1))
-            okh = head[sel]
-            self._pre_sum += float(okh.sum())
-            self._pre_n += int(okh.size)
         if self.trigger_idx is not None:
             self._after_trigger(t, head, pos, p_codes)
         else:
@@ -344,8 +351,7 @@ class Timeline:
                 window_s = math.floor(avail * self.fs) / self.fs
                 note = f"fit window shortened to {window_s:.2f} s: flagged or lost samples after it"
         n = self._fit_n
-        dt = 1.0 / self.fs
-        end = int(np.searchsorted(self._fit_t[:n], self.trigger_time + window_s - 0.5 * dt))
+        end = window_slice(self._fit_t[:n], self.trigger_time, window_s, self.fs).stop
         t = np.concatenate([b[0] for b in self._pre_blocks] + [self._fit_t[:end]])
         h = np.concatenate([b[1] for b in self._pre_blocks] + [self._fit_h[:end]])
         pos = None

@@ -16,7 +16,9 @@ from typing import Iterator
 import h5py
 import numpy as np
 
-from velab.config import Manoeuvre, Material, Rig, material_from_dict, rig_from_dict
+from velab.config import Material, material_from_dict
+from velab.fitting.window import enough_samples, steady_head, window_slice
+from velab.rig import Manoeuvre, Rig, rig_from_dict
 from velab.errors import DataError
 from velab.runfiles import layout as L
 from velab.runfiles import superblock as sb_
@@ -73,12 +75,8 @@ class Run:
 
     @property
     def steady_head_m(self) -> float:
-        """Mean head before the trigger; the rig's steady head if there is no pre-trigger record."""
-        pre = self.head_m[self.time_s < self.trigger_time_s]
-        pre = pre[np.isfinite(pre)]
-        if pre.size:
-            return float(pre.mean())
-        return self.rig.steady_head_m
+        """The fit path's steady head (velab.fitting.window): the baseline's mean, or the rig's."""
+        return steady_head(self.time_s, self.head_m, self.trigger_time_s, self.rig.steady_head_m, self.sample_rate_hz)
 
     def head_perturbation(self) -> np.ndarray:
         """Head minus the steady pre-trigger head (what the model predicts)."""
@@ -90,7 +88,6 @@ class Run:
         ``None`` takes everything after the trigger. Raises DataError for a window
         longer than the record, a gap in it, or NaN.
         """
-        after = self.time_s >= self.trigger_time_s - 0.5 / self.sample_rate_hz
         avail = self.duration_after_trigger_s
         if window_s is None:
             window_s = avail
@@ -100,16 +97,16 @@ class Run:
             raise DataError(
                 f"{self.path}: fit window {window_s:g} s is longer than the record after the trigger ({avail:.3f} s)"
             )
-        inside = after & (self.time_s < self.trigger_time_s + window_s - 0.5 / self.sample_rate_hz)
+        inside = window_slice(self.time_s, self.trigger_time_s, window_s, self.sample_rate_hz)
         t = self.time_s[inside] - self.trigger_time_s
-        h = self.head_perturbation()[inside]
-        if t.size < 10:
+        h = self.head_m[inside] - self.steady_head_m
+        if not enough_samples(t.size):
             raise DataError(f"{self.path}: only {t.size} samples in the fit window")
         bad = ~np.isfinite(h)
         if bad.any():
             i = int(np.argmax(bad))
             raise DataError(f"{self.path}: head is NaN at t = {t[i]:.4f} s in the fit window ({int(bad.sum())} samples)")
-        first = int(np.argmax(inside))
+        first = inside.start
         for idx, lost in self.gaps:
             if first < idx < first + t.size and lost > 0:
                 raise DataError(
