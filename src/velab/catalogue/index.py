@@ -308,14 +308,14 @@ class Catalogue:
                 if len(batch) >= BATCH_ROWS or time.monotonic() - last > BATCH_S:
                     self._store(batch, seen)
                     if on_rows:
-                        on_rows(batch)
+                        on_rows(_settled(batch))
                     if progress:
                         progress(done, len(stale))
                     batch, last = [], time.monotonic()
             if batch:
                 self._store(batch, seen)
                 if on_rows:
-                    on_rows(batch)
+                    on_rows(_settled(batch))
             if progress:
                 progress(done, len(stale))
         return _listing(rows, len(seen), len(stale), len(gone), self.path, time.perf_counter() - t0)
@@ -350,6 +350,15 @@ class Catalogue:
                 log.debug("catalogue %s unusable while writing (%s): opened again", self.path, exc)
                 self.db.close()
                 self.db = self._rebuild() if _damaged(exc) else self._open()
+
+
+def _settled(rows: list[dict]) -> list[dict]:
+    """Copies of the rows with live and abandoned recordings told apart (the stored rows stay as read)."""
+    from velab.catalogue.liveness import settle
+
+    out = [dict(r) if r.get("status") == "recording" else r for r in rows]
+    settle(out)
+    return out
 
 
 def _ready(db: sqlite3.Connection) -> bool:
@@ -397,6 +406,9 @@ def _lock(path: str):
 
 
 def _listing(rows: dict[str, dict], files: int, read: int, removed: int, path: str, seconds: float = 0.0) -> Listing:
+    from velab.catalogue.liveness import settle
+
     runs = [r for p, r in sorted(rows.items()) if r.get("kind") != "other"]
+    settle(runs)  # now, not when indexed: a killed recorder's file never changes again
     others = [r for p, r in sorted(rows.items()) if r.get("kind") == "other"]
     return Listing(runs, others, files or len(rows), read, removed, seconds, path)

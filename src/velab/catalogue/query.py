@@ -12,8 +12,9 @@ import json
 import math
 from dataclasses import dataclass
 
-STATUSES = ("recording", "completed", "completed-with-faults", "stopped", "aborted", "failed", "synthetic",
-            "imported", "damaged")  # velab.runfiles.layout.STATUSES and the catalogue's own "damaged"
+STATUSES = ("recording", "interrupted", "completed", "completed-with-faults", "stopped", "aborted", "failed",
+            "synthetic", "imported", "damaged")
+# velab.runfiles.layout.STATUSES and the catalogue's own: "damaged", "interrupted" (says recording, no writer: liveness)
 
 # sort key name -> row field (the GUI's columns sort by the same fields)
 SORT_KEYS = {

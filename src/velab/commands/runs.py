@@ -20,14 +20,15 @@ def register(sub) -> None:
         description="One row per run file under the folders (recursively): start time, title / operator / "
                     "specimen, rig, Q0, beta, rate, duration, status and fault flags, the latest fit's best model, "
                     "wave speed +- SE and misfit flag, the number of fits. Damaged files are listed as 'damaged' "
-                    "with the reason; a run being recorded as 'recording'. An index in the user's cache "
+                    "with the reason; a run being recorded as 'recording', one whose recorder died as 'interrupted'. An index in the user's cache "
                     "(XDG_CACHE_HOME/velab, or $VELAB_CATALOGUE) keeps later listings fast: only new or changed "
                     "files are read. Run files are never written.")
     p.add_argument("folders", nargs="*", default=["."], metavar="FOLDER",
                    help="folders (searched recursively) or run files; default: the current folder")
     p.add_argument("--status", action="append", default=[], metavar="S[,S]",
-                   help="only runs with this status: recording, completed, completed-with-faults, stopped, "
-                        "aborted, failed, synthetic, imported, damaged (repeat or comma-separate for any of them)")
+                   help="only runs with this status: recording, interrupted (the recorder died), completed, "
+                        "completed-with-faults, stopped, aborted, failed, synthetic, imported, damaged "
+                        "(repeat or comma-separate for any of them)")
     p.add_argument("--best", action="append", default=[], metavar="MODEL[,MODEL]",
                    help="only runs whose latest fit's best model is this (EL, S1..S6, S3r...; 'none': not fitted)")
     p.add_argument("--rig", default="", metavar="TEXT", help="only runs whose rig name contains TEXT (any case)")
