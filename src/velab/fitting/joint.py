@@ -38,6 +38,7 @@ from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator, sumsq
 from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
 from velab.fitting.manoeuvre import refine_closure, valve_input
+from velab.fitting.nuisance import closure_rows, marginalised
 from velab.fitting.params import ParamMap, creep_const, derive_bounds
 from velab.fitting.prepare import PreparedRecord, prepare_record
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
@@ -50,7 +51,10 @@ from velab.model import manoeuvre_band_hz
 
 POLISH_RATE_PER_BAND = 8.0  # the polish runs on each run's record decimated to this multiple of its band
 REFRESHES = 3  # time-domain (friction) refreshes of each model's optimum, at most
-REFRESH_GAIN = 0.05  # ... stopped when one gains less than this in sum n ln F
+REFRESH_GAIN = 0.05
+# closure refinements (each run's, with the joint wall) followed by a continuation of every model; a
+# second pass was measured to change nothing that matters (J(0.05 s) moved 0.1 %, a 0.003 m/s) for 1.5 x the time
+REFINE_PASSES = 1  # ... stopped when one gains less than this in sum n ln F
 GEOMETRY_RTOL = 1e-6  # runs of one pipe: length, diameter, wall, alpha and density agree to this
 JOINT_KIND = "joint"  # the fit group's velab_fit_kind attribute (velab.runfiles.fits.save_fit)
 
@@ -361,18 +365,24 @@ class _JointSweep:
             r.var = float(F)
 
     # ------------------------------------------------------------ summary
-    def summarise(self, m: int, fin: _Model, k_nuisance: int) -> ModelFit:
+    def summarise(self, m: int, fin: _Model, k_nuisance: int, nuisance=None) -> ModelFit:
         """The ModelFit of the joint wall: standard errors from the stacked weighted Jacobian at the fit
-        rate (weights 1/F_r; inflated for the residuals' lag-1 as for one run); F, AIC over the runs."""
+        rate (weights 1/F_r; inflated for the residuals' lag-1 as for one run), marginalised over the runs'
+        fitted closures (``nuisance``: each run's closure rows, velab.fitting.nuisance); F, AIC over the runs."""
         saved = [r.var for r in self.runs]
         for r, F in zip(self.runs, fin.F_runs):
             r.var = float(F)
         st = self.stage("f", fin)
         f = summarise(st, fin.sol, model_name(m), self.runs[0].rig, self.bounds,
                       evaluations=st.ev.evaluations, jacobians=st.ev.jacobians)
+        n_tot = sum(r.n for r in self.runs)
+        if nuisance is not None and any(b.size for b in nuisance):
+            h, jac = st.ev.head_jac_x(*fin.sol.pm.unpack(fin.sol.x), fin.sol.pm.tau_free)
+            res = h - st.d
+            f = marginalised(f, fin.sol.pm, fin.sol.x, jac, nuisance, st.ev.slices(), st.ev.weights,
+                             sumsq(res) / res.size, lag1(res), self.runs[0].rig)
         for r, v in zip(self.runs, saved):
             r.var = v
-        n_tot = sum(r.n for r in self.runs)
         # per run: its residual's lag-1 and AR(1) innovation variance; pooled so that apply_criteria's
         # N ln s_e^2 - ln(1 - rho^2) is the sum of the runs' AR(1) terms
         ar, rhos = 0.0, []
@@ -427,8 +437,8 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     # the fitted closures refined on each run's whole window with the best wall (every wave front carries
     # the closure's shape; from its early window alone a slow element takes up a wrong shape), then every
     # model continued from its optimum under them
-    first = _first_pass_best(sw, ms, selection)
-    if any(r.vi.source == "fitted" for r in runs):
+    for _ in range(REFINE_PASSES if any(r.vi.source == "fitted" for r in runs) else 0):
+        first = _first_pass_best(sw, ms, selection)
         p = first.sol.pm.unpack(first.sol.x)
         for r in runs:
             r.refine(first, sw.bounds)
@@ -438,7 +448,10 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     top = min(sw.final.values(), key=lambda f: f.loglik(runs))
     sw.reweight(top)
     k_nuis = sum(r.vi.k for r in runs)
-    fits = [sw.summarise(m, sw.final[m], k_nuis) for m in ms]
+    # the closures' columns at the best-fitting wall, for the wall's covariance marginalised over them
+    p_top = top.sol.pm.unpack(top.sol.x)
+    nuisance = [closure_rows(r.rig, r.rec.t, r.rec.h, r.ev_f, r.vi, p_top) for r in runs]
+    fits = [sw.summarise(m, sw.final[m], k_nuis, nuisance) for m in ms]
     apply_criteria(fits, selection)
     result = JointResult(n=fits[0].n, window_s=max(r.rec.window_s for r in runs),
                          sample_rate_hz=min(r.rec.fit_rate_hz for r in runs), method="joint", settings={},

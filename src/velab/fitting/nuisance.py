@@ -1,0 +1,104 @@
+"""The fitted closures' uncertainty in the wall's covariance (a joint fit's nuisance parameters).
+
+A head-only run's closure (velab.fitting.manoeuvre: six parameters) is fitted from the same record as
+the wall, and its shape trades against the fast and slow elements (a slower closure smooths the
+fronts as a fast element does). Held fixed, it makes the wall's standard errors and the creep band
+too narrow (docs/fitting.md, "The creep function"). Here the closure parameters that are not on a
+bound join the Jacobian: with the stacked rows [J_wall; V_1; ...; V_R] (each run's closure columns
+V_r only on its own samples, weighted as its residuals), the wall's block of s^2 (A)^-1 is the
+Schur complement (A_ww - A_wv A_vv^-1 A_vw)^-1: the wall's covariance with the closures
+marginalised, inflated for the residuals' lag-1 as for one run (velab.fitting.stats.covariance).
+
+The closure's columns are finite differences of the frequency model's head in the closure's solver
+variables (velab.fitting.manoeuvre.to_solver), taken once per run at the best wall (they depend on
+the wall only through the impedance, which the wall's own columns already carry to first order).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from velab.fitting.engine import HeadEvaluator
+from velab.fitting.manoeuvre import PARAM_NAMES, T50_MAX_FACTOR, _coupling, closure_flow, from_solver, to_solver
+from velab.fitting.params import ParamMap, creep_const
+from velab.fitting.stats import covariance, standard_errors
+
+STEP = 1e-6  # in the solver's variables (logs of beta, power and share; t50, coupling and tail as they are)
+
+
+def closure_box(rig) -> tuple[np.ndarray, np.ndarray]:
+    """The closure's bounds in the solver's variables, as velab.fitting.manoeuvre.refine_closure has them."""
+    m = rig.manoeuvre
+    lo = np.array([math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), 0.0, 0.0])
+    hi = np.array([math.log(m.beta_per_s * 5), T50_MAX_FACTOR * m.half_closure_s + 1.0, math.log(6.0), 0.0, 1.0, 1.0])
+    return lo, hi
+
+
+def closure_rows(rig, t, d, ev_full: HeadEvaluator, vi, params) -> np.ndarray:
+    """d h / d v of the run's closure parameters v not on a bound (rows, on the run's grid t), at the wall
+    ``params`` = (a, J', tau); ``ev_full`` the run's full-band evaluator (its linear friction stand-in is
+    kept); ``vi`` the run's ValveInput. No rows for a closure that was not fitted."""
+    if vi.source != "fitted" or not vi.params:
+        return np.zeros((0, np.size(t)))
+    v0 = np.array(to_solver([float(vi.params.get(k, 0.0)) for k in PARAM_NAMES]))
+    lo, hi = closure_box(rig)
+    span = hi - lo
+    hc = _coupling(np.asarray(t, dtype=float), np.asarray(d, dtype=float), rig)
+    h0 = ev_full.head(*params)
+    rows = []
+    for i in range(v0.size):
+        if not (lo[i] + 1e-6 * span[i] < v0[i] < hi[i] - 1e-6 * span[i]):
+            continue  # on a bound: held fixed, as a wall parameter on a bound is
+        v = v0.copy()
+        step = STEP if v[i] + STEP <= hi[i] else -STEP
+        v[i] += step
+        q = closure_flow(t, hc, rig, from_solver(v))
+        ev = HeadEvaluator(rig, t, band_hz=None, flow=q, extra_impedance=ev_full.extra_impedance)
+        rows.append((ev.head(*params) - h0) / step)
+    return np.array(rows).reshape(len(rows), np.size(t))
+
+
+def marginalised(f, pm: ParamMap, x, wall_rows: np.ndarray, nuisance: list[np.ndarray], slices, weights,
+                 F_w: float, rho: float, rig):
+    """``f`` (the joint ModelFit, its covariance conditional on the closures) with the covariance and the
+    standard errors of its wall marginalised over the runs' closure parameters. ``wall_rows`` (k, N): the
+    stacked weighted Jacobian of the wall; ``nuisance[r]`` the run's closure rows on its samples
+    ``slices[r]``, weighted by ``weights[r]``; F_w the weighted mean square of the stacked residuals."""
+    k = pm.size
+    blocks = [b for b in nuisance if b.size]
+    if not blocks or f.cov_x is None:
+        return f
+    N = wall_rows.shape[1]
+    rows = [wall_rows]
+    for b, sl, w in zip(nuisance, slices, weights):
+        if b.size:
+            full = np.zeros((b.shape[0], N))
+            full[:, sl] = w * b
+            rows.append(full)
+    J = np.vstack(rows)
+    m = pm.m
+    a, Jr, tau = pm.unpack(x)
+    order = np.argsort(tau, kind="stable")
+    perm = [0] + [1 + int(i) for i in order] + ([1 + m + int(i) for i in order] if pm.tau_free else [])
+    # the wall's free parameters as the conditional covariance has them (bounds, vanished elements)
+    diag = np.diag(np.array(f.cov_x, dtype=float))
+    free_wall = np.zeros(k, dtype=bool)
+    free_wall[perm] = np.isfinite(diag)
+    free = np.concatenate([free_wall, np.ones(J.shape[0] - k, dtype=bool)])
+    cov = covariance(J, F_w, N, rho, free)[:k, :k]
+    se = standard_errors(cov, m, pm.tau_free)
+    c = creep_const(rig)
+    E = c * a * a / Jr
+    eta = E * tau
+
+    def sel(v):
+        return tuple(float(v[i]) for i in order)
+
+    return replace(
+        f, cov_x=[[float(v) for v in row] for row in cov[np.ix_(perm, perm)]], wave_speed_se_m_s=se["a"] * a,
+        E_se_pa=sel([se["E"][i] * E[i] for i in range(m)]), eta_se_pa_s=sel([se["eta"][i] * eta[i] for i in range(m)]),
+        tau_se_s=sel([se["tau"][i] * tau[i] if pm.tau_free else math.nan for i in range(m)]),
+        J_rel_se=sel([se["J_rel"][i] * Jr[i] for i in range(m)]))

@@ -1,0 +1,207 @@
+"""Joint fits of a campaign (velab fit --joint, velab.fitting.joint; issue 25 parts 1 and 3).
+
+Data the fitter did not make: `velab synth` (the time-domain model with the rig's real butterfly valve
+on its sigmoid in position, the orifice law and quadratic friction) on the reference rig at three
+steady flows, sigma 0.1 m, exported as head-only CSVs and brought back by `velab import` (so every
+run's closure is fitted as nuisance parameters). Records of 8 s after the trigger keep the module at
+a few tens of seconds.
+"""
+
+import hashlib
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from velab.cli import main
+from velab.config import load_material, load_rig
+from velab.fitting.engine import HeadEvaluator
+from velab.fitting.joint import StackedEvaluator, head_sha256
+from velab.runfile import read_run
+
+WINDOW = 8.0
+RIG = Path(__file__).resolve().parents[1] / "configs" / "rigs" / "perugia.toml"
+
+
+def _rig_file(tmp: Path, q0_l_s: float, length_m: float | None = None) -> Path:
+    text = RIG.read_text()
+    text = text.replace("steady_flow_m3_s = 3.64e-3", f"steady_flow_m3_s = {q0_l_s / 1e3!r}")
+    if length_m is not None:
+        text = text.replace("length_m = 102.58", f"length_m = {length_m!r}")
+    out = tmp / f"rig_{q0_l_s:g}_{length_m or 'ref'}.toml"
+    out.write_text(text)
+    return out
+
+
+def _csv_run(tmp: Path, name: str, q0_l_s: float, material: str, seed: int, length_m: float | None = None) -> Path:
+    """`velab synth` -> head-only CSV -> `velab import`: a run file whose closure the fit must find."""
+    rig = _rig_file(tmp, q0_l_s, length_m)
+    synth = tmp / f"synth_{name}.h5"
+    assert main(["synth", "--rig", str(rig), "--material", material, "--duration", str(WINDOW), "--pretrigger", "0.6",
+                 "--seed", str(seed), "-o", str(synth), "-q"]) == 0
+    run = read_run(synth)
+    csv = tmp / f"{name}.csv"
+    with open(csv, "w") as f:
+        f.write("time_s,head_m\n")
+        for a, b in zip(run.time_s, run.head_m):
+            f.write(f"{a:.6f},{b:.6f}\n")
+    out = tmp / f"{name}.h5"
+    assert main(["import", str(csv), "--rig", str(rig), "-o", str(out), "-q"]) == 0
+    return out
+
+
+def _file_sha(path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    """Three runs of material A's pipe at 2.5, 3.64 and 4.5 l/s, and one of material B's wall."""
+    tmp = tmp_path_factory.mktemp("campaign")
+    runs = [_csv_run(tmp, f"r{i + 1}", q, "A", seed) for i, (q, seed) in enumerate(((2.5, 21), (3.64, 22), (4.5, 23)))]
+    other = _csv_run(tmp, "wall_b", 3.0, "B", 24)
+    return tmp, runs, other
+
+
+@pytest.fixture(scope="module")
+def joint(campaign):
+    """`velab fit r1.h5 r2.h5 r3.h5 --joint --json --plot`: the document, saved into the runs."""
+    tmp, runs, _ = campaign
+    before = {p: head_sha256(read_run(p).time_s, read_run(p).head_m) for p in runs}
+    figure = tmp / "campaign.png"
+    import contextlib
+    import io
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(["fit", *map(str, runs), "--joint", "--json", "--window", str(WINDOW), "--plot", str(figure)])
+    assert code == 0
+    return json.loads(out.getvalue()), before, figure
+
+
+def test_three_runs_of_one_pipe_give_its_wall(joint):
+    """Issue 25's acceptance: S3, a within 0.5 m/s of 353.73, no run disagreeing, every run's residual at
+    its own noise."""
+    doc, _, _ = joint
+    best = next(m for m in doc["models"] if m["name"] == doc["best"])
+    detail = json.dumps({k: doc[k] for k in ("best", "warnings", "runs")}, default=str)[:3000]
+    assert doc["best"] == "S3", detail
+    assert abs(best["wave_speed"] - 353.73) <= 0.5, detail
+    assert not [w for w in doc["warnings"] if w["code"] == "misfit"], detail
+    assert len(doc["runs"]) == 3
+    for r in doc["runs"]:
+        assert {"path", "n", "noise_ratio", "disagrees", "head_sha256", "steady_flow_m3_s"} <= set(r)
+        assert r["disagrees"] is False and 0.8 < r["noise_ratio"] < 1.2 and r["n"] == 8000, r
+    assert sorted(round(r["steady_flow_m3_s"] * 1e3, 2) for r in doc["runs"]) == [2.5, 3.64, 4.5]
+    # k counts the shared wall and every run's closure (six each)
+    assert best["k"] == 7 + 3 * 6 and doc["settings"]["k_nuisance"] == 18
+    # the likelihood is the runs' n_r ln F_r summed: N ln F of the pooled F
+    assert best["n"] == 24000
+
+
+def test_the_joint_wave_speed_is_more_precise_than_any_single_run(joint, campaign, capsys):
+    doc, _, _ = joint
+    _, runs, _ = campaign
+    best = next(m for m in doc["models"] if m["name"] == doc["best"])
+    single = []
+    for p in runs:
+        capsys.readouterr()
+        assert main(["fit", str(p), "--json", "--no-save", "--window", str(WINDOW)]) == 0
+        d = json.loads(capsys.readouterr().out)
+        one = next(m for m in d["models"] if m["name"] == d["best"])
+        single.append(one["wave_speed_se"])
+    assert best["wave_speed_se"] < min(single), (best["wave_speed_se"], single)
+
+
+@pytest.mark.parametrize("t_s", [0.5, 5.0, pytest.param(0.05, marks=pytest.mark.xfail(
+    strict=True, reason="head-only: the refined closures (coupling 0.1-0.3 for 1, power 1.8-1.9 for 2) leave "
+                        "J(0.05 s) 0.6-0.8 % high against a band of +-0.5 %; docs/fitting.md, 'Joint fits'"))])
+def test_the_true_creep_lies_in_the_joint_band(joint, t_s):
+    doc, _, _ = joint
+    best = next(m for m in doc["models"] if m["name"] == doc["best"])
+    c = best["creep"]
+    t = np.array(c["t_s"])
+    truth = load_material("A").creep_compliance(np.array([t_s]))[0]
+    lo, hi = (float(np.exp(np.interp(np.log(t_s), np.log(t), np.log(np.array(c[k], dtype=float))))) for k in
+              ("lower", "upper"))
+    assert lo <= truth <= hi, (t_s, truth, lo, hi)
+    assert hi / lo < 1.5  # a band, not a blanket
+
+
+def test_the_joint_fit_is_saved_into_every_run_naming_the_others(joint, campaign, capsys):
+    doc, before, figure = joint
+    _, runs, _ = campaign
+    assert figure.stat().st_size > 10_000
+    for i, p in enumerate(runs):
+        run = read_run(p)
+        assert head_sha256(run.time_s, run.head_m) == before[p]  # the recorded data untouched
+        with h5py.File(p, "r") as fh:
+            g = fh["entry/fits/joint_w8s"]
+            assert g.attrs["velab_fit_kind"] == "joint"
+        capsys.readouterr()
+        assert main(["info", str(p)]) == 0
+        text = capsys.readouterr().out
+        assert "joint fit joint_w8s: 3 runs, best S3" in text
+        others = [q for q in runs if q != p]
+        for q in others:
+            assert f"other run: {q} (head sha256 {before[q][:16]}" in text
+        assert f"this run: {p}" in text
+        capsys.readouterr()
+        assert main(["info", str(p), "--json"]) == 0
+        stored = json.loads(capsys.readouterr().out)["fits"]["joint_w8s"]
+        assert stored["run_index"] == i and stored["fit_kind"] == "joint"
+        assert [o["head_sha256"] for o in stored["other_runs"]] == [before[q] for q in others]
+
+
+def test_a_run_of_another_wall_is_named(campaign, capsys):
+    """Material B's run among material A's: named, with a per-run misfit warning carrying its path; the
+    others still agree and the wall is still A's."""
+    _, runs, other = campaign
+    capsys.readouterr()
+    assert main(["fit", *map(str, runs), str(other), "--joint", "--json", "--no-save", "--window", str(WINDOW)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    misfits = [w for w in doc["warnings"] if w["code"] == "misfit"]
+    assert [w["run"] for w in misfits] == [str(other)] and str(other) in misfits[0]["message"], doc["warnings"]
+    assert [r["disagrees"] for r in doc["runs"]] == [False, False, False, True]
+    best = next(m for m in doc["models"] if m["name"] == doc["best"])
+    assert doc["best"] == "S3" and abs(best["wave_speed"] - 353.73) <= 0.5
+
+
+def test_bad_input_is_one_line_naming_the_file_and_nothing_is_written(campaign, tmp_path, capsys):
+    _, runs, _ = campaign
+    damaged = tmp_path / "damaged.h5"
+    damaged.write_bytes(b"not a run file at all")
+    another = _csv_run(tmp_path, "long_pipe", 3.64, "A", 5, length_m=150.0)
+    cases = [
+        ([str(runs[0]), str(tmp_path / "missing.h5")], str(tmp_path / "missing.h5")),
+        ([str(runs[0]), str(damaged)], str(damaged)),
+        ([str(runs[0]), str(another)], str(another)),
+        ([str(runs[0]), str(runs[0])], str(runs[0])),
+        ([str(runs[0])], "two or more runs"),
+    ]
+    files = [*runs, another]
+    shas = {p: _file_sha(p) for p in files}
+    for argv, named in cases:
+        capsys.readouterr()
+        assert main(["fit", *argv, "--joint", "--window", str(WINDOW)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and named in err, err
+    assert main(["fit", str(runs[0]), str(runs[1]), "--joint", "--reduced"]) == 2
+    assert "--reduced" in capsys.readouterr().err
+    assert {p: _file_sha(p) for p in files} == shas
+
+
+def test_the_stacked_evaluator_is_the_runs_weighted_rows():
+    rig = load_rig("perugia")
+    t1, t2 = np.arange(0, 2000) / 1000.0, np.arange(0, 1500) / 500.0
+    evs = [HeadEvaluator(rig, t1, band_hz=None),
+           HeadEvaluator(rig.with_changes(steady_flow_m3_s=2.5e-3), t2, band_hz=None)]
+    st = StackedEvaluator(evs, [2.0, 0.5])
+    J, tau = np.array([0.04, 0.4]), np.array([0.2, 2.0])
+    h, jac = st.head_jac_x(353.0, J, tau, True)
+    for e, w, sl in zip(evs, (2.0, 0.5), st.slices()):
+        he, je = e.head_jac_x(353.0, J, tau, True)
+        assert np.allclose(h[sl], w * he) and np.allclose(jac[:, sl], w * je)
+    assert np.allclose(st.head(353.0, J, tau), h) and st.n_t == 3500
