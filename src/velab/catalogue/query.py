@@ -44,6 +44,45 @@ def parse_when(text: str, end: bool = False) -> float:
     return t - 1e-6 if end and len(s) == 10 else t
 
 
+Q0_TOLERANCE = 0.03  # a single --q0 value: within 3 % (a flowmeter's reading around a set steady flow)
+
+
+def parse_range(text: str, tolerance: float = Q0_TOLERANCE) -> tuple[float | None, float | None]:
+    """``MIN:MAX`` (either side may be empty), ``VALUE~TOL`` or ``VALUE`` (within ``tolerance`` of it) -> (lo, hi)."""
+    s = str(text).strip()
+    try:
+        if ":" in s:
+            lo_s, hi_s = (p.strip() for p in s.split(":", 1))
+            lo = float(lo_s) if lo_s else None
+            hi = float(hi_s) if hi_s else None
+        elif "~" in s:
+            v, tol = (float(p) for p in s.split("~", 1))
+            if tol < 0:
+                raise ValueError
+            lo, hi = v - tol, v + tol
+        else:
+            v = float(s)
+            lo, hi = v - abs(v) * tolerance, v + abs(v) * tolerance
+    except ValueError:
+        raise ValueError(f"not a range: {text!r} (use MIN:MAX, MIN:, :MAX, VALUE~TOL or VALUE)") from None
+    if any(x is not None and not math.isfinite(x) for x in (lo, hi)):
+        raise ValueError(f"not a range: {text!r} (the bounds must be finite numbers)")
+    if lo is None and hi is None:
+        raise ValueError(f"not a range: {text!r} (give at least one bound)")
+    if lo is not None and hi is not None and lo > hi:
+        raise ValueError(f"not a range: {text!r} (MIN {lo:g} is above MAX {hi:g})")
+    return lo, hi
+
+
+def row_flow(row: dict) -> float | None:
+    """The run's steady flow Q0, l/s: the measured one where recorded, else the manoeuvre's (as the table shows)."""
+    for k in ("measured_flow_l_s", "steady_flow_l_s"):
+        v = row.get(k)
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v:
+            return float(v)
+    return None
+
+
 def row_time(row: dict) -> float | None:
     """When the run started (epoch s); the file's mtime for a damaged file or a run without a start time."""
     s = row.get("start_time")
@@ -67,6 +106,7 @@ class Filters:
     since: float | None = None  # epoch s, start time >= since
     until: float | None = None  # epoch s, start time <= until
     text: tuple[str, ...] = ()  # every word in title, operator, specimen or notes, any case
+    q0: tuple[float | None, float | None] | None = None  # steady flow (l/s) range, either bound may be None
 
     def match(self, row: dict) -> bool:
         if self.status and row.get("status") not in self.status:
@@ -80,6 +120,10 @@ class Filters:
         if self.since is not None or self.until is not None:
             t = row_time(row)
             if t is None or (self.since is not None and t < self.since) or (self.until is not None and t > self.until):
+                return False
+        if self.q0 is not None:
+            q, (lo, hi) = row_flow(row), self.q0
+            if q is None or (lo is not None and q < lo) or (hi is not None and q > hi):
                 return False
         if self.text:
             hay = " ".join(str(row.get(k) or "") for k in ("title", "operator", "specimen", "notes")).lower()

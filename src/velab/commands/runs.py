@@ -34,6 +34,9 @@ def register(sub) -> None:
     p.add_argument("--rig", default="", metavar="TEXT", help="only runs whose rig name contains TEXT (any case)")
     p.add_argument("--since", metavar="DATE", help="only runs started on or after DATE (YYYY-MM-DD or ISO 8601)")
     p.add_argument("--until", metavar="DATE", help="only runs started on or before DATE (a bare date: that whole day)")
+    p.add_argument("--q0", metavar="MIN:MAX",
+                   help="only runs whose steady flow (l/s; the measured one where recorded) is in MIN:MAX "
+                        "(either side may be empty), VALUE~TOL, or VALUE (within 3 %%)")
     p.add_argument("--text", action="append", default=[], metavar="WORD",
                    help="only runs whose title, operator, specimen or notes contain WORD (any case; repeat: all)")
     p.add_argument("--sort", default="start", metavar="KEY",
@@ -51,7 +54,7 @@ def register(sub) -> None:
 
 def filters_of(args: argparse.Namespace):
     """The Filters of the options; a bad value is a one-line DataError (exit 2)."""
-    from velab.catalogue.query import STATUSES, Filters, parse_when
+    from velab.catalogue.query import STATUSES, Filters, parse_range, parse_when
 
     status = tuple(s for v in args.status for s in _words(v))
     for s in status:
@@ -65,8 +68,14 @@ def filters_of(args: argparse.Namespace):
         except ValueError as exc:
             raise DataError(f"--{opt}: {exc}") from None
     since, until = when["since"], when["until"]
+    q0 = None
+    if args.q0 is not None:
+        try:
+            q0 = parse_range(args.q0)
+        except ValueError as exc:
+            raise DataError(f"--q0: {exc}") from None
     return Filters(status=status, best=tuple(b for v in args.best for b in _words(v)), rig=args.rig.strip(),
-                   since=since, until=until, text=tuple(w for w in args.text if w.strip()))
+                   since=since, until=until, text=tuple(w for w in args.text if w.strip()), q0=q0)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -14,7 +14,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QFileDialog, QFormL
                                QProgressBar, QPushButton, QScrollArea, QSplitter, QTableView, QTabWidget, QVBoxLayout,
                                QWidget)
 
-from velab.catalogue.query import STATUSES, Filters, parse_when
+from velab.catalogue.query import STATUSES, Filters, parse_range, parse_when
 from velab.gui import tasks
 from velab.gui.archive_io import (RefitOptions, export_csv, export_report_figure, export_rows, index_folder, load_run,
                                   refit, refit_many)
@@ -280,13 +280,19 @@ class ArchiveBrowser(QWidget):
         self.since_filter.setPlaceholderText("since YYYY-MM-DD")
         self.until_filter = QLineEdit()
         self.until_filter.setPlaceholderText("until YYYY-MM-DD")
+        self.q0_filter = QLineEdit()
+        self.q0_filter.setPlaceholderText("Q0 l/s: 3.6, 3.4:3.8")
+        self._q0_tip = ("steady flow, l/s (the measured one where recorded): MIN:MAX (either side may be empty), "
+                        "VALUE~TOL, or VALUE (within 3 %), as velab runs --q0")
+        self.q0_filter.setToolTip(self._q0_tip)
         self.text_filter = QLineEdit()
         self.text_filter.setPlaceholderText("text in title, operator, specimen, notes")
         self.status_filter.currentIndexChanged.connect(lambda *_: self.filter_timer.start())
-        for w in (self.best_filter, self.rig_filter, self.since_filter, self.until_filter, self.text_filter):
+        for w in (self.best_filter, self.rig_filter, self.since_filter, self.until_filter, self.q0_filter,
+                  self.text_filter):
             w.textChanged.connect(lambda *_: self.filter_timer.start())
         for w, stretch in ((self.status_filter, 0), (self.best_filter, 0), (self.rig_filter, 0),
-                           (self.since_filter, 0), (self.until_filter, 0), (self.text_filter, 1)):
+                           (self.since_filter, 0), (self.until_filter, 0), (self.q0_filter, 0), (self.text_filter, 1)):
             filt.addWidget(w, stretch)
         lay.addLayout(filt)
         self.model = CatalogueModel(self)
@@ -326,24 +332,30 @@ class ArchiveBrowser(QWidget):
         lay.addLayout(acts)
         return panel
 
+    @staticmethod
+    def _parsed(w: QLineEdit, parse, tip: str = ""):
+        """parse(text) of a filter field, None when empty; a value that does not parse is marked and ignored."""
+        text = w.text().strip()
+        try:
+            value = parse(text) if text else None
+            w.setStyleSheet("")
+            w.setToolTip(tip)
+            return value
+        except ValueError as exc:
+            w.setStyleSheet("color: rgb(190, 30, 30)")
+            w.setToolTip(str(exc))
+            return None
+
     def filters(self) -> Filters:
-        """The filter fields as velab.catalogue Filters; a date that does not parse is marked and ignored."""
-        when = {}
-        for name, w, end in (("since", self.since_filter, False), ("until", self.until_filter, True)):
-            text = w.text().strip()
-            try:
-                when[name] = parse_when(text, end=end) if text else None
-                w.setStyleSheet("")
-                w.setToolTip("")
-            except ValueError as exc:
-                when[name] = None
-                w.setStyleSheet("color: rgb(190, 30, 30)")
-                w.setToolTip(str(exc))
+        """The filter fields as velab.catalogue Filters; a date or range that does not parse is marked and ignored."""
+        when = {name: self._parsed(w, lambda t, end=end: parse_when(t, end=end))
+                for name, w, end in (("since", self.since_filter, False), ("until", self.until_filter, True))}
+        q0 = self._parsed(self.q0_filter, parse_range, self._q0_tip)
         status = self.status_filter.currentData()
         return Filters(status=(status,) if status else (),
                        best=tuple(b.strip() for b in self.best_filter.text().split(",") if b.strip()),
                        rig=self.rig_filter.text().strip(), since=when["since"], until=when["until"],
-                       text=tuple(self.text_filter.text().split()))
+                       text=tuple(self.text_filter.text().split()), q0=q0)
 
     def apply_filters(self) -> None:
         self.model.set_filters(self.filters())
