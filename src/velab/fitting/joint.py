@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import time
 from dataclasses import dataclass, field, replace
 
@@ -39,6 +40,7 @@ from velab.fitting.engine import HeadEvaluator, sumsq
 from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
 from velab.fitting.manoeuvre import refine_closure, valve_input
 from velab.fitting.nuisance import closure_rows, marginalised
+from velab.fitting.parallel import map_pair
 from velab.fitting.params import ParamMap, creep_const, derive_bounds
 from velab.fitting.prepare import PreparedRecord, prepare_record
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
@@ -105,6 +107,13 @@ def check_same_pipe(runs: list[CampaignRun]) -> None:
             if not math.isclose(v, k0[name], rel_tol=GEOMETRY_RTOL):
                 raise DataError(f"{r.path}: another pipe than {ref.path} ({name} {v:g} against {k0[name]:g}); "
                                 f"a joint fit needs runs of one pipe")
+
+
+def per_run(fn, items: list) -> list:
+    """[fn(item) for item in items], shared out over two threads on a machine with two cores or more: each
+    run's own work (closure fits, time-domain heads) touches only that run's objects, and the results do
+    not depend on which thread ran which (velab.fitting.parallel.map_pair)."""
+    return map_pair(lambda _, item: fn(item), items, lambda: None, parallel=(os.cpu_count() or 1) > 1)
 
 
 class StackedEvaluator:
@@ -284,7 +293,7 @@ class _JointSweep:
     def evaluate(self, sol: Sol) -> _Model:
         """Each run's model head at ``sol`` (time-domain with a nonlinear friction) and its F."""
         p = sol.pm.unpack(sol.x)
-        heads = [r.model_head(p) for r in self.runs]
+        heads = per_run(lambda r: r.model_head(p), self.runs)
         F = np.array([sumsq(h - r.rec.h) / r.n for h, r in zip(heads, self.runs)])
         return _Model(sol, heads, F)
 
@@ -414,12 +423,13 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     check_same_pipe(sources)
     t0 = time.perf_counter()
     ms = parse_models(list(models) if isinstance(models, range) else models)
-    runs = []
-    for s in sources:
+    def make(s):
         try:
-            runs.append(_Run(s, window_s, manoeuvre, friction, friction_unsteady))
+            return _Run(s, window_s, manoeuvre, friction, friction_unsteady)
         except DataError as exc:
             raise DataError(f"{s.path}: {exc}") from None
+
+    runs = per_run(make, sources)
     dt = min(float(r.rec.t[1] - r.rec.t[0]) for r in runs)
     bounds = derive_bounds(runs[0].rig, dt, max(r.rec.window_s for r in runs), tau_min_s=tau_min_s,
                            tau_max_s=tau_max_s)
@@ -440,9 +450,12 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     for _ in range(REFINE_PASSES if any(r.vi.source == "fitted" for r in runs) else 0):
         first = _first_pass_best(sw, ms, selection)
         p = first.sol.pm.unpack(first.sol.x)
-        for r in runs:
+
+        def refine(r, first=first, p=p):
             r.refine(first, sw.bounds)
             r.set_friction(p)
+
+        per_run(refine, runs)
         for m in range(0, max(ms) + 1):
             sw.final[m] = sw.continue_model(m, sw.final[m])
     top = min(sw.final.values(), key=lambda f: f.loglik(runs))
@@ -450,7 +463,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     k_nuis = sum(r.vi.k for r in runs)
     # the closures' columns at the best-fitting wall, for the wall's covariance marginalised over them
     p_top = top.sol.pm.unpack(top.sol.x)
-    nuisance = [closure_rows(r.rig, r.rec.t, r.rec.h, r.ev_f, r.vi, p_top) for r in runs]
+    nuisance = per_run(lambda r: closure_rows(r.rig, r.rec.t, r.rec.h, r.ev_f, r.vi, p_top), runs)
     fits = [sw.summarise(m, sw.final[m], k_nuis, nuisance) for m in ms]
     apply_criteria(fits, selection)
     result = JointResult(n=fits[0].n, window_s=max(r.rec.window_s for r in runs),
@@ -503,6 +516,7 @@ def _per_run(runs, sw: _JointSweep, fin: _Model, best: ModelFit, bounds, selecti
     rule on that run: velab.fitting.adequacy.assess), and its own wall under the best model (a polish
     from the joint wall on that run alone) for the campaign figure."""
     out, warnings = [], []
+    owns = per_run(lambda i: _own_wall(sw, i, fin, best.m, bounds), list(range(len(runs))))
     for i, r in enumerate(runs):
         res = fin.heads[i] - r.rec.h
         one = replace(best, n=r.n, F=float(fin.F_runs[i]), lag1_autocorr=lag1(res), at_bounds=[])
@@ -511,7 +525,7 @@ def _per_run(runs, sw: _JointSweep, fin: _Model, best: ModelFit, bounds, selecti
         assess(sr, r.rec, r.rig)
         for w in sr.warnings:
             warnings.append({"code": w["code"], "message": f"{r.src.path}: {w['message']}", "run": r.src.path})
-        own = _own_wall(sw, i, fin, best.m, bounds)
+        own = owns[i]
         out.append({
             "path": r.src.path, "head_sha256": r.src.head_sha256, "n": r.n, "window": r.rec.window_s,
             "sample_rate_hz": r.rec.fit_rate_hz, "record_rate_hz": r.rec.record_rate_hz,

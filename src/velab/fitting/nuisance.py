@@ -24,6 +24,7 @@ import numpy as np
 from velab.fitting.engine import HeadEvaluator
 from velab.fitting.manoeuvre import PARAM_NAMES, T50_MAX_FACTOR, _coupling, closure_flow, from_solver, to_solver
 from velab.fitting.params import ParamMap, creep_const
+from velab.fitting.engine import gram
 from velab.fitting.stats import covariance, standard_errors
 
 STEP = 1e-6  # in the solver's variables (logs of beta, power and share; t50, coupling and tail as they are)
@@ -61,6 +62,13 @@ def closure_rows(rig, t, d, ev_full: HeadEvaluator, vi, params) -> np.ndarray:
     return np.array(rows).reshape(len(rows), np.size(t))
 
 
+def _square_root(A: np.ndarray) -> np.ndarray:
+    """B with B B^T = A (A symmetric, positive semi-definite): the normal matrix as the "rows" that
+    velab.fitting.stats.covariance takes (it only ever forms their Gram matrix)."""
+    w, Q = np.linalg.eigh(A)
+    return Q * np.sqrt(np.maximum(w, 0.0))
+
+
 def marginalised(f, pm: ParamMap, x, wall_rows: np.ndarray, nuisance: list[np.ndarray], slices, weights,
                  F_w: float, rho: float, rig):
     """``f`` (the joint ModelFit, its covariance conditional on the closures) with the covariance and the
@@ -72,13 +80,19 @@ def marginalised(f, pm: ParamMap, x, wall_rows: np.ndarray, nuisance: list[np.nd
     if not blocks or f.cov_x is None:
         return f
     N = wall_rows.shape[1]
-    rows = [wall_rows]
+    # the normal matrix of [J_wall; V_1; ...; V_R] in blocks (each V_r lives on its own run's samples only)
+    K = sum(b.shape[0] for b in nuisance)
+    A = np.zeros((k + K, k + K))
+    A[:k, :k] = gram(wall_rows)
+    i = k
     for b, sl, w in zip(nuisance, slices, weights):
         if b.size:
-            full = np.zeros((b.shape[0], N))
-            full[:, sl] = w * b
-            rows.append(full)
-    J = np.vstack(rows)
+            V = w * b
+            j = i + V.shape[0]
+            A[:k, i:j] = wall_rows[:, sl] @ V.T
+            A[i:j, :k] = A[:k, i:j].T
+            A[i:j, i:j] = gram(V)
+            i = j
     m = pm.m
     a, Jr, tau = pm.unpack(x)
     order = np.argsort(tau, kind="stable")
@@ -87,8 +101,8 @@ def marginalised(f, pm: ParamMap, x, wall_rows: np.ndarray, nuisance: list[np.nd
     diag = np.diag(np.array(f.cov_x, dtype=float))
     free_wall = np.zeros(k, dtype=bool)
     free_wall[perm] = np.isfinite(diag)
-    free = np.concatenate([free_wall, np.ones(J.shape[0] - k, dtype=bool)])
-    cov = covariance(J, F_w, N, rho, free)[:k, :k]
+    free = np.concatenate([free_wall, np.ones(K, dtype=bool)])
+    cov = covariance(_square_root(A), F_w, N, rho, free)[:k, :k]
     se = standard_errors(cov, m, pm.tau_free)
     c = creep_const(rig)
     E = c * a * a / Jr

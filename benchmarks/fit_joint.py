@@ -1,0 +1,83 @@
+"""A joint fit of a campaign against one run's default fit (velab.fitting.joint; issue 25: a joint fit of
+5 runs must cost at most 3 x one run's fit).
+
+Five head-only runs of material A's pipe on the reference rig, made by the time-domain model with the
+real butterfly valve on a sigmoid in position, the orifice law and quadratic friction, sigma 0.1 m: steady
+flows 2.5, 3.0, 3.64, 4.0 and 4.5 l/s, actuator beta 28-36 1/s, one of them recorded at 2 kHz. Timed
+in the same process, in turn, ``--repeat`` times (medians): the default fit path of the reference run
+(``fit_record``: closure, lead fit and continuation, time-domain polish) and ``fit_joint`` of the five.
+Prints both, the ratio (target <= 3) and the joint fit's best model, wave speed and runs' noise ratios.
+
+    python benchmarks/fit_joint.py                  # 20 s windows, 1 repeat
+    python benchmarks/fit_joint.py --window 8 --repeat 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+
+import numpy as np
+
+from velab.config import load_material, load_rig
+from velab.fitting.joint import CampaignRun, fit_joint, head_sha256
+from velab.fitting.prepare import fit_record
+from velab.model import creep_scale
+from velab.moc import moc_head
+from velab.valvelaw import commanded_position_pct
+
+# (Q0 l/s, actuator beta 1/s, record rate Hz)
+CAMPAIGN = ((3.64, 32.0, 1000.0), (2.5, 28.0, 1000.0), (3.0, 36.0, 2000.0), (4.0, 30.0, 1000.0), (4.5, 34.0, 1000.0))
+
+
+def campaign(window_s: float) -> list[CampaignRun]:
+    mat = load_material("A")
+    out = []
+    for i, (q0, beta, fs) in enumerate(CAMPAIGN):
+        m = load_rig("perugia").manoeuvre
+        rig = load_rig("perugia").with_changes(steady_flow_m3_s=q0 / 1e3,
+                                               manoeuvre=type(m)(beta_per_s=beta, gamma=-beta * m.half_closure_s))
+        a = mat.wave_speed_m_s
+        J = creep_scale(rig, a) * np.array([e.J_per_pa for e in mat.elements])
+        tau = np.array([e.tau_s for e in mat.elements])
+        t = np.arange(-int(fs), int(window_s * fs)) / fs
+        mm = rig.manoeuvre
+        h = moc_head(rig, a, J, tau, t, position=lambda x, mm=mm: commanded_position_pct(x, mm.beta_per_s, mm.gamma))
+        h = rig.steady_head_m + h + np.random.default_rng(100 + i).normal(0.0, 0.1, t.size)
+        out.append(CampaignRun(f"run{i + 1}_{q0:g}lps", t, h, 0.0, rig, fs, None, head_sha256(t, h)))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--window", type=float, default=20.0)
+    ap.add_argument("--repeat", type=int, default=1)
+    args = ap.parse_args(argv)
+    runs = campaign(args.window)
+    ref = runs[0]
+    print(f"# {platform.machine()} {os.cpu_count()} cores, python {platform.python_version()}, numpy {np.__version__};"
+          f" load {os.getloadavg()[0]:.2f}; window {args.window:g} s, {len(runs)} runs")
+    single, joint, result = [], [], None
+    for _ in range(args.repeat):
+        t0 = time.perf_counter()
+        one = fit_record(ref.time_s, ref.head_m, 0.0, ref.rig, args.window, record_rate_hz=ref.record_rate_hz)
+        single.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        result = fit_joint(runs, args.window)
+        joint.append(time.perf_counter() - t0)
+    s, j = statistics.median(single), statistics.median(joint)
+    b = result.best
+    print(f"single fit of {ref.path}: {s:.2f} s (best {one.best.name}, a = {one.best.wave_speed_m_s:.3f} "
+          f"+- {one.best.wave_speed_se_m_s:.3f} m/s)")
+    print(f"joint fit of {len(runs)} runs: {j:.2f} s (best {b.name}, a = {b.wave_speed_m_s:.3f} +- "
+          f"{b.wave_speed_se_m_s:.3f} m/s; noise ratios "
+          + ", ".join(f"{r['noise_ratio']:.3f}" for r in result.runs) + ")")
+    print(f"ratio joint / single: {j / s:.2f} (target <= 3)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
