@@ -45,7 +45,7 @@ from scipy.signal import butter, sosfiltfilt
 from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator, gram, sumsq
-from velab.fitting.solvers import levenberg_marquardt
+from velab.fitting.solvers import LMSolution, levenberg_marquardt
 from velab.fitting.stats import lag1
 from velab.fitting.friction import TimeDomainModel, equivalent_friction
 from velab.model import ValveHeadModel, creep_scale, flow_perturbation, manoeuvre_band_hz, series_impedance
@@ -68,6 +68,7 @@ STARTS = ((2.0, 0.05, 1.0), (1.0, 1.0, 0.0))
 START_POWERS = (0.75, 1.5, 3.0)
 START_SHARES = (0.02, 0.2, 1.0)
 REFINE_ITERATIONS = 15
+REFINE_BROYDEN = True  # Broyden's update between Jacobians (velab.fitting.solvers); the SEs take a fresh one
 REFINE_RATE_PER_BAND = 8.0  # the whole-window refinement runs at this multiple of the manoeuvre's band
 T50_MAX_FACTOR = 4.0  # the flow's half-closure instant is sought up to this multiple of the commanded one (+ 1 s)
 
@@ -283,6 +284,16 @@ class _ClosureProblem:
         self.corr = h_time - self.head_fd(x)
 
 
+def closure_bounds(rig: Rig) -> tuple[np.ndarray, np.ndarray]:
+    """The box of the closure's solver variables (``to_solver``: ln beta, t_half, ln power, ln loss
+    share, coupling, tail): beta within 5x the commanded one, the flow's half-closure instant up to
+    T50_MAX_FACTOR x the commanded one (+ 1 s), power 0.3-6, loss share 0.001-1."""
+    m = rig.manoeuvre
+    lo = np.array([math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), 0.0, 0.0])
+    hi = np.array([math.log(m.beta_per_s * 5), T50_MAX_FACTOR * m.half_closure_s + 1.0, math.log(6.0), 0.0, 1.0, 1.0])
+    return lo, hi
+
+
 def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None) -> ValveInput:
     """The parametric closure fitted on the record's first part (``early_window_s``): t from the
     trigger (starting at 0), d the head perturbation (also the measured head rise of the coupling),
@@ -300,9 +311,9 @@ def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None)
     m = rig.manoeuvre
     a0 = _scan_wave_speed(prob, rig)
     lo = np.array([math.log(a0 * 0.8), math.log(1e-6), math.log(1e-3),
-                   math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), 0.0, 0.0])
+                   *closure_bounds(rig)[0]])
     hi = np.array([math.log(a0 * 1.25), math.log(5.0), math.log(10.0),
-                   math.log(m.beta_per_s * 5), T50_MAX_FACTOR * m.half_closure_s + 1.0, math.log(6.0), 0.0, 1.0, 1.0])
+                   *closure_bounds(rig)[1]])
     # both starts are taken a few steps (the friction correction at the rig's sigmoid), the better one
     # is solved to the end with the correction refreshed at its optimum
     wall0 = [math.log(a0), math.log(0.05), math.log(0.05)]
@@ -472,10 +483,9 @@ def refine_closure(t, d, rig: Rig, vi: ValveInput, fit) -> ValveInput:
         return ((np.vstack([hz, hs]) - h0) / _ClosureProblem.STEP).T
 
     lo = np.concatenate([[math.log(a * 0.9)], np.full(k, math.log(1e-8)), np.full(k, math.log(1e-4)),
-                         [math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), 0.0, 0.0]])
+                         closure_bounds(rig)[0]])
     hi = np.concatenate([[math.log(a * 1.1)], np.full(k, math.log(10.0)), np.full(k, math.log(1e4)),
-                         [math.log(m.beta_per_s * 5), T50_MAX_FACTOR * m.half_closure_s + 1.0, math.log(6.0), 0.0, 1.0,
-                          1.0]])
+                         closure_bounds(rig)[1]])
     # starts: the first part's closure (and its alternatives), and the prototypes of a butterfly
     # discharging to air and of an imposed sigmoid at the same flow half-closure instant: the first part
     # does not tell the shapes apart, the whole window does (from the wrong basin, a slow element took the
@@ -490,16 +500,16 @@ def refine_closure(t, d, rig: Rig, vi: ValveInput, fit) -> ValveInput:
         corr = tm.head(a_, J_, tau_, flow=tm_flow(t, closure_flow(t, hc, rig, v))) - head_fd(np.concatenate([wall, v0]))
     F0 = sumsq(residual(np.clip(np.concatenate([wall, v0]), lo, hi))) / d.size
     tries = [levenberg_marquardt(residual, jacobian, np.clip(np.concatenate([wall, v]), lo, hi), lo, hi,
-                                 max_iter=START_ITERATIONS) for v in starts]
+                                 max_iter=START_ITERATIONS, broyden=REFINE_BROYDEN) for v in starts]
     best = min(tries, key=lambda sol: sumsq(sol.fun))
     x = best.x
     for _ in range(2 if tm.active else 1):
         if tm.active:
             a_, J_, tau_, v = split(x)
             corr = tm.head(a_, J_, tau_, flow=tm_flow(t, closure_flow(t, hc, rig, v))) - head_fd(x)
-        best = levenberg_marquardt(residual, jacobian, x, lo, hi, max_iter=REFINE_ITERATIONS)
+        best = levenberg_marquardt(residual, jacobian, x, lo, hi, max_iter=REFINE_ITERATIONS, broyden=REFINE_BROYDEN)
         x = best.x
-    sol = best
+    sol = best if not REFINE_BROYDEN else LMSolution(best.x, best.fun, jacobian(best.x), best.iterations)
     x = sol.x
     res = sol.fun
     F = sumsq(res) / res.size

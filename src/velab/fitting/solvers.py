@@ -251,15 +251,22 @@ class LMSolution:
     iterations: int
 
 
-def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, ftol: float = 1e-7) -> LMSolution:
+def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, ftol: float = 1e-7,
+                        broyden: bool = False) -> LMSolution:
     """A small bounded Levenberg-Marquardt (steps clipped to the box, Marquardt's diagonal scaling):
     ten parameters and a few thousand residuals, where scipy's trust-region solver spends its time in
-    an SVD per iteration."""
+    an SVD per iteration.
+
+    ``broyden``: the Jacobian is computed once, at the start, and then carried by Broyden's rank-one
+    update along each accepted step (computed again only where a step it predicts fails): for a
+    residual whose Jacobian costs one expensive model run per parameter (the time-domain model),
+    started near its optimum. The returned ``jac`` is then that updated estimate."""
     x = np.clip(np.asarray(x0, dtype=float), lo, hi)
     r = residual(x)
     F = sumsq(r)
     lam = 1e-3
     J = jacobian(x)
+    fresh = True  # J is the Jacobian at x (not an update)
     it = 0
     for it in range(1, max_iter + 1):
         # sums over the samples in fixed blocks (velab.fitting.engine): a threaded BLAS would sum in an
@@ -269,6 +276,7 @@ def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, f
         g = np.array([dot(row, r) for row in Jt])
         D = np.maximum(np.diag(A), 1e-30)
         improved = False
+        tries = 0
         while lam < 1e12:
             try:
                 step = np.linalg.solve(A + lam * np.diag(D), -g)
@@ -282,12 +290,27 @@ def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, f
                 improved = True
                 break
             lam *= 4.0
+            tries += 1
+            if broyden and not fresh and tries >= 2:
+                break  # the updated Jacobian no longer predicts: compute it again here
         if not improved:
+            if broyden and not fresh:
+                J, fresh = jacobian(x), True
+                continue
             break
         gain = (F - Fn) / F
+        s = xn - x
+        if broyden:
+            ss = float(s @ s)
+            if ss > 0.0:
+                J = J + np.outer((rn - r) - J @ s, s) / ss
+            fresh = False
         x, r, F = xn, rn, Fn
         lam = max(lam / 3.0, 1e-12)
-        J = jacobian(x)
         if gain < ftol:
+            if not broyden:
+                J = jacobian(x)
             break
+        if not broyden:
+            J = jacobian(x)
     return LMSolution(x, r, J, it)

@@ -83,6 +83,9 @@ MOC_POLISH_AIC = 15.0
 MOC_POLISH_MAX = 3
 MOC_POLISH_ITERATIONS = 6
 MOC_POLISH_STEP = 1e-5  # finite-difference step in the log variables
+# one finite-difference Jacobian (a MOC run per parameter) at the defect correction's end, which is
+# near the optimum, then Broyden's update along the steps (velab.fitting.solvers.levenberg_marquardt)
+MOC_POLISH_BROYDEN = True
 
 __all__ = ["fit_sweep", "parse_models", "METHODS", "MAX_M", "prepare_window", "lowpass_decimate"]
 
@@ -468,7 +471,8 @@ class _Sweep:
                 cols.append((tm.head(*pm.unpack(xp)) - h0) / step)
             return np.array(cols).T
 
-        sol = levenberg_marquardt(residual, jacobian, fin.sol.x, lo, hi, max_iter=MOC_POLISH_ITERATIONS, ftol=1e-9)
+        sol = levenberg_marquardt(residual, jacobian, fin.sol.x, lo, hi, max_iter=MOC_POLISH_ITERATIONS, ftol=1e-9,
+                                  broyden=MOC_POLISH_BROYDEN)
         F = sumsq(sol.fun) / sol.fun.size
         if not F < fin.sol.F:
             return fin
