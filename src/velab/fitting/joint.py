@@ -271,7 +271,11 @@ class _JointSweep:
 
     # ------------------------------------------------------------ stages
     def weights(self) -> np.ndarray:
-        return np.array([1.0 / math.sqrt(r.var) if r.var else 1.0 for r in self.runs])
+        # a run without a usable baseline (too short) starts at the others' typical variance until its own
+        # F replaces it (after the first model's polish)
+        known = [r.var for r in self.runs if r.var]
+        fallback = float(np.median(known)) if known else 1.0
+        return np.array([1.0 / math.sqrt(r.var or fallback) for r in self.runs])
 
     def stage(self, grid: str, base: _Model | None) -> Stage:
         """The stacked stage on ``grid`` ("c", "m", "f"), its data defect-corrected at ``base``: each run's
@@ -472,11 +476,17 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     best = result.best
     result.settings = _settings(runs, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s)
     result.runs, result.warnings = _per_run(runs, sw, sw.final[best.m], best, bounds, selection)
+    if all(r["disagrees"] for r in result.runs):
+        # every run beyond its noise: the model (or the rig files), not one run, does not describe them
+        result.warnings.insert(0, {"code": "misfit", "message": f"the best model {best.name} leaves residuals above "
+                                   f"the noise in every run: its wall is not the pipe's; check the rig files, the "
+                                   f"valve, air, friction, and the models fitted"})
     result.record_rate_hz = max(r.rec.record_rate_hz for r in runs)
     result.anti_alias_filter = "per run (runs[].anti_alias_filter)"
     if all(r.noise_var for r in runs):
         # pooled as F is (n-weighted geometric mean), so that a model's noise_ratio is F / noise^2
         result.baseline_noise_m = math.exp(sum(r.n * math.log(r.noise_var) for r in runs) / (2 * result.n))
+        result.baseline_lag1 = float(np.average([r.rec.baseline_lag1 for r in runs], weights=[r.n for r in runs]))
     result.adequacy = {"baseline_samples": int(sum(r.rec.baseline_samples for r in runs)), "misfit_bound": None,
                        "per_run": "the misfit rule is applied to each run (runs[].misfit_bound, runs[].disagrees)"}
     if best.at_bounds:
