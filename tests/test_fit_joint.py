@@ -205,3 +205,40 @@ def test_the_stacked_evaluator_is_the_runs_weighted_rows():
         he, je = e.head_jac_x(353.0, J, tau, True)
         assert np.allclose(h[sl], w * he) and np.allclose(jac[:, sl], w * je)
     assert np.allclose(st.head(353.0, J, tau), h) and st.n_t == 3500
+
+
+def test_runs_may_differ_in_rate_manoeuvre_and_valve_input():
+    """A 2 kHz run with its recorded valve position beside a 1 kHz head-only run with a slower actuator at
+    another flow (the time-domain model, real butterfly valve, quadratic friction): the true model and
+    wave speed; each run at its own fit rate; only the head-only run's closure counted as nuisance."""
+    from velab.fitting.joint import CampaignRun, fit_joint
+    from velab.model import creep_scale
+    from velab.moc import moc_head
+    from velab.valvelaw import commanded_position_pct
+
+    A = load_material("A")
+    base = load_rig("perugia")
+    sources = []
+    for i, (q0, beta, fs, with_position) in enumerate(((3.64, 32.0, 2000.0, True), (2.8, 27.0, 1000.0, False))):
+        m = base.manoeuvre
+        rig = base.with_changes(steady_flow_m3_s=q0 / 1e3,
+                                manoeuvre=type(m)(beta_per_s=beta, gamma=-beta * m.half_closure_s))
+        a = A.wave_speed_m_s
+        J = creep_scale(rig, a) * np.array([e.J_per_pa for e in A.elements])
+        tau = np.array([e.tau_s for e in A.elements])
+        t = np.arange(-int(0.6 * fs), int(6.0 * fs)) / fs
+
+        def position(x, beta=beta, gamma=rig.manoeuvre.gamma):
+            return commanded_position_pct(x, beta, gamma)
+
+        h = rig.steady_head_m + moc_head(rig, a, J, tau, t, position=position)
+        h = h + np.random.default_rng(30 + i).normal(0.0, 0.1, t.size)
+        pos = position(t) + np.random.default_rng(40 + i).normal(0.0, 0.02, t.size) if with_position else None
+        sources.append(CampaignRun(f"run{i}", t, h, 0.0, rig, fs, pos, head_sha256(t, h)))
+    r = fit_joint(sources, 6.0, models="1-4")
+    assert r.best.name == "S3" and abs(r.best.wave_speed_m_s - 353.73) <= 0.5, r.report()
+    assert [x["record_rate_hz"] for x in r.runs] == [2000.0, 1000.0]
+    assert [x["sample_rate_hz"] for x in r.runs] == [1000.0, 1000.0]  # 2 kHz fitted at 1 kHz (prepare_record)
+    assert [x["manoeuvre"]["source"] for x in r.runs] == ["position", "fitted"]
+    assert r.settings["k_nuisance"] == 6 and r.best.k == 7 + 6
+    assert not r.warnings and not any(x["disagrees"] for x in r.runs), r.warnings
