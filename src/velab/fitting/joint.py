@@ -358,7 +358,10 @@ class _JointSweep:
         pm = old.sol.pm
         if m in self.not_searched:
             return self.embedded(pm, self.final[m - 1])
-        fin = self.polish(pm, old.sol.x, self.evaluate(old.sol), first_nfev=25)
+        start = self.evaluate(old.sol)
+        fin = self.polish(pm, old.sol.x, start, first_nfev=25)
+        if start.loglik(self.runs) < fin.loglik(self.runs):
+            fin = start  # (a polish accepts only steps that lower its objective, whose weights moved)
         ref = self.final.get(m - 1)
         if ref is not None and fin.loglik(self.runs) > ref.loglik(self.runs):
             fin = self.embedded(pm, ref)
