@@ -93,3 +93,26 @@ def test_the_archive_tab_filters_on_q0(qtbot, flows, tmp_path):
         qtbot.waitUntil(lambda: "MIN:MAX" in arch.q0_filter.toolTip(), timeout=5000)
     finally:
         win.close()
+
+
+def test_the_index_columns_cover_every_filter_and_sort_field():
+    """A listing filters and sorts the light rows (no JSON decoded): they must carry every field used."""
+    from velab.catalogue.index import LIGHT
+    from velab.catalogue.query import FILTER_FIELDS, SORT_KEYS
+
+    assert set(FILTER_FIELDS) | set(SORT_KEYS.values()) <= set(LIGHT) | {"path"}
+
+
+def test_light_and_whole_listings_agree(flows, capsys, tmp_path):
+    """The JSON document (stored texts copied) and the CSV (rows decoded) of the same filtered, sorted listing."""
+    import csv
+
+    from velab.catalogue.rows import COLUMNS
+
+    assert main(["runs", str(flows), "--json", "--q0", "3:", "--sort=-q0"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert main(["runs", str(flows), "--csv", "--q0", "3:", "--sort=-q0"]) == 0
+    rows = list(csv.DictReader(capsys.readouterr().out.splitlines()))
+    assert [r["path"] for r in rows] == [r["path"] for r in doc["runs"]] and len(rows) == 3
+    assert all(set(r) == set(COLUMNS) for r in doc["runs"])  # every column, not only the light ones
+    assert [float(r["steady_flow_l_s"]) for r in rows] == [r["steady_flow_l_s"] for r in doc["runs"]]

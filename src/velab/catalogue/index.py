@@ -36,7 +36,14 @@ from velab.catalogue import RUN_SUFFIXES
 
 log = logging.getLogger("velab.catalogue")
 
-SCHEMA = 1
+SCHEMA = 2  # 2: the light columns
+# the fields filters and sort keys use, kept as columns beside the row's JSON: a listing filters and sorts
+# on them without decoding 10,000 JSON rows (velab.catalogue.query.FILTER_FIELDS and SORT_KEYS)
+LIGHT = ("kind", "status", "start_time", "mtime", "title", "operator", "specimen", "notes", "rig", "best_model",
+         "steady_flow_l_s", "measured_flow_l_s", "beta_per_s", "sample_rate_hz", "duration_s", "wave_speed_m_s",
+         "wave_speed_se_m_s", "n_fits", "noise_ratio")
+_KEY = slice(len(LIGHT) + 1, len(LIGHT) + 4)  # (size, mtime_ns, ino) in a stored() tuple
+_COLUMNS = ("path", "size", "mtime_ns", "ino", "row", "indexed") + tuple("l_" + k for k in LIGHT)
 FILE_NAME = "catalogue.sqlite"
 BESIDE_NAME = ".velab-catalogue.sqlite"
 BUSY_TIMEOUT_MS = 30_000
@@ -86,6 +93,13 @@ class Listing:
     removed: int = 0
     seconds: float = 0.0
     index_path: str = ""
+    texts: dict[str, str] = field(default_factory=dict)  # path -> the row as strict JSON, where it is as stored
+
+    def full(self, row: dict) -> dict:
+        """The whole row of a light one (``update(light=True)``); a whole row as it is."""
+        if "elements" in row or row["path"] not in self.texts:  # every whole row has "elements"
+            return row
+        return json.loads(self.texts[row["path"]])
 
 
 def scan(roots: Iterable[str | os.PathLike]) -> dict[str, tuple[int, int, int]]:
@@ -108,7 +122,7 @@ def scan(roots: Iterable[str | os.PathLike]) -> dict[str, tuple[int, int, int]]:
                 try:
                     if entry.is_dir(follow_symlinks=False):
                         walk(entry.path)
-                    elif os.path.splitext(entry.name)[1].lower() in RUN_SUFFIXES and entry.is_file():
+                    elif entry.name.lower().endswith(RUN_SUFFIXES) and entry.is_file():
                         add(entry.path, entry.stat())
                 except OSError:
                     continue  # vanished meanwhile (a writer's rename)
@@ -163,7 +177,8 @@ class Catalogue:
             if not _ready(db):
                 db.execute("DROP TABLE IF EXISTS files")
                 db.execute("CREATE TABLE IF NOT EXISTS files (path TEXT PRIMARY KEY, size INTEGER, "
-                           "mtime_ns INTEGER, ino INTEGER, kind TEXT, row TEXT, indexed REAL)")
+                           "mtime_ns INTEGER, ino INTEGER, row TEXT, indexed REAL, "
+                           + ", ".join(f"l_{k}" for k in LIGHT) + ")")
                 db.execute(f"PRAGMA user_version={_version()}")
             db.execute("COMMIT")
         except BaseException:
@@ -225,17 +240,20 @@ class Catalogue:
 
     # ------------------------------------------------------------------ reading
     def stored(self, roots: Iterable[str | os.PathLike]) -> dict[str, tuple]:
-        """path -> (size, mtime_ns, ino, kind, row JSON) of what the index holds under the roots."""
+        """path -> (path, *the LIGHT fields, size, mtime_ns, ino, row JSON) of what the index holds under the roots.
+
+        In this order so that ``dict(zip(("path",) + LIGHT, t))`` is the light row and ``t[_KEY]`` the file's key.
+        """
         out = {}
+        light = ", ".join(f"l_{k}" for k in LIGHT)
         for r in roots:
             r = os.path.abspath(os.fspath(r))
-            q = "SELECT path, size, mtime_ns, ino, kind, row FROM files WHERE "
+            q = f"SELECT path, {light}, size, mtime_ns, ino, row FROM files WHERE "
             if os.path.isdir(r):
                 rows = self._query(q + "path >= ? AND path < ?", _prefix_range(r))
             else:
                 rows = self._query(q + "path = ?", (r,))
-            for p, *rest in rows:
-                out[p] = tuple(rest)
+            out.update({t[0]: t for t in rows})
         return out
 
     def _query(self, sql: str, params=()) -> list:
@@ -253,31 +271,21 @@ class Catalogue:
 
     def cached(self, roots: Iterable[str | os.PathLike]) -> Listing:
         """What the index holds under the roots, without looking at the files (the GUI's first paint)."""
-        roots = list(roots)
-        return _listing(self._decode(self.stored(roots)), 0, 0, 0, self.path)
-
-    @staticmethod
-    def _decode(stored: dict[str, tuple]) -> dict[str, dict]:
-        out = {}
-        for p, (_, _, _, _, text) in stored.items():
-            try:
-                row = json.loads(text)
-            except (TypeError, ValueError):
-                continue
-            if isinstance(row, dict):
-                out[p] = row
-        return out
+        texts = {p: v[-1] for p, v in self.stored(list(roots)).items()}
+        return _listing(_decode(texts), 0, 0, 0, self.path, texts=texts)
 
     # ------------------------------------------------------------------ updating
     def update(self, roots: Iterable[str | os.PathLike], *, jobs: int | None = None, rebuild: bool = False,
                progress: Callable[[int, int], None] | None = None,
                on_rows: Callable[[list[dict]], None] | None = None,
                stop: Callable[[], bool] | None = None, fork: bool | None = None,
-               deadline_s: float | None = None) -> Listing:
+               deadline_s: float | None = None, light: bool = False) -> Listing:
         """Bring the index up to date for ``roots`` and return their rows (module docstring).
 
         ``progress(done, total)`` after each batch of files read; ``on_rows(rows)`` with each
         batch of rows read (the GUI adds them as they come); ``stop()`` true: end early.
+        ``light``: the rows from the index carry only ``path`` and the :data:`LIGHT` fields
+        (enough to filter and sort); :meth:`Listing.full` decodes the ones kept.
         """
         from velab.catalogue.extract import DEADLINE_S, read_rows
 
@@ -290,7 +298,12 @@ class Catalogue:
                 raise DataError(f"{r}: no such folder")
         seen = scan(roots)
         stored = self.stored(roots)
-        rows = {} if rebuild else self._decode({p: v for p, v in stored.items() if p in seen and v[:3] == seen[p]})
+        texts = {} if rebuild else {p: v[-1] for p, v in stored.items() if v[_KEY] == seen.get(p)}
+        if light:  # a recording is decoded whole: its liveness needs more than the light fields
+            rows = {p: dict(zip(_LIGHT_KEYS, stored[p])) for p in texts}
+            rows.update(_decode({p: texts[p] for p, r in rows.items() if r["status"] == "recording"}))
+        else:
+            rows = _decode(texts)
         stale = sorted(p for p in seen if p not in rows)
         gone = [p for p in stored if p not in seen]
         if gone:
@@ -303,29 +316,34 @@ class Catalogue:
             done = 0
             for row in read_rows(stale, jobs=jobs, fork=fork, stop=stop, deadline_s=deadline_s or DEADLINE_S):
                 rows[row["path"]] = row
+                texts.pop(row["path"], None)
                 batch.append(row)
                 done += 1
                 if len(batch) >= BATCH_ROWS or time.monotonic() - last > BATCH_S:
-                    self._store(batch, seen)
+                    texts.update(self._store(batch, seen))
                     if on_rows:
                         on_rows(_settled(batch))
                     if progress:
                         progress(done, len(stale))
                     batch, last = [], time.monotonic()
             if batch:
-                self._store(batch, seen)
+                texts.update(self._store(batch, seen))
                 if on_rows:
                     on_rows(_settled(batch))
             if progress:
                 progress(done, len(stale))
-        return _listing(rows, len(seen), len(stale), len(gone), self.path, time.perf_counter() - t0)
+        return _listing(rows, len(seen), len(stale), len(gone), self.path, time.perf_counter() - t0, texts)
 
-    def _store(self, rows: list[dict], keys: dict[str, tuple[int, int, int]]) -> None:
+    def _store(self, rows: list[dict], keys: dict[str, tuple[int, int, int]]) -> dict[str, str]:
+        """Store the rows; their JSON texts by path."""
         from velab.catalogue.rows import dumps
 
         now = time.time()
-        values = [(r["path"], *keys[r["path"]], r["kind"], dumps(r), now) for r in rows if r["path"] in keys]
-        self._write(lambda db: db.executemany("INSERT OR REPLACE INTO files VALUES (?, ?, ?, ?, ?, ?, ?)", values))
+        values = [(r["path"], *keys[r["path"]], dumps(r), now, *(r.get(k) for k in LIGHT))
+                  for r in rows if r["path"] in keys]
+        sql = f"INSERT OR REPLACE INTO files ({', '.join(_COLUMNS)}) VALUES ({', '.join('?' * len(_COLUMNS))})"
+        self._write(lambda db: db.executemany(sql, values))
+        return {v[0]: v[4] for v in values}
 
     def _write(self, fn) -> None:
         """One write transaction. Busy past the timeout: this batch is not kept. The table gone (another
@@ -405,10 +423,31 @@ def _lock(path: str):
         os.close(fd)
 
 
-def _listing(rows: dict[str, dict], files: int, read: int, removed: int, path: str, seconds: float = 0.0) -> Listing:
+_LIGHT_KEYS = ("path",) + LIGHT
+def _decode(texts: dict[str, str]) -> dict[str, dict]:
+    """path -> row of the stored JSON texts; a text that is not a row is dropped (from ``texts`` too: read again)."""
+    out = {}
+    loads = json.loads
+    for p, text in list(texts.items()):
+        try:
+            row = loads(text)
+        except (TypeError, ValueError):
+            row = None
+        if isinstance(row, dict) and row.get("path") == p:
+            out[p] = row
+        else:
+            del texts[p]
+    return out
+
+
+def _listing(rows: dict[str, dict], files: int, read: int, removed: int, path: str, seconds: float = 0.0,
+             texts: dict[str, str] | None = None) -> Listing:
     from velab.catalogue.liveness import settle
 
-    runs = [r for p, r in sorted(rows.items()) if r.get("kind") != "other"]
-    settle(runs)  # now, not when indexed: a killed recorder's file never changes again
-    others = [r for p, r in sorted(rows.items()) if r.get("kind") == "other"]
-    return Listing(runs, others, files or len(rows), read, removed, seconds, path)
+    ordered = sorted(rows.items())
+    runs = [r for p, r in ordered if r.get("kind") != "other"]
+    others = [r for p, r in ordered if r.get("kind") == "other"]
+    texts = dict(texts or {})
+    for p in settle(runs):  # now, not when indexed: a killed recorder's file never changes again
+        texts.pop(p, None)  # its row is no longer the stored one
+    return Listing(runs, others, files or len(rows), read, removed, seconds, path, texts)

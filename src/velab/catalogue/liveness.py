@@ -93,11 +93,13 @@ def is_local(path: str, mounts: list[tuple[str, str]]) -> bool:
     return False  # unknown: wait for the quiet time
 
 
-def settle(rows: list[dict], now: float | None = None) -> None:
-    """Rows saying ``recording`` whose writer is gone become ``interrupted`` with a one-line reason (in place)."""
+def settle(rows: list[dict], now: float | None = None) -> list[str]:
+    """Rows saying ``recording`` whose writer is gone become ``interrupted`` with a one-line reason (in place);
+    the paths of the rows changed."""
     rec = [r for r in rows if r.get("status") == "recording"]
+    changed: list[str] = []
     if not rec:
-        return
+        return changed
     held, complete = writers([r["path"] for r in rec])
     mounts = _mounts() if complete else []
     now = time.time() if now is None else now
@@ -117,3 +119,5 @@ def settle(rows: list[dict], now: float | None = None) -> None:
         else:  # closed but never concluded (a recovered copy says so itself)
             r["reason"] = own or f"recording stopped at {when} and never concluded"
         r["status"] = "interrupted"
+        changed.append(r["path"])
+    return changed

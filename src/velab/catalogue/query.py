@@ -96,6 +96,11 @@ def row_time(row: dict) -> float | None:
     return float(m) if isinstance(m, (int, float)) else None
 
 
+# the row fields Filters reads (velab.catalogue.index.LIGHT keeps them, and the SORT_KEYS fields, as columns)
+FILTER_FIELDS = ("kind", "status", "best_model", "rig", "start_time", "mtime", "measured_flow_l_s", "steady_flow_l_s",
+                 "title", "operator", "specimen", "notes")
+
+
 @dataclass
 class Filters:
     """What ``velab runs`` and the Archive tab filter on; empty fields match everything."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from velab.commands.common import DataError, add_json_option, int_range, write_json
+from velab.commands.common import DataError, add_json_option, int_range
 
 _SORT_HELP = "start, path, status, title, operator, specimen, rig, q0, beta, rate, duration, best, wave-speed, se, fits, noise"
 
@@ -78,6 +78,32 @@ def filters_of(args: argparse.Namespace):
                    since=since, until=until, text=tuple(w for w in args.text if w.strip()), q0=q0)
 
 
+def _write_json(rows: list[dict], listing) -> None:
+    """One strict JSON document; each row as the index stores it (strict JSON already, rows.dumps) rather than
+    encoded again: write_json's indented encoder is pure Python, seconds for 10,000 rows."""
+    import json
+
+    from velab.catalogue.rows import dumps
+    from velab.commands.common import json_ready
+
+    def text(row: dict) -> str:
+        t = listing.texts.get(row["path"])
+        if t is None:
+            try:
+                t = dumps(row)
+            except ValueError:  # a non-finite number: null, as write_json does
+                t = json.dumps(json_ready(row), allow_nan=False)
+        return t
+
+    rest = json.dumps({"not_runs": [{"path": r["path"], "reason": listing.full(r)["reason"]} for r in listing.others],
+                       "index": {"path": listing.index_path, "files": listing.files, "read": listing.read,
+                                 "removed": listing.removed, "seconds": round(listing.seconds, 3)}},
+                      indent=1, allow_nan=False)
+    out = sys.stdout
+    out.write('{\n "runs": [\n' + ",\n".join(map(text, rows)) + "\n ],\n" + rest[2:] + "\n")
+    out.flush()
+
+
 def run(args: argparse.Namespace) -> int:
     import os
 
@@ -92,14 +118,14 @@ def run(args: argparse.Namespace) -> int:
         if not os.path.exists(f):
             raise DataError(f"{f}: no such folder or file")
     with ProgressLine.for_args(args) as progress, Catalogue(args.index, args.folders) as cat:
-        listing = cat.update(args.folders, jobs=args.jobs, rebuild=args.rebuild,
+        listing = cat.update(args.folders, jobs=args.jobs, rebuild=args.rebuild, light=True,
                              progress=lambda done, total: progress.update(f"indexing: {done}/{total} files read"))
-    rows = sort_rows(filters.apply(listing.rows), args.sort)
+    rows = sort_rows(filters.apply(listing.rows), args.sort)  # on the light rows: no JSON decoded for these
+    if not args.json:  # the JSON document copies the stored texts; the table and CSV need the rows whole
+        rows = [listing.full(r) for r in rows]
     damaged = sum(1 for r in listing.rows if r["status"] == "damaged")
     if args.json:
-        write_json({"runs": rows, "not_runs": [{"path": r["path"], "reason": r["reason"]} for r in listing.others],
-                    "index": {"path": listing.index_path, "files": listing.files, "read": listing.read,
-                              "removed": listing.removed, "seconds": round(listing.seconds, 3)}})
+        _write_json(rows, listing)
     elif args.csv:
         sys.stdout.write(to_csv(rows))
     else:
