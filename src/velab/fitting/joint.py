@@ -23,17 +23,16 @@ grids stacked (one Jacobian, rows of every run: the per-run HeadEvaluator reused
 
 from __future__ import annotations
 
-import hashlib
 import math
 import os
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from velab.config import Rig
 from velab.errors import DataError
 from velab.fitting.adequacy import assess, bound_message
+from velab.fitting.campaignrun import CampaignRun, check_same_pipe, head_sha256  # noqa: F401 (the API)
 from velab.fitting.creep import creep_curve
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator, sumsq
@@ -41,11 +40,13 @@ from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
 from velab.fitting.manoeuvre import refine_closure, valve_input
 from velab.fitting.nuisance import closure_rows, marginalised
 from velab.fitting.parallel import map_pair
+from velab.fitting.jointresult import JOINT_KIND, JointResult, runs_report  # noqa: F401 (the API)
 from velab.fitting.params import ParamMap, creep_const, derive_bounds
 from velab.fitting.prepare import PreparedRecord, prepare_record
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
 from velab.fitting.solvers import Sol, Stage
 from velab.fitting.starts import nested_starts, race_starts, reduced_then_full, scan_wave_speed, tau_grids
+from velab.fitting.stacked import StackedEvaluator
 from velab.fitting.stats import ar1_innovation_var, lag1
 from velab.fitting.summary import summarise
 from velab.fitting.sweep import MAX_M, SATURATED_GAIN, parse_models
@@ -57,56 +58,6 @@ REFRESH_GAIN = 0.05
 # closure refinements (each run's, with the joint wall) followed by a continuation of every model; a
 # second pass was measured to change nothing that matters (J(0.05 s) moved 0.1 %, a 0.003 m/s) for 1.5 x the time
 REFINE_PASSES = 1  # ... stopped when one gains less than this in sum n ln F
-GEOMETRY_RTOL = 1e-6  # runs of one pipe: length, diameter, wall, alpha and density agree to this
-JOINT_KIND = "joint"  # the fit group's velab_fit_kind attribute (velab.runfiles.fits.save_fit)
-
-
-@dataclass(frozen=True)
-class CampaignRun:
-    """One run of a campaign, as read from its file: what ``fit_record`` takes, plus its identity."""
-
-    path: str
-    time_s: np.ndarray
-    head_m: np.ndarray
-    trigger_time_s: float
-    rig: Rig
-    record_rate_hz: float
-    position_pct: np.ndarray | None = None
-    head_sha256: str = ""
-
-    @classmethod
-    def from_run(cls, run) -> "CampaignRun":
-        """From a velab.runfile.Run (the reader's own checks of the window are the caller's)."""
-        return cls(str(run.path), run.time_s, run.head_m, run.trigger_time_s, run.rig, run.sample_rate_hz,
-                   run.channels.get("valve_position"), head_sha256(run.time_s, run.head_m))
-
-
-def head_sha256(time_s, head_m) -> str:
-    """The content hash naming a run in a joint fit: sha256 of its time axis and head (float64 bytes).
-    Not of the file, which changes when a fit is saved into it."""
-    h = hashlib.sha256()
-    h.update(np.ascontiguousarray(time_s, dtype="<f8").tobytes())
-    h.update(np.ascontiguousarray(head_m, dtype="<f8").tobytes())
-    return h.hexdigest()
-
-
-def check_same_pipe(runs: list[CampaignRun]) -> None:
-    """Runs of one pipe: the same geometry, constraint and fluid density (Q0, friction law, valve and
-    manoeuvre may differ). Raises DataError naming the first run that differs."""
-    ref = runs[0]
-
-    def key(r: CampaignRun):
-        p = r.rig.pipe
-        return {"length_m": p.length_m, "inner_diameter_m": p.inner_diameter_m,
-                "wall_thickness_m": p.wall_thickness_m, "constraint_alpha": p.constraint_alpha,
-                "density_kg_m3": r.rig.fluid.density_kg_m3}
-
-    k0 = key(ref)
-    for r in runs[1:]:
-        for name, v in key(r).items():
-            if not math.isclose(v, k0[name], rel_tol=GEOMETRY_RTOL):
-                raise DataError(f"{r.path}: another pipe than {ref.path} ({name} {v:g} against {k0[name]:g}); "
-                                f"a joint fit needs runs of one pipe")
 
 
 def per_run(fn, items: list) -> list:
@@ -114,53 +65,6 @@ def per_run(fn, items: list) -> list:
     run's own work (closure fits, time-domain heads) touches only that run's objects, and the results do
     not depend on which thread ran which (velab.fitting.parallel.map_pair)."""
     return map_pair(lambda _, item: fn(item), items, lambda: None, parallel=(os.cpu_count() or 1) > 1)
-
-
-class StackedEvaluator:
-    """The heads of several runs at one wall, stacked: each run's rows weighted by w_r (its
-    HeadEvaluator, on its own grid and flow). Quacks like a HeadEvaluator for velab.fitting.solvers
-    and velab.fitting.summary (``head``, ``head_jac_x``, ``n_t``, counters, ``fork``)."""
-
-    def __init__(self, evs: list[HeadEvaluator], weights):
-        self.evs = evs
-        self.weights = np.asarray(weights, dtype=float)
-        sizes = [e.n_t for e in evs]
-        self.bounds = np.concatenate([[0], np.cumsum(sizes)])
-        self.n_t = int(self.bounds[-1])
-        self.evaluations = 0
-        self.jacobians = 0
-
-    def slices(self):
-        return [slice(int(a), int(b)) for a, b in zip(self.bounds[:-1], self.bounds[1:])]
-
-    def fork(self, workers: int | None = 1, **_) -> "StackedEvaluator":
-        return StackedEvaluator([e.fork(workers=workers) for e in self.evs], self.weights)
-
-    def stack(self, parts) -> np.ndarray:
-        """Per-run vectors (on each run's grid) stacked and weighted as the rows."""
-        return np.concatenate([w * np.asarray(p, dtype=float) for w, p in zip(self.weights, parts)])
-
-    def head(self, a, J_rel, tau, out=None):
-        self.evaluations += 1
-        h = self.stack([e.head(a, J_rel, tau) for e in self.evs])
-        if out is not None:
-            out[...] = h
-            return out
-        return h
-
-    def head_jac_x(self, a, J_rel, tau, tau_free: bool = True, out=None):
-        self.evaluations += 1
-        self.jacobians += 1
-        m = np.size(J_rel)
-        rows = 2 + m + (m if tau_free else 0)
-        if out is None:
-            out = np.empty((rows, self.n_t))
-        for e, w, sl in zip(self.evs, self.weights, self.slices()):
-            h, jac = e.head_jac_x(a, J_rel, tau, tau_free)
-            out[0, sl] = h
-            out[1:, sl] = jac
-            out[:, sl] *= w
-        return out[0], out[1:]
 
 
 class _Run:
@@ -238,25 +142,6 @@ class _Model:
     def loglik(self, runs) -> float:
         """sum_r n_r ln F_r (-2 ln L up to a constant)."""
         return float(sum(r.n * math.log(F) for r, F in zip(runs, self.F_runs)))
-
-
-@dataclass
-class JointResult(SweepResult):
-    """A SweepResult over several runs: ``runs`` per run (path, hash, n, noise ratio, disagrees,
-    its own wall under the best model, ...)."""
-
-    runs: list = field(default_factory=list)
-
-    def to_dict(self) -> dict:
-        d = super().to_dict()
-        d["joint"] = True
-        d["runs"] = [dict(r) for r in self.runs]
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "JointResult":
-        base = SweepResult.from_dict(d)
-        return cls(**{f: getattr(base, f) for f in SweepResult.__dataclass_fields__}, runs=list(d.get("runs") or []))
 
 
 class _JointSweep:
@@ -572,19 +457,3 @@ def _own_wall(sw: _JointSweep, i: int, fin: _Model, m: int, bounds) -> ModelFit:
     p = pm.unpack(x)
     data = r.rec.h - heads + r.ev_f.head(*p) if r.tm.active else r.rec.h
     return summarise(Stage(r.ev_f, data), Sol(x, math.nan, pm), model_name(m), r.rig, bounds)
-
-
-def runs_report(result: JointResult) -> str:
-    """The text table of a joint fit's runs: each run's n, Q0, F/noise under the joint wall, whether it
-    disagrees, and its own wave speed under the best model."""
-    lines = [f"runs (each under the joint {result.best.name} wall; own a: the wall fitted on that run alone):",
-             f"  {'run':<32}{'n':>7}{'Q0 (l/s)':>10}{'F/noise':>9}{'bound':>7}  {'own a (m/s)':>18}  disagrees"]
-    for r in result.runs:
-        own = r.get("own") or {}
-        ratio, bound = r.get("noise_ratio"), r.get("misfit_bound")
-        a, se = own.get("wave_speed", math.nan), own.get("wave_speed_se", math.nan)
-        lines.append(f"  {str(r.get('path', '?'))[-32:]:<32}{int(r.get('n', 0)):>7}"
-                     f"{1e3 * float(r.get('steady_flow_m3_s', math.nan)):>10.3g}"
-                     f"{ratio if ratio is not None else math.nan:>9.3g}{bound if bound is not None else math.nan:>7.3g}"
-                     f"  {a:>9.2f} +- {se:<6.2g}  {'YES' if r.get('disagrees') else 'no'}")
-    return "\n".join(lines)

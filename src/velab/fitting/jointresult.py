@@ -1,0 +1,45 @@
+"""The result of a joint fit (velab.fitting.joint): a SweepResult over several runs, and its runs' table."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from velab.fitting.results import SweepResult
+
+JOINT_KIND = "joint"  # the fit group's velab_fit_kind attribute (velab.runfiles.fits.save_fit)
+
+
+@dataclass
+class JointResult(SweepResult):
+    """A SweepResult over several runs: ``runs`` per run (path, hash, n, noise ratio, disagrees,
+    its own wall under the best model, ...)."""
+
+    runs: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        d = super().to_dict()
+        d["joint"] = True
+        d["runs"] = [dict(r) for r in self.runs]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "JointResult":
+        base = SweepResult.from_dict(d)
+        return cls(**{f: getattr(base, f) for f in SweepResult.__dataclass_fields__}, runs=list(d.get("runs") or []))
+
+
+def runs_report(result: JointResult) -> str:
+    """The text table of a joint fit's runs: each run's n, Q0, F/noise under the joint wall, whether it
+    disagrees, and its own wave speed under the best model."""
+    lines = [f"runs (each under the joint {result.best.name} wall; own a: the wall fitted on that run alone):",
+             f"  {'run':<32}{'n':>7}{'Q0 (l/s)':>10}{'F/noise':>9}{'bound':>7}  {'own a (m/s)':>18}  disagrees"]
+    for r in result.runs:
+        own = r.get("own") or {}
+        ratio, bound = r.get("noise_ratio"), r.get("misfit_bound")
+        a, se = own.get("wave_speed", math.nan), own.get("wave_speed_se", math.nan)
+        lines.append(f"  {str(r.get('path', '?'))[-32:]:<32}{int(r.get('n', 0)):>7}"
+                     f"{1e3 * float(r.get('steady_flow_m3_s', math.nan)):>10.3g}"
+                     f"{ratio if ratio is not None else math.nan:>9.3g}{bound if bound is not None else math.nan:>7.3g}"
+                     f"  {a:>9.2f} +- {se:<6.2g}  {'YES' if r.get('disagrees') else 'no'}")
+    return "\n".join(lines)
