@@ -239,7 +239,8 @@ def _run_joint(args, opts: dict) -> int:
         for i, src in enumerate(sources):
             # every run holds the whole joint fit and names the others by path and content hash
             doc = result.to_dict() | {"run_index": i, "other_runs": [
-                {"path": o.path, "head_sha256": o.head_sha256} for j, o in enumerate(sources) if j != i]}
+                {"path": o.path, "resolved_path": str(Path(o.path).resolve()), "head_sha256": o.head_sha256}
+                for j, o in enumerate(sources) if j != i]}
             try:
                 save_fit(src.path, doc, name, kind=JOINT_KIND)
                 saved.append(src.path)
