@@ -51,12 +51,13 @@ def _serve(rfd: int, wfd: int) -> None:
 
 
 class _Child:
-    def __init__(self, fork: bool):
+    def __init__(self, fork: bool, preload: bool = True):
         self.pid = 0
         self.proc = None
         if fork:
-            import velab.catalogue.rows  # noqa: F401 - imported once here, not in every child
-            import velab.runfiles.reader  # noqa: F401
+            if preload:  # several children: imported once here, not in each; one child imports while we work on
+                import velab.catalogue.rows  # noqa: F401
+                import velab.runfiles.reader  # noqa: F401
 
             p_r, c_w = os.pipe()  # child -> parent
             c_r, p_w = os.pipe()  # parent -> child
@@ -146,11 +147,13 @@ def _can_fork() -> bool:
 
 
 def read_rows(paths: Iterable[str], jobs: int = 2, deadline_s: float = DEADLINE_S, fork: bool | None = None,
-              stop: Callable[[], bool] | None = None) -> Iterator[dict]:
+              stop: Callable[[], bool] | None = None, prime: bool = False) -> Iterator[dict | None]:
     """The row of every path, in the order they are read (not the order given).
 
     ``jobs`` child processes; ``fork``: None decides (fork only from a single-threaded
     process); ``stop()`` true ends the reading early (the GUI's folder changed).
+    ``prime``: first yield None as soon as the children are started, so that the caller
+    can do its own work while they import and read.
     """
     from velab.catalogue.rows import empty_row
 
@@ -163,7 +166,7 @@ def read_rows(paths: Iterable[str], jobs: int = 2, deadline_s: float = DEADLINE_
     children: list[_Child] = []
 
     def start() -> None:
-        c = _Child(fork)
+        c = _Child(fork, preload=jobs > 1)
         children.append(c)
         sel.register(c.rfd, selectors.EVENT_READ, c)
 
@@ -192,6 +195,8 @@ def read_rows(paths: Iterable[str], jobs: int = 2, deadline_s: float = DEADLINE_
     try:
         for _ in range(jobs):
             start()
+        if prime:
+            yield None
         while children:
             if stop is not None and stop():
                 return

@@ -99,7 +99,10 @@ class Listing:
         """The whole row of a light one (``update(light=True)``); a whole row as it is."""
         if "elements" in row or row["path"] not in self.texts:  # every whole row has "elements"
             return row
-        return json.loads(self.texts[row["path"]])
+        try:
+            return json.loads(self.texts[row["path"]])
+        except ValueError:  # cannot happen to a text rows.dumps wrote; the light row rather than nothing
+            return row
 
 
 def scan(roots: Iterable[str | os.PathLike]) -> dict[str, tuple[int, int, int]]:
@@ -297,42 +300,67 @@ class Catalogue:
 
                 raise DataError(f"{r}: no such folder")
         seen = scan(roots)
-        stored = self.stored(roots)
-        texts = {} if rebuild else {p: v[-1] for p, v in stored.items() if v[_KEY] == seen.get(p)}
-        if light:  # a recording is decoded whole: its liveness needs more than the light fields
-            rows = {p: dict(zip(_LIGHT_KEYS, stored[p])) for p in texts}
-            rows.update(_decode({p: texts[p] for p, r in rows.items() if r["status"] == "recording"}))
-        else:
-            rows = _decode(texts)
-        stale = sorted(p for p in seen if p not in rows)
-        gone = [p for p in stored if p not in seen]
-        if gone:
-            self._write(lambda db: db.executemany("DELETE FROM files WHERE path = ?", [(p,) for p in gone]))
+        keys = {} if rebuild else self._keys(roots)
+        stale = sorted(p for p, k in seen.items() if keys.get(p) != k)
+        reader = None
         if stale:
             jobs = jobs or min(2, os.cpu_count() or 1)
             if len(stale) < 4:  # a child per core costs an import each: not worth it for a few files
                 jobs = 1
-            batch, last = [], time.monotonic()
-            done = 0
-            for row in read_rows(stale, jobs=jobs, fork=fork, stop=stop, deadline_s=deadline_s or DEADLINE_S):
-                rows[row["path"]] = row
-                texts.pop(row["path"], None)
-                batch.append(row)
-                done += 1
-                if len(batch) >= BATCH_ROWS or time.monotonic() - last > BATCH_S:
-                    texts.update(self._store(batch, seen))
-                    if on_rows:
-                        on_rows(_settled(batch))
-                    if progress:
-                        progress(done, len(stale))
-                    batch, last = [], time.monotonic()
-            if batch:
+            reader = read_rows(stale, jobs=jobs, fork=fork, stop=stop, deadline_s=deadline_s or DEADLINE_S,
+                               prime=True)
+            next(reader)  # the children start (import, read) while the index is read below
+        try:
+            stale_set = set(stale)
+            stored = self.stored(roots)
+            texts = {p: v[-1] for p, v in stored.items() if p not in stale_set and v[_KEY] == seen.get(p)}
+            if light:  # a recording is decoded whole: its liveness needs more than the light fields
+                rows = {p: dict(zip(_LIGHT_KEYS, stored[p])) for p in texts}
+                rows.update(_decode({p: texts[p] for p, r in rows.items() if r["status"] == "recording"}))
+            else:
+                rows = _decode(texts)
+            gone = [p for p in stored if p not in seen]
+            if gone:
+                self._write(lambda db: db.executemany("DELETE FROM files WHERE path = ?", [(p,) for p in gone]))
+            if reader is not None:
+                self._read(reader, rows, texts, seen, len(stale), progress, on_rows)
+        finally:
+            if reader is not None:
+                reader.close()
+        return _listing(rows, len(seen), len(stale), len(gone), self.path, time.perf_counter() - t0, texts)
+
+    def _read(self, reader, rows: dict, texts: dict, seen: dict, total: int, progress, on_rows) -> None:
+        """The rows the workers read, stored a batch at a time (a killed listing keeps what it committed)."""
+        batch, last = [], time.monotonic()
+        done = 0
+        for row in reader:
+            rows[row["path"]] = row
+            texts.pop(row["path"], None)
+            batch.append(row)
+            done += 1
+            if len(batch) >= BATCH_ROWS or time.monotonic() - last > BATCH_S:
                 texts.update(self._store(batch, seen))
                 if on_rows:
                     on_rows(_settled(batch))
-            if progress:
-                progress(done, len(stale))
-        return _listing(rows, len(seen), len(stale), len(gone), self.path, time.perf_counter() - t0, texts)
+                if progress:
+                    progress(done, total)
+                batch, last = [], time.monotonic()
+        if batch:
+            texts.update(self._store(batch, seen))
+            if on_rows:
+                on_rows(_settled(batch))
+        if progress:
+            progress(done, total)
+
+    def _keys(self, roots: list[str]) -> dict[str, tuple[int, int, int]]:
+        """path -> (size, mtime_ns, ino) the index holds under the roots (what tells a file changed)."""
+        out = {}
+        for r in roots:
+            q = "SELECT path, size, mtime_ns, ino FROM files WHERE "
+            rows = self._query(q + "path >= ? AND path < ?", _prefix_range(r)) if os.path.isdir(r) else \
+                self._query(q + "path = ?", (r,))
+            out.update({t[0]: t[1:] for t in rows})
+        return out
 
     def _store(self, rows: list[dict], keys: dict[str, tuple[int, int, int]]) -> dict[str, str]:
         """Store the rows; their JSON texts by path."""
@@ -444,9 +472,9 @@ def _listing(rows: dict[str, dict], files: int, read: int, removed: int, path: s
              texts: dict[str, str] | None = None) -> Listing:
     from velab.catalogue.liveness import settle
 
-    ordered = sorted(rows.items())
-    runs = [r for p, r in ordered if r.get("kind") != "other"]
-    others = [r for p, r in ordered if r.get("kind") == "other"]
+    ordered = [rows[p] for p in sorted(rows)]
+    runs = [r for r in ordered if r.get("kind") != "other"]
+    others = [r for r in ordered if r.get("kind") == "other"]
     texts = dict(texts or {})
     for p in settle(runs):  # now, not when indexed: a killed recorder's file never changes again
         texts.pop(p, None)  # its row is no longer the stored one
