@@ -27,7 +27,7 @@ from velab.fitting.results import SweepResult
 from velab.model import valve_head
 from velab.recording import Recorder, RecordSettings
 from velab.recording.online_fit import HALTED
-from velab.runfile import read_run
+from velab.runfiles.reader import read_run
 from velab.runfiles.summary import read_fits
 from velab.simulators.bench import load_sim_config
 

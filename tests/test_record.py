@@ -61,9 +61,9 @@ def test_material_A_online_fit_names_S3(tmp_path):
     # wins, for one of two reasons. (1) A fourth element fits a little of the noise: a chance
     # chi-square gain on two parameters, which puts S3 more than 2 behind on 5 % of recordings
     # and more than 10 behind on 0.2 %. (2) A fourth element with tau far beyond the window, a
-    # slow ramp, soaks up the error of the steady head. That head is the mean of 1 s before the
-    # trigger: sigma 0.012 m / sqrt(1000) = 0.4 mm, and 0.3 mm moves S3's dAIC by about 10 (one
-    # recording in 10; see the stop notes). S1 and S2 are ruled out every time.
+    # slow ramp, soaks up the error of the steady head. That head is the mean of the baseline (the
+    # 2 s before the trigger here, velab.fitting.window): sigma 0.012 m / sqrt(2000) = 0.27 mm (it was
+    # the last 1 s, 0.4 mm), and 0.3 mm moves S3's dAIC by about 10. S1 and S2 are ruled out every time.
     assert summary.best_model in ("S3", "S4")
     slow_ramp = fit["S4"].tau_s[-1] > fit.window_s  # (tau_s sorted: the extra element)
     assert fit["S3"].delta_aic <= 10.0 or slow_ramp, fit.report(elements=True)

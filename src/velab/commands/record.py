@@ -125,56 +125,71 @@ class _Progress:
             self.status_shown = True
 
     def handle(self, ev) -> None:
-        k, d, st = ev.kind, ev.data, self.state
-        if k == "samples":
-            st["samples"] += d["time_s"].size
-            st["lost"] += d["lost"]
-            if d["time_s"].size:
-                st["t"] = float(d["time_s"][-1])
-            q = d.get("quality")
-            h = d["head_m"] if q is None else d["head_m"][q == 0]
-            if h.size:
-                import numpy as np
+        handler = self._HANDLERS.get(ev.kind)
+        if handler is not None:
+            handler(self, ev.data)
 
-                with np.errstate(invalid="ignore"):
-                    m = np.nanmax(h) if np.isfinite(h).any() else float("nan")
-                if m == m:
-                    st["peak"] = max(st["peak"], float(m))
-        elif k == "progress":
-            st["countdown"] = f"{d['what']} {d['remaining_s']:.1f} s"
-        elif k == "phase":
-            phase = d["phase"]
-            if phase == st["phase"] and not d.get("trigger_queued"):
-                return
-            st["phase"], st["countdown"] = phase, ""
-            if phase == "connecting":
-                st.update(samples=0, lost=0, peak=float("-inf"), t=0.0, t0=time.monotonic())
-            extra = d.get("reason") or ""
-            if phase == "armed":
-                extra = (f"{d.get('path')}; recording the {d.get('baseline_s', 0):g} s baseline "
-                         f"(disarms after {d.get('armed_timeout_s', 0):g} s without a trigger)")
-                if d.get("trigger_queued"):
-                    extra = "trigger queued: it goes out as soon as the baseline is in"
-            elif phase == "triggerable":
-                extra = f"baseline in; disarms in {d.get('disarm_in_s', 0):.0f} s without a trigger"
-            elif phase == "recording":
-                extra = (f"trigger commanded at t = {d['trigger_time_s']:.3f} s; fit window "
-                         f"{d.get('fit_window_s', 0):g} s")
-            elif phase == "fitting":
-                extra = f"final fit (run {d.get('status')})"
-            elif phase in ("completed", "completed-with-faults") and not extra:
-                extra = d.get("path") or ""
-            self.line(f"[{time.monotonic() - st['t0']:7.2f} s] {phase}" + (f": {extra}" if extra else ""))
-        elif k == "trigger" and d.get("measured"):
+    def _on_samples(self, d) -> None:
+        st = self.state
+        st["samples"] += d["time_s"].size
+        st["lost"] += d["lost"]
+        if d["time_s"].size:
+            st["t"] = float(d["time_s"][-1])
+        q = d.get("quality")
+        h = d["head_m"] if q is None else d["head_m"][q == 0]
+        if h.size:
+            import numpy as np  # (here: `velab --help` never loads numpy)
+
+            with np.errstate(invalid="ignore"):
+                m = np.nanmax(h) if np.isfinite(h).any() else float("nan")
+            if m == m:
+                st["peak"] = max(st["peak"], float(m))
+
+    def _on_progress(self, d) -> None:
+        self.state["countdown"] = f"{d['what']} {d['remaining_s']:.1f} s"
+
+    # what each phase line adds, from the phase event's data
+    _PHASE_TEXT = {
+        "armed": lambda d: ("trigger queued: it goes out as soon as the baseline is in" if d.get("trigger_queued") else
+                            f"{d.get('path')}; recording the {d.get('baseline_s', 0):g} s baseline "
+                            f"(disarms after {d.get('armed_timeout_s', 0):g} s without a trigger)"),
+        "triggerable": lambda d: f"baseline in; disarms in {d.get('disarm_in_s', 0):.0f} s without a trigger",
+        "recording": lambda d: (f"trigger commanded at t = {d['trigger_time_s']:.3f} s; fit window "
+                                f"{d.get('fit_window_s', 0):g} s"),
+        "fitting": lambda d: f"final fit (run {d.get('status')})",
+        "completed": lambda d: d.get("reason") or d.get("path") or "",
+        "completed-with-faults": lambda d: d.get("reason") or d.get("path") or "",
+    }
+
+    def _on_phase(self, d) -> None:
+        st, phase = self.state, d["phase"]
+        if phase == st["phase"] and not d.get("trigger_queued"):
+            return
+        st["phase"], st["countdown"] = phase, ""
+        if phase == "connecting":
+            st.update(samples=0, lost=0, peak=float("-inf"), t=0.0, t0=time.monotonic())
+        extra = self._PHASE_TEXT.get(phase, lambda d: d.get("reason") or "")(d)
+        self.line(f"[{time.monotonic() - st['t0']:7.2f} s] {phase}" + (f": {extra}" if extra else ""))
+
+    def _on_trigger(self, d) -> None:
+        if d.get("measured"):
             self.line(f"trigger measured from the valve position: t = {d['trigger_time_s']:.4f} s")
-        elif k == "message":
-            self.line(str(d))
-        elif k == "fault":
-            self.line(f"warning: {d}")
-        elif k == "fit":
-            r = d["result"]
-            tag = "final" if d["final"] else "lead" if d.get("lead") else "intermediate"
-            self.line(f"fit ({tag}, {d['window_s']:g} s window): best {r.best.name}, a = {r.best.wave_speed_m_s:.2f} m/s")
+
+    def _on_fit(self, d) -> None:
+        r = d["result"]
+        tag = "final" if d["final"] else "lead" if d.get("lead") else "intermediate"
+        self.line(f"fit ({tag}, {d['window_s']:g} s window): best {r.best.name}, a = {r.best.wave_speed_m_s:.2f} m/s")
+
+    # each engine event kind (velab.recording.types.RecorderEvent) -> its line or status update
+    _HANDLERS = {
+        "samples": _on_samples,
+        "progress": _on_progress,
+        "phase": _on_phase,
+        "trigger": _on_trigger,
+        "message": lambda self, d: self.line(str(d)),
+        "fault": lambda self, d: self.line(f"warning: {d}"),
+        "fit": _on_fit,
+    }
 
     def _loop(self) -> None:
         last = 0.0

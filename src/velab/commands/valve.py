@@ -9,6 +9,7 @@ range and the pipe's rating); ``status`` prints the state. Exit codes as ``velab
 
 from __future__ import annotations
 
+import sys
 import time
 
 from velab.commands.common import add_json_option, float_range, write_json
@@ -47,7 +48,8 @@ def run_command(args) -> int:
     from velab.recording.devices import reopen_valve, resolve_roles
     from velab.recording.safety import predict_surge
     from velab.recording.settings import RecordSettings
-    from velab.recording.types import DeviceFailure
+    from velab.recording.trigger import TriggerFailed, make_safe, readback_note, trigger_manoeuvre
+    from velab.recording.types import DEVICE_ERRORS, DeviceFailure
 
     try:
         bench = load_bench(args.config)
@@ -79,7 +81,16 @@ def run_command(args) -> int:
                                 args.end_position)
             valve.arm()
             valve.wait_for({ValveState.ARMED}, timeout_s=5.0)
-            valve.trigger()
+            try:
+                note = readback_note(trigger_manoeuvre(valve))
+            except TriggerFailed as exc:  # the valve to its safe state, as a run's failed trigger
+                try:
+                    line = make_safe(valve, exc.ask_valve)
+                except DEVICE_ERRORS as safe_exc:
+                    line = f"could not be commanded to its safe state: {safe_exc}"
+                raise DeviceFailure(f"{name}: {exc}" + (f"; {line}" if line else "")) from None
+            if note:
+                print(f"{name}: warning: {note}", file=sys.stderr)
             st = valve.wait_for({ValveState.DONE}, timeout_s=30.0)
         else:
             st = valve.read_status()

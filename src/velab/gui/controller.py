@@ -280,8 +280,8 @@ class RecorderController(QObject):
             phase, data = self._local["phase"], self._local["data"]
             allowed = P.allowed_commands(phase)
         else:
-            phase, data = rec.phase, dict(rec.phase_data)
-            allowed = tuple(rec.allowed_commands())
+            snap = rec.snapshot  # one read: phase, data and allowed commands belong together
+            phase, data, allowed = snap.phase, dict(snap.data), snap.allowed
         st = ControlState(phase=phase, allowed=allowed, data=data, progress=self._progress, in_flight=in_flight,
                           valve=self.valve_info)
         if st != self.state:
@@ -294,26 +294,33 @@ class RecorderController(QObject):
         self.samples.emit(np.concatenate(ts), np.concatenate(hs), np.concatenate(vs), lost)
 
     def _dispatch(self, ev) -> None:
-        kind, data = ev.kind, ev.data
-        if kind == "phase":
-            self.phase_info.emit(data.get("phase", ""), data)
-        elif kind == "progress":
-            self._progress = dict(data)
-        elif kind == "device":
-            self.devices.emit(data)
-        elif kind == "valve":
-            self.valve_info = dict(data)
-            self.valve.emit(data)
-        elif kind == "trigger":
-            if data.get("queued"):
-                self.trigger_queued.emit(float(data.get("baseline_remaining_s", 0.0)))
-            elif isinstance(data.get("trigger_time_s"), (int, float)):
-                self.trigger_time.emit(float(data["trigger_time_s"]), bool(data.get("measured", False)))
-        elif kind == "fit":
-            self.fit.emit(data)
-        elif kind == "message":
-            self.message.emit(str(data), "info")
-        elif kind == "fault":
-            self.fault.emit(data)
-        elif kind == "done":
-            self.done.emit(data)
+        handler = self._HANDLERS.get(ev.kind)
+        if handler is not None:
+            handler(self, ev.data)
+
+    def _on_valve(self, data) -> None:
+        self.valve_info = dict(data)
+        self.valve.emit(data)
+
+    def _on_trigger(self, data) -> None:
+        if data.get("queued"):
+            self.trigger_queued.emit(float(data.get("baseline_remaining_s", 0.0)))
+        elif isinstance(data.get("trigger_time_s"), (int, float)):
+            self.trigger_time.emit(float(data["trigger_time_s"]), bool(data.get("measured", False)))
+
+    def _on_progress(self, data) -> None:
+        self._progress = dict(data)
+
+    # each engine event kind (velab.recording.types.RecorderEvent) -> what the window is told
+    # ("samples" are batched by _drain_events)
+    _HANDLERS = {
+        "phase": lambda self, d: self.phase_info.emit(d.get("phase", ""), d),
+        "progress": _on_progress,
+        "device": lambda self, d: self.devices.emit(d),
+        "valve": _on_valve,
+        "trigger": _on_trigger,
+        "fit": lambda self, d: self.fit.emit(d),
+        "message": lambda self, d: self.message.emit(str(d), "info"),
+        "fault": lambda self, d: self.fault.emit(d),
+        "done": lambda self, d: self.done.emit(d),
+    }

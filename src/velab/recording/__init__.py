@@ -5,7 +5,8 @@ phases      the phase model, allowed commands per phase, end statuses and exit c
 types       events, faults, device statuses, run summaries, errors, the stages' Hooks
 safety      surge interlock, pressure ceiling, output directory, sensor plausibility
 devices     roles, connection, identities, profile contents, readiness checks
-pressure    the pressure source (streaming or buffered Modbus ADC) -> blocks with quality
+pressure    the pressure stage: a pressure source (velab.drivers.pressure_source) on its thread
+trigger     the manoeuvre's trigger and the valve's safe state, outcomes named
 timeline    time axis, gaps, baseline, trigger measurement, fit window
 slow        the valve actuator's status and the flowmeter, polled
 writer      the SWMR writer stage (gaps, events, quality, storage checks)

@@ -21,8 +21,6 @@ from velab.recording.types import DeviceFailure, RunRefused
 log = logging.getLogger(__name__)
 ROLE_KINDS = {"pressure": ("streaming_adc", "modbus_adc"), "valve": ("valve_actuator",), "flowmeter": ("flowmeter",)}
 RECORDER_KEYS = {"pressure_source", "valve", "flowmeter", "armed_timeout_s"}
-IDENTITY_REGISTERS = ("model_id", "module_name", "product_code", "slave_id", "firmware", "firmware_version",
-                      "serial", "serial_number", "hardware_version")
 
 
 def bench_armed_timeout(bench) -> float | None:
@@ -56,27 +54,6 @@ def resolve_roles(bench) -> dict[str, str]:
                                 f"{bench.devices[name].kind}, not a {' or '.join(kinds)}")
         roles[role] = name
     return roles
-
-
-def identity(driver) -> dict:
-    """What the device says about itself (model, firmware, serial ...), as far as its driver can read."""
-    out = {}
-    try:
-        if hasattr(driver, "identify"):
-            got = driver.identify()
-            if isinstance(got, dict):
-                out.update(got)
-            else:
-                parts = [p.strip() for p in str(got).split(",")]
-                keys = ("manufacturer", "model", "serial", "firmware")
-                out.update({k: v for k, v in zip(keys, parts)} if len(parts) == 4 else {"idn": str(got)})
-        regs = getattr(getattr(driver, "profile", None), "registers", {}) or {}
-        for name in IDENTITY_REGISTERS:
-            if name in regs and name not in out:
-                out[name] = driver.read_value(name)
-    except DeviceError as exc:
-        out["error"] = str(exc)
-    return out
 
 
 def profile_contents(driver) -> dict:

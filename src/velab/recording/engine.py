@@ -15,6 +15,7 @@ import logging
 import queue
 import threading
 import time
+from types import MappingProxyType
 from typing import Any, Callable
 
 from velab.rig import Rig
@@ -22,16 +23,19 @@ from velab.drivers.bench import open_device
 from velab.drivers.valve import ValveState
 from velab.errors import VelabError
 from velab.recording import phases as P
-from velab.recording.devices import (
-    bench_armed_timeout, check_valve_open, identity, profile_contents, reopen_valve, resolve_roles)
+from velab.drivers.identity import identity
+from velab.drivers.pressure_source import pressure_source
+from velab.recording.devices import bench_armed_timeout, check_valve_open, profile_contents, reopen_valve, resolve_roles
+from velab.recording.events import EventQueue
+from velab.recording.ops import Event
 from velab.recording.run import DEFER, RunControl
 from velab.recording.safety import predict_surge
 from velab.recording.settings import RecordSettings
 from velab.recording.slow import valve_event
-from velab.recording.types import DEVICE_ERRORS, DeviceFailure, DeviceStatus, Fault, Hooks, RecorderEvent, RunSummary
+from velab.recording.types import (
+    DEVICE_ERRORS, DeviceFailure, DeviceStatus, EngineSnapshot, Fault, Hooks, RecorderEvent, RunSummary)
 
 log = logging.getLogger(__name__)
-_LIVE = ("samples", "progress", "device")  # live data: dropped first when nobody drains the events
 
 
 class Recorder(RunControl):
@@ -42,11 +46,11 @@ class Recorder(RunControl):
         self.sim, self._owns_sim = sim, owns_sim
         self.clock = getattr(sim, "clock", None)
         self.bench_armed_timeout_s = bench_armed_timeout(bench)
-        self.events: queue.Queue = queue.Queue(maxsize=1000)  # bounded: memory stays flat without a consumer
-        self.events_dropped = 0
+        self.events = EventQueue(maxsize=1000)  # bounded: memory stays flat without a consumer
         self._listeners: list[Callable[[RecorderEvent], None]] = []
-        self.phase = P.DISCONNECTED
-        self.phase_data: dict = {}
+        # phase, its data and the commands allowed now: one immutable snapshot, replaced whole (any
+        # thread reads it with one attribute read); only the control thread publishes it
+        self.snapshot = EngineSnapshot(P.DISCONNECTED, MappingProxyType({}), P.allowed_commands(P.DISCONNECTED))
         self.devices: dict[str, Any] = {}
         self.roles: dict[str, str] = {}
         self.identities: dict[str, dict] = {}
@@ -93,26 +97,21 @@ class Recorder(RunControl):
         """fn(RecorderEvent), called from engine threads (keep it short, thread-safe)."""
         self._listeners.append(fn)
 
+    @property
+    def events_dropped(self) -> int:
+        return self.events.dropped
+
+    @property
+    def phase(self) -> str:
+        return self.snapshot.phase
+
+    @property
+    def phase_data(self):
+        return self.snapshot.data
+
     def _emit(self, kind: str, data: Any) -> None:
         ev = RecorderEvent(kind, time.time(), data)
-        try:
-            self.events.put_nowait(ev)
-        except queue.Full:
-            if kind in _LIVE:
-                self.events_dropped += 1
-            else:  # make room by dropping the oldest live event: a phase, fault or fit is never lost
-                q = self.events
-                with q.mutex:
-                    for i, old in enumerate(q.queue):
-                        if old.kind in _LIVE:
-                            del q.queue[i]
-                            break
-                    else:
-                        q.queue.popleft()
-                    q.queue.append(ev)
-                    q.unfinished_tasks += 1
-                    q.not_empty.notify()
-                self.events_dropped += 1
+        self.events.offer(ev)  # a phase, fault or fit is never lost: live data make room
         for fn in list(self._listeners):
             try:
                 fn(ev)
@@ -121,12 +120,16 @@ class Recorder(RunControl):
 
     def allowed_commands(self) -> tuple[str, ...]:
         """The commands that can succeed now (the GUI enables exactly these)."""
-        return P.allowed_commands(self.phase, valve_open=self.valve_open, trigger_queued=self._trigger_fut is not None)
+        return self.snapshot.allowed
+
+    def _publish(self, phase: str, data) -> None:
+        """On the control thread: the new snapshot, in one assignment."""
+        allowed = P.allowed_commands(phase, valve_open=self.valve_open, trigger_queued=self._trigger_fut is not None)
+        self.snapshot = EngineSnapshot(phase, MappingProxyType(dict(data)), allowed)
 
     def _set_phase(self, phase: str, **data) -> None:
-        self.phase = phase
-        self.phase_data = data
-        self._emit("phase", {"phase": phase, **data, "allowed": list(self.allowed_commands())})
+        self._publish(phase, data)
+        self._emit("phase", {"phase": phase, **data, "allowed": list(self.snapshot.allowed)})
         if self._writer is not None and not self._writer.closed.is_set():
             extra = ", ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in data.items()
                               if k in ("baseline_s", "armed_timeout_s", "trigger_time_s", "fit_window_s"))
@@ -146,11 +149,18 @@ class Recorder(RunControl):
         self._emit("fault", f)
         self._log("fault", str(f))
         if self._writer is not None:
-            self._marks.setdefault(f"{device}:{kind}", str(f))
+            with self._end_lock:  # (faults come from every thread; the end reads the marks)
+                self._marks.setdefault(f"{device}:{kind}", str(f))
 
     def _emit_valve(self, st) -> None:
-        self._valve_state, self._valve_position = st.state, float(st.position.value)
+        self._note_valve(st)
         self._emit("valve", valve_event(self.roles.get("valve", "valve"), st))
+
+    def _note_valve(self, st) -> None:
+        """On the control thread (the slow channels' polls arrive as messages): the valve's last state."""
+        self._valve_state, self._valve_position = st.state, float(st.position.value)
+        snap = self.snapshot
+        self._publish(snap.phase, snap.data)  # arm may have become possible, or not
 
     @property
     def valve_open(self) -> bool | None:
@@ -163,7 +173,7 @@ class Recorder(RunControl):
         """An event into the run file's event log, if one is open."""
         w = self._writer
         if w is not None:
-            w.put(("event", self._timeline.now_axis if self._timeline else 0.0, kind, text))
+            w.put(Event(self._timeline.now_axis if self._timeline else 0.0, kind, text))
 
     # ------------------------------------------------------------------ control thread
     def _submit(self, fn: Callable[[], Any]) -> cf.Future:
@@ -235,7 +245,7 @@ class Recorder(RunControl):
 
     def halt(self) -> None:
         """Stop now: valve safe, file closed "aborted" (reason "halted"), no fit; returns within ~5 s."""
-        self._halted = True
+        self._halt.set()
         if self._fit is not None:
             self._fit.cancel()
         fut = self._submit(lambda: self._do_end(P.ABORTED, "halted"))
@@ -268,6 +278,21 @@ class Recorder(RunControl):
     def _devices_ready(self) -> bool:
         return bool(self.roles) and all(n in self.devices for n in self.roles.values())
 
+    def _describe_valve(self, drv, name: str) -> str:
+        st = drv.read_status()
+        self._emit_valve(st)
+        return f"{st.state.name}, {st.position.value:.1f} % open"
+
+    def _describe_flowmeter(self, drv, name: str) -> str:
+        r = drv.read_flow()
+        return f"{r.value * 1e3:.3f} l/s ({r.quality.value})"
+
+    def _describe_pressure(self, drv, name: str) -> str:
+        return pressure_source(drv, name).describe()
+
+    # what a connected device of each role says it is doing, for the connect report
+    _DESCRIBE = {"valve": _describe_valve, "flowmeter": _describe_flowmeter, "pressure": _describe_pressure}
+
     def _do_connect(self) -> list[DeviceStatus]:
         if self._run_active():
             raise VelabError(f"cannot reconnect while {self.phase}")
@@ -284,17 +309,7 @@ class Recorder(RunControl):
                         raise DeviceFailure(f"{name}: cannot connect: {exc}") from None
                 drv = self.devices[name]
                 try:
-                    if role == "valve":
-                        st = drv.read_status()
-                        msg = f"{st.state.name}, {st.position.value:.1f} % open"
-                        self._emit_valve(st)
-                    elif role == "flowmeter":
-                        r = drv.read_flow()
-                        msg = f"{r.value * 1e3:.3f} l/s ({r.quality.value})"
-                    elif dev.kind == "streaming_adc":
-                        msg = drv.identify()
-                    else:
-                        msg = ", ".join(f"{k} {v.value:.4g} {v.units}" for k, v in drv.read_channels().items())
+                    msg = self._DESCRIBE[role](self, drv, name)
                 except DEVICE_ERRORS as exc:
                     raise DeviceFailure(f"{name} ({role}): does not answer: {exc}") from None
                 self.identities[name] = identity(drv)
@@ -377,7 +392,7 @@ class Recorder(RunControl):
             except Exception:  # noqa: BLE001 - closing must not raise
                 log.debug("device close", exc_info=True)
         self.devices.clear()
-        self.phase = P.DISCONNECTED
+        self.snapshot = EngineSnapshot(P.DISCONNECTED, MappingProxyType({}), P.allowed_commands(P.DISCONNECTED))
         if self._owns_sim and self.sim is not None:
             self.sim.stop()
             self.sim = None

@@ -1,13 +1,15 @@
-"""The pressure source: a streaming ADC or a buffered Modbus ADC -> SampleBlocks with per-sample quality.
+"""The pressure stage: a pressure source (velab.drivers.pressure_source: either ADC, one verb set) on
+its own acquisition thread -> SampleBlocks with per-sample quality -> the time line.
 
-One class for both kinds: ``look()`` (a short pressure reading before anything is armed),
-``start(on_block)`` (its own acquisition thread), ``stop()`` (bounded). Every block goes to
-``on_block(block, pressure_codes, valve_codes)`` with the driver's per-sample quality codes of
-those channels (``SampleBlock.sample_quality``: the one source of per-sample quality; NE43
-limits, open loop, NaN, stuck counts are the driver's, from its profile). Failures end the run
-through ``hooks.request_end``:
-a fatal driver error at once, a source that delivers nothing for ``stall_timeout_s`` (wall
-seconds: a silent, frozen or vanished device, a reconnection that takes too long) as well.
+``look()`` (a short pressure reading before anything is armed), ``start(on_block)`` (the
+acquisition thread), ``stop()`` (bounded). Every block goes to ``on_block(block, pressure_codes,
+valve_codes)`` with the driver's per-sample quality codes of those channels
+(``SampleBlock.sample_quality``: the one source of per-sample quality; NE43 limits, open loop,
+NaN, stuck counts are the driver's, from its profile). Failures end the run through
+``hooks.request_end``: a fatal source error at once; a transient one (a polled ADC's failed poll:
+its ring keeps the samples) is a fault, retried; a source that delivers nothing for
+``stall_timeout_s`` (wall seconds: a silent, frozen or vanished device, a reconnection that takes
+too long) ends it as well.
 """
 
 from __future__ import annotations
@@ -16,103 +18,46 @@ import logging
 import threading
 import time
 
-import numpy as np
-
-from dataclasses import asdict
-
-from velab.drivers.base import DeviceError, DeviceTimeout, pressure_to_head_m
-from velab.drivers.blocks import QUALITY_CODE, worst_quality
-from velab.drivers.streaming_adc import MAX_BLOCK, RATE_MAX_HZ, RATE_MIN_HZ, auto_block
+from velab.drivers.base import DeviceError
+from velab.drivers.pressure_source import PressureSource, sample_codes
 from velab.recording.types import DEVICE_ERRORS, DeviceFailure
 
 log = logging.getLogger(__name__)
 
 
-class PressureSource:
-    def __init__(self, name: str, kind: str, driver, clock=None):
-        self.name = name
-        self.kind = kind
-        self.adc = driver
-        self.clock = clock
-        self.streaming = kind == "streaming_adc"
+class PressureStage:
+    def __init__(self, source: PressureSource):
+        self.source = source
+        self.name = source.name
         self.fs: float | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.outcome = ""  # how the acquisition thread ended: "stopped", "failed: ..."
-        self.pressure_channel, self.valve_channel = self._channels()
-
-    # ---------------------------------------------------------------- channels
-    def _channels(self) -> tuple[str, str | None]:
-        """(pressure channel, valve-position channel or None), by units."""
-        adc = self.adc
-        if self.streaming:
-            chans = [(c.name, c.calibration.units) for c in adc.profile.channels]
-            enabled = list(adc.profile.enabled)
-        else:
-            chans = [(c.name, c.calibration.units) for c in adc.channels]
-            enabled = [c[0] for c in chans]
-        p = next((n for n, u in chans if u == "Pa" and n in enabled), None)
-        v = next((n for n, u in chans if u == "%" and n in enabled), None)
+        p, v = source.channels()
         if p is None:
             raise DeviceFailure(f"{self.name}: no pressure channel (units Pa) is acquired")
-        return p, v
+        self.pressure_channel, self.valve_channel = p, v
 
     def rate_range(self) -> tuple[float, float]:
         """The sample rates this source accepts (Hz)."""
-        if self.streaming:
-            return float(RATE_MIN_HZ), float(RATE_MAX_HZ)
-        spec = self.adc.profile.reg("sample_rate")
-        return float(spec.min if spec.min is not None else 1.0), float(spec.max if spec.max is not None else 1e4)
+        return self.source.rate_range()
 
     def calibration(self) -> dict:
-        if self.streaming:
-            return {c.name: asdict(c.calibration) | {"range": c.range, "input": c.index} for c in self.adc.profile.channels}
-        return {c.name: asdict(c.calibration) | {"type_code": c.type_code, "input": c.index} for c in self.adc.channels}
-
-    def _block_samples(self, fs: float) -> int:
-        scale = getattr(self.clock, "scale", 1.0) if self.clock is not None else 1.0
-        return int(min(MAX_BLOCK, max(auto_block(fs, 2), auto_block(fs * scale, 2))))
+        return self.source.calibration()
 
     # ---------------------------------------------------------------- before arming
     def look(self, fs: float) -> tuple[float, str]:
         """A short look at the pressure before anything is armed: (mean head, worst quality)."""
-        adc, pch = self.adc, self.pressure_channel
         try:
-            if self.streaming:
-                adc.configure(fs, [pch], self._block_samples(fs))
-                adc.start()
-                vals, codes = [], []
-                try:
-                    need = max(10, int(0.05 * fs))
-                    deadline = time.monotonic() + 5.0
-                    while sum(v.size for v in vals) < need and time.monotonic() < deadline:
-                        b = adc.get_block(timeout=2.0)
-                        vals.append(b.head_m(pch))
-                        codes.append(sample_codes(b, pch))
-                    q = worst_quality(np.concatenate(codes)).value if codes else "ok"
-                finally:
-                    adc.stop()
-                h = np.concatenate(vals) if vals else np.array([np.nan])
-                return float(np.nanmean(h)) if np.isfinite(h).any() else float("nan"), q
-            r = adc.read_pressure(pch)
-            return float(pressure_to_head_m(r.value, adc.density_kg_m3)), r.quality.value
+            return self.source.spot_head(fs)
         except DEVICE_ERRORS as exc:
             raise DeviceFailure(f"{self.name}: pressure check failed: {exc}") from None
 
     # ---------------------------------------------------------------- acquisition
     def start(self, fs: float, stall_timeout_s: float, on_block, hooks) -> float:
         """Start the device and the acquisition thread; returns the device's actual rate."""
-        adc = self.adc
-        chans = [self.pressure_channel] + ([self.valve_channel] if self.valve_channel else [])
-        if self.streaming:
-            cfg = adc.configure(fs, chans, self._block_samples(fs))
-            adc.start(wait_when_full=True)
-            self.fs = float(cfg.rate_hz) if abs(cfg.rate_hz - fs) > 1e-6 * fs else float(fs)
-        else:
-            adc.stop_buffer()
-            adc.configure_buffer(int(fs), len(chans))
-            adc.start_buffer()
-            self.fs = float(adc.sample_rate_hz or fs)
+        self.source.configure(fs)
+        self.fs = self.source.start()
         self._stop.clear()
         self.outcome = ""
         self._thread = threading.Thread(target=self._loop, args=(on_block, hooks, stall_timeout_s), daemon=True,
@@ -125,50 +70,28 @@ class PressureSource:
                 for ch in (self.pressure_channel, self.valve_channel)]
 
     def _loop(self, on_block, hooks, stall_timeout_s: float) -> None:
-        adc = self.adc
         last_data = time.monotonic()
         last_error: str = ""
         try:
             while not self._stop.is_set():
-                try:
-                    if self.streaming:
-                        try:
-                            blocks = [adc.get_block(timeout=0.2)] + adc.get_blocks()
-                        except DeviceTimeout:
-                            if adc.error is not None:  # the reader gave up: fatal
-                                raise adc.error from None
-                            blocks = []
-                    else:
-                        b = adc.read_buffer()
-                        blocks = [b] if b.n or b.lost_before else []
-                        if last_error:
-                            hooks.fault("pressure", f"answers again after: {last_error}", "no_response")
-                            last_error = ""
-                except DEVICE_ERRORS as exc:
-                    if self.streaming:
-                        raise DeviceError(str(exc)) from None
-                    # the Modbus ADC's ring keeps the samples: retry until the stall timeout
+                r = self.source.read_blocks()  # a fatal error raises (DeviceError)
+                if r.error:
                     if not last_error:
-                        hooks.fault("pressure", f"{exc} (retrying; the module's buffer keeps the samples)",
-                                    "no_response")
-                    last_error = str(exc)
-                    blocks = []
-                for b in blocks:
+                        hooks.fault("pressure", f"{r.error} ({r.note})", "no_response")
+                    last_error = r.error
+                elif last_error:
+                    hooks.fault("pressure", f"answers again after: {last_error}", "no_response")
+                    last_error = ""
+                for b in r.blocks:
                     p_codes, v_codes = self._codes(b)
                     on_block(b, p_codes, v_codes)
                     last_data = time.monotonic()
                     if self._stop.is_set():
                         break
-                if not blocks:
-                    if time.monotonic() - last_data > stall_timeout_s:
-                        why = f"no pressure samples for {stall_timeout_s:g} s"
-                        if last_error:
-                            why += f" (last error: {last_error})"
-                        elif self.streaming and adc.error is None:
-                            why += " (device silent, frozen or reconnecting)"
-                        raise DeviceError(why)
-                    if not self.streaming:
-                        time.sleep(0.01)
+                if not r.blocks and time.monotonic() - last_data > stall_timeout_s:
+                    why = f"no pressure samples for {stall_timeout_s:g} s"
+                    why += f" (last error: {last_error})" if last_error else self.source.stall_hint()
+                    raise DeviceError(why)
             self.outcome = "stopped"
         except DeviceError as exc:
             if self._stop.is_set():
@@ -190,10 +113,7 @@ class PressureSource:
         self._stop.set()
         problem = ""
         try:
-            if self.streaming:
-                self.adc.stop()
-            else:
-                self.adc.stop_buffer()
+            self.source.stop()
         except Exception as exc:  # noqa: BLE001 - a dead device cannot be stopped; say so once
             problem = f"pressure ADC stop: {exc}"
         if self._thread is not None and self._thread is not threading.current_thread():
@@ -201,12 +121,3 @@ class PressureSource:
             if self._thread.is_alive():
                 problem = (problem + "; " if problem else "") + "acquisition thread did not end within 5 s"
         return problem
-
-
-def sample_codes(b, channel: str) -> np.ndarray:
-    """The driver's per-sample quality codes of one channel (a driver that gives only a worst
-    quality per block: that, for every sample)."""
-    j = b.channels.index(channel)
-    if b.sample_quality is not None:
-        return b.sample_quality[:, j]
-    return np.full(b.n, QUALITY_CODE[b.quality[j]], np.uint8)

@@ -10,18 +10,20 @@ import math
 import threading
 import time
 
-from velab.drivers.base import TriggerNotStarted, TriggerUnknown
+from velab.drivers.pressure_source import pressure_source
 from velab.drivers.valve import ValveState
 from velab.errors import VelabError
 from velab.recording import phases as P
 from velab.recording.devices import check_steady_flow, check_steady_head
 from velab.recording.layout import bench_snapshot, commanded_rig, create_run_file, run_file_name
 from velab.recording.online_fit import HALTED, OnlineFit
-from velab.recording.pressure import PressureSource
+from velab.recording.ops import Append, Value
+from velab.recording.pressure import PressureStage
 from velab.recording.redundancy import RedundancyMonitor, head_mismatch, head_tolerance_m
 from velab.recording.safety import ceiling_head, check_output_dir, predict_surge
 from velab.recording.slow import SlowChannels
 from velab.recording.timeline import Timeline
+from velab.recording.trigger import TriggerFailed, make_safe, readback_note, trigger_manoeuvre
 from velab.recording.types import DEVICE_ERRORS, DeviceFailure, RunRefused, RunSummary
 from velab.recording.writer import BYTES_PER_SAMPLE, WriterStage
 from velab.runfiles.fits import save_fit
@@ -37,7 +39,7 @@ class RunControl:
         self.path = None
         self._writer: WriterStage | None = None
         self._timeline: Timeline | None = None
-        self._source: PressureSource | None = None
+        self._source: PressureStage | None = None
         self._slow: SlowChannels | None = None
         self._fit: OnlineFit | None = None
         self._steady: float | None = None
@@ -51,7 +53,7 @@ class RunControl:
         self._armed_at_samples = 0
         self._armed_timeout_s = 0.0
         self._last_progress = 0.0
-        self._halted = False
+        self._halt = threading.Event()  # set by halt(), from the caller's thread
         self._fit_error = ""
         self._valve_lost = False  # the safe-state command could not reach the actuator
         self._redundancy: RedundancyMonitor | None = None  # redundant channels, compared at the end
@@ -72,8 +74,9 @@ class RunControl:
             self._do_connect()
         s = self.settings
         self._init_run_state()
-        source = PressureSource(self.roles["pressure"], self.bench.devices[self.roles["pressure"]].kind,
-                                self.devices[self.roles["pressure"]], self.clock)
+        name = self.roles["pressure"]
+        source = PressureStage(pressure_source(self.devices[name], name, getattr(self.clock, "scale", 1.0)
+                                               if self.clock is not None else 1.0))
         lo, hi = source.rate_range()
         if not lo <= s.sample_rate_hz <= hi:
             raise VelabError(f"sample rate {s.sample_rate_hz:g} Hz is outside the range of {source.name} "
@@ -121,9 +124,9 @@ class RunControl:
         put = self._writer.put
 
         def write(op):  # the ADC's valve-position channel, as written, for the redundancy check too
-            if op[0] == "append":
-                mon.adc(op[1], op[2]["valve_position"], op[2]["valve_position_quality"],
-                        still=self._timeline.trigger_idx is None)
+            if isinstance(op, Append):
+                mon.adc(op.t, op.channels["valve_position"], op.channels["valve_position_quality"],
+                        still=not self._timeline.triggered)
             put(op)
         self._timeline = Timeline(s, fs, (beta, gamma, end), ceiling, source.pressure_channel, source.valve_channel,
                                   self.hooks, write, self._window_closed,
@@ -132,10 +135,11 @@ class RunControl:
         valve = self.devices[self.roles["valve"]]
         self._slow = SlowChannels(valve, self.roles["valve"], self.devices[self.roles["flowmeter"]], self.hooks,
                                   self._writer.put, lambda: self._timeline.now_axis,
-                                  lambda: self._timeline.trigger_idx is not None, s.stall_timeout_s,
-                                  on_valve=lambda st: (setattr(self, "_valve_state", st.state), mon.valve(st)),
+                                  lambda: self._timeline.triggered, s.stall_timeout_s,
+                                  # the valve's state reaches the control thread as a message
+                                  on_valve=lambda st: (self._submit(lambda: self._note_valve(st)), mon.valve(st)),
                                   on_flow=lambda r: mon.flow(r.value) if r.quality.value == "ok"
-                                  and self._timeline.trigger_idx is None else None)
+                                  and not self._timeline.triggered else None)
         # 5. start the stream, then arm the actuator
         try:
             actual = source.start(fs, s.stall_timeout_s, self._timeline.process, self.hooks)
@@ -175,30 +179,27 @@ class RunControl:
         the armed valve aborted; unknown (no read-back) -> failed, ABORT sent without asking first."""
         tl, name = self._timeline, self.roles["valve"]
         self._steady = tl.steady_head(self._steady)
-        if self._slow is not None and not self._slow.valve_answering:
+        answering, error = self._valve_link()
+        if not answering:
             # its polls go unanswered: a TRIGGER would most likely be lost, or start a stroke nobody can watch
-            self._trigger_failed(f"does not answer its status polls ({self._slow.valve_error}): not triggered",
-                                 ask_valve=False)
+            self._trigger_failed(f"does not answer its status polls ({error}): not triggered", ask_valve=False)
         sent = time.time()
         t_est = tl.mark_trigger(sent, getattr(self.clock, "scale", 1.0) if self.clock is not None else 1.0)
         if self._slow is not None:
             self._slow.hold_valve(True)  # the trigger and its read-back have the bus to themselves
         try:
-            out = self.devices[name].trigger()
-        except TriggerNotStarted as exc:  # also TriggerRefused: the valve is still armed, nothing moved
-            self._trigger_failed(f"trigger not started (sent at about t = {t_est:.3f} s): {exc}", ask_valve=True)
-        except (TriggerUnknown,) + DEVICE_ERRORS as exc:  # the valve may be closing: ABORT it without asking
-            self._trigger_failed(f"trigger outcome unknown (sent at about t = {t_est:.3f} s): {exc}", ask_valve=False)
+            out = trigger_manoeuvre(self.devices[name], f" (sent at about t = {t_est:.3f} s)")
+        except TriggerFailed as exc:
+            self._trigger_failed(str(exc), ask_valve=exc.ask_valve)
         if self._slow is not None:
             self._slow.hold_valve(False)
-        if out.readback:
-            st = out.status
-            self._fault("valve", f"TRIGGER reply lost ({out.lost_reply}); state read back: {st.state.name}, trigger "
-                                 f"count {st.trigger_count}: the manoeuvre started", "protocol")
+        note = readback_note(out)
+        if note:
+            self._fault("valve", note, "protocol")
         estimate_kept = tl.commit_trigger()  # not if the feedback measured it already (a slow read-back)
-        self._writer.put(("value", "manoeuvre/trigger_host_time", sent))
+        self._writer.put(Value("manoeuvre/trigger_host_time", sent))
         self._log("operator", f"trigger commanded at about t = {t_est:.3f} s")
-        self._set_phase(P.RECORDING, trigger_time_s=tl.trigger_time, fit_window_s=self.settings.fit_window_s,
+        self._set_phase(P.RECORDING, trigger_time_s=tl.counters().trigger_time, fit_window_s=self.settings.fit_window_s,
                         remaining_s=self.settings.fit_window_s)
         if estimate_kept:
             self._emit("trigger", {"trigger_time_s": t_est, "measured": False})
@@ -216,10 +217,9 @@ class RunControl:
 
     # ------------------------------------------------------------------ timers (control thread)
     def _tick(self) -> None:
-        tl = self._timeline
-        if tl is None or not self._run_active():
+        if self._timeline is None or not self._run_active():
             return
-        s = self.settings
+        s, tl = self.settings, self._timeline.counters()
         if self.phase == P.ARMED and tl.baseline_complete:
             self._set_phase(P.TRIGGERABLE, path=str(self.path), disarm_in_s=self._armed_timeout_s - tl.baseline_s)
             if self._trigger_fut is not None:
@@ -238,6 +238,7 @@ class RunControl:
         now = time.monotonic()
         if now - self._last_progress >= PROGRESS_S:
             self._last_progress = now
+            tl = self._timeline.counters()  # (again: a queued trigger may have gone out above)
             if self.phase == P.ARMED:
                 d = {"remaining_s": max(0.0, s.pretrigger_s - tl.baseline_s), "what": "baseline"}
             elif self.phase == P.TRIGGERABLE:
@@ -249,6 +250,19 @@ class RunControl:
             self._emit("progress", {"phase": self.phase, "t_s": tl.now_axis, **d})
 
     # ------------------------------------------------------------------ the end
+    def _mark_lines(self) -> list[str]:
+        with self._end_lock:
+            return list(self._marks.values())
+
+    def _ending(self) -> str | None:
+        """The status an end was requested with (None: none yet), from any thread."""
+        with self._end_lock:
+            return self._end_request[0] if self._end_request is not None else None
+
+    def _valve_link(self) -> tuple[bool, str]:
+        """(the valve answers its polls, why not): True before the slow channels run."""
+        return self._slow.valve_link() if self._slow is not None else (True, "")
+
     def _request_end(self, status: str, reason: str) -> None:
         """From any thread: end the run (the first request wins; later ones are logged)."""
         with self._end_lock:
@@ -261,7 +275,7 @@ class RunControl:
         """From the acquisition thread: the lead's part of the window is in: its fit starts now,
         while the rest is recorded (the final fit then continues from it)."""
         fit, tl = self._fit, self._timeline
-        if fit is None or self._halted or self._end_request is not None or tl.lead_window_s is None:
+        if fit is None or self._halt.is_set() or self._ending() is not None or tl.lead_window_s is None:
             return
         try:
             t, h, trigger, _, _, pos = tl.fit_window(tl.lead_window_s)
@@ -272,9 +286,9 @@ class RunControl:
     def _window_closed(self, window_s: float, final: bool) -> None:
         """From the acquisition thread: the fit window (or a quick fit's part of it) is in."""
         fit, tl = self._fit, self._timeline
-        if fit is None or self._halted:
+        if fit is None or self._halt.is_set():
             return
-        ending = self._end_request[0] if self._end_request is not None else None
+        ending = self._ending()
         if final and ending in (P.ABORTED, P.FAILED):
             return  # the end decides (no fit of an aborted or failed run)
         try:
@@ -292,25 +306,12 @@ class RunControl:
         valve = self.devices.get(self.roles.get("valve", ""))
         if valve is None:
             return
+        # it did not answer (its last poll, a read-back): ABORT without asking first
+        ask = ask and self._valve_link()[0]
         try:
-            if not ask or (self._slow is not None and not self._slow.valve_answering):
-                state = None  # it did not answer (its last poll, a read-back): ABORT without asking first
-            else:
-                state = valve.read_status().state
-            if state in (ValveState.ARMED, ValveState.RUNNING, None):
-                try:
-                    valve.abort()
-                except DEVICE_ERRORS as exc:
-                    # a stroke that ended between the status read and the abort is refused ("no running
-                    # manoeuvre"): the valve is at rest, which is the safe state; anything else is a fault
-                    after = valve.read_status().state if state is not None else None
-                    if after not in (ValveState.DONE, ValveState.HOLDING, ValveState.ABORTED, ValveState.IDLE):
-                        raise
-                    self._log("operator", f"actuator: {after.name} before the abort arrived ({exc}): at rest")
-                    return
-                self._log("operator", {ValveState.ARMED: "actuator: armed manoeuvre cancelled (abort)",
-                                       ValveState.RUNNING: "actuator: manoeuvre stopped where it is (abort)",
-                                       None: "actuator: abort commanded (state unknown)"}[state])
+            line = make_safe(valve, ask)
+            if line:
+                self._log("operator", line)
         except DEVICE_ERRORS as exc:
             self._valve_lost = True
             self._fault("valve", f"could not be commanded to its safe state: {exc}", "no_response")
@@ -338,23 +339,25 @@ class RunControl:
             fut, self._trigger_fut = self._trigger_fut, None
             fut.set_exception(VelabError(f"trigger cancelled: the run ended before the baseline was in "
                                          f"({status}{': ' + reason if reason else ''})"))
-        if status == P.COMPLETED and self._marks:
+        with self._end_lock:
+            mark_lines = list(self._marks.values())
+        if status == P.COMPLETED and mark_lines:
             status = P.COMPLETED_WITH_FAULTS
         if self._writer.error and status != P.FAILED:
             status, reason = P.FAILED, "; ".join(x for x in (self._writer.error, reason) if x)
-        marks = "; ".join(m for m in self._marks.values() if m not in reason)  # each said once
+        marks = "; ".join(m for m in mark_lines if m not in reason)  # each said once
         full_reason = "; ".join(x for x in (reason, marks) if x)
         self._decide_fit(status)
         self._log("status", f"{status}: {full_reason}" if full_reason else status)
         self._log("phase", status)
         if not self._writer.close(status, full_reason[:255]):
             self._fault("storage", "the run file could not be closed within 30 s", "storage")
-        if not self._valve_lost and (self._slow is None or self._slow.valve_answering):
+        if not self._valve_lost and self._valve_link()[0]:
             try:  # where the valve ended up (the GUI offers Reset valve when it is closed)
                 self._emit_valve(self.devices[self.roles["valve"]].read_status())
             except DEVICE_ERRORS + (KeyError,):
                 pass
-        fit_pending = self._fit is not None and self._fit.final_started and not self._halted
+        fit_pending = self._fit is not None and self._fit.final_started and not self._halt.is_set()
         if fit_pending:
             self._set_phase(P.FITTING, status=status, reason=full_reason, path=str(self.path))
         threading.Thread(target=self._conclude, args=(status, full_reason), daemon=True,
@@ -369,7 +372,8 @@ class RunControl:
         if mon is None or tl is None:
             return
         try:
-            f, n = mon.position_finding(tl.trigger_time, tl.trigger_from_feedback)
+            c = tl.counters()
+            f, n = mon.position_finding(c.trigger_time, c.trigger_from_feedback)
             if f is not None:
                 self._fault("valve", f.message, f.kind, deviation_pct=round(f.deviation, 3),
                             tolerance_pct=f.tolerance, t_s=f.at_s, polls_compared=n, **f.extras)
@@ -391,10 +395,10 @@ class RunControl:
 
     def _decide_fit(self, status: str) -> None:
         """The fit, or why there is none (a run never ends without one or the other)."""
-        s, fit, tl = self.settings, self._fit, self._timeline
+        s, fit, tl = self.settings, self._fit, self._timeline.counters()
         if not s.fit or fit is None:
             return
-        if self._halted:
+        if self._halt.is_set():
             fit.cancel()
             fit.refuse(HALTED)
             return
@@ -427,15 +431,21 @@ class RunControl:
                 except Exception as exc:  # noqa: BLE001 - the fit is still in the summary
                     error = f"fit not saved in the run file: {exc}"
                     self._emit("message", error)
-        tl = self._timeline
-        self._summary = RunSummary(
+        tl = self._timeline.counters()
+        summary = RunSummary(
             path=self.path, status=status, reason=reason, n_samples=tl.n_written, lost_samples=tl.lost,
             peak_head_m=tl.peak if math.isfinite(tl.peak) else float("nan"), fit=result,
             best_model=result.best.name if result is not None else None,
             wave_speed_m_s=float(result.best.wave_speed_m_s) if result is not None else None,
             trigger_time_s=tl.trigger_time, steady_head_m=self._steady, gaps=tl.gaps,
             fit_latency_s=latency if result is not None else None, fit_error=error,
-            faults=list(self._marks.values()), flagged_samples=tl.flagged)
-        self._set_phase(status, status=status, reason=reason, path=str(self.path))
-        self._emit("done", self._summary)
+            faults=self._mark_lines(), flagged_samples=tl.flagged)
+        fut = self._submit(lambda: self._finish(summary))  # the phase is the control thread's
+        if fut.done() and fut.exception() is not None:  # (a recorder closing: no control thread any more)
+            self._finish(summary)
+
+    def _finish(self, summary: RunSummary) -> None:
+        self._summary = summary
+        self._set_phase(summary.status, status=summary.status, reason=summary.reason, path=str(self.path))
+        self._emit("done", summary)
         self._done.set()

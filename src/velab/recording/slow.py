@@ -16,6 +16,7 @@ import time
 
 from velab.drivers.base import DeviceFault
 from velab.drivers.valve import ValveState
+from velab.recording.ops import Slow
 from velab.recording.types import DEVICE_ERRORS
 
 log = logging.getLogger(__name__)
@@ -36,8 +37,9 @@ class SlowChannels:
         self.stall_timeout_s = stall_timeout_s
         self.on_valve = on_valve or (lambda st: None)
         self.on_flow = on_flow or (lambda r: None)  # each flow Reading (the redundancy check's steady flow)
-        self.valve_answering = True
-        self.valve_error = ""  # why the last valve poll failed
+        self._link_lock = threading.Lock()
+        self._answering = True  # (under _link_lock: read by the control thread, valve_link())
+        self._valve_error = ""  # why the last valve poll failed
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._flow_faults = 0
@@ -70,6 +72,19 @@ class SlowChannels:
                 self.hooks.fault("recorder", f"slow-channel poll failed: {type(exc).__name__}: {exc}")
             self._stop.wait(max(0.0, POLL_S - (time.monotonic() - t0)))
 
+    def valve_link(self) -> tuple[bool, str]:
+        """(the valve answers its polls, why not), from any thread."""
+        with self._link_lock:
+            return self._answering, self._valve_error
+
+    def _set_link(self, answering: bool, error: str = "") -> bool:
+        """Record the last poll's outcome; returns whether the valve answered before it."""
+        with self._link_lock:
+            before, self._answering = self._answering, answering
+            if error:
+                self._valve_error = error
+            return before
+
     def hold_valve(self, held: bool) -> None:
         """While held, the polls leave the actuator alone: a command in flight (the trigger and its
         read-back) has the bus to itself instead of queueing behind a poll's timeouts."""
@@ -84,7 +99,7 @@ class SlowChannels:
         try:
             r = self.flowmeter.read_flow()
             readings["flow"] = r
-            self.write(("slow", "flow", t, r.value, time.time()))
+            self.write(Slow("flow", t, r.value, time.time()))
             self.on_flow(r)
             if r.quality.value != "ok" and r.quality.value not in self._flow_quality_seen:
                 self._flow_quality_seen.add(r.quality.value)
@@ -100,14 +115,14 @@ class SlowChannels:
     def _poll_valve(self, readings: dict, t: float, epoch: float) -> None:
         try:
             st = self.valve.read_status()
-            if not self.valve_answering:
+            if not self._set_link(True):
                 self.hooks.fault("valve", "answers again", "no_response")
-            self.valve_answering, self._valve_silent_since = True, None
+            self._valve_silent_since = None
             readings["valve_position"] = st.position
             self.on_valve(st)
             self.hooks.emit("valve", valve_event(self.valve_name, st))
-            self.write(("slow", "valve_state", t, int(st.state), epoch))
-            self.write(("slow", "valve_opening", t, st.position.value, epoch))
+            self.write(Slow("valve_state", t, int(st.state), epoch))
+            self.write(Slow("valve_opening", t, st.position.value, epoch))
             if st.state is ValveState.FAULT:
                 msg = f"valve actuator FAULT ({', '.join(st.faults) or 'no bits'}) at {st.position.value:.1f} % open"
                 self.hooks.fault("valve", msg, "actuator_fault", faults=list(st.faults))
@@ -117,11 +132,9 @@ class SlowChannels:
             self.hooks.request_end("aborted", str(exc))
         except DEVICE_ERRORS as exc:
             now = time.monotonic()
-            self.valve_error = str(exc)
-            if self.valve_answering:
+            if self._set_link(False, str(exc)):
                 self.hooks.fault("valve", f"actuator does not answer: {exc}", "no_response")
                 self._valve_silent_since = now
-            self.valve_answering = False
             if not self.triggered() and now - (self._valve_silent_since or now) > self.stall_timeout_s:
                 self.hooks.request_end("failed", f"{self.valve_name} (valve): no answer for "
                                                  f"{self.stall_timeout_s:g} s before the trigger: {exc}")

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -21,6 +21,7 @@ from velab.drivers.blocks import QUALITY_CODE, QUALITY_CODES
 from velab.drivers.base import Quality
 from velab.fitting.window import BASELINE_S, steady_head, window_slice
 from velab.recording.online_fit import MIN_FIT_WINDOW_S
+from velab.recording.ops import Append, Gap, Trigger
 from velab.recording.safety import OK, ceiling_crossing, describe_codes, finite_max
 
 # samples kept from before the trigger is marked: the fit path's baseline (velab.fitting.window), and
@@ -51,9 +52,27 @@ def slice_block(b, k: int):
 QUICK_FRACTIONS = (0.25, 0.5, 0.75)  # intermediate quick fits at these fractions of the fit window
 
 
+@dataclass(frozen=True)
+class Counters:
+    """The time line's counters at one instant (``Timeline.counters()``: read under its lock)."""
+
+    now_axis: float
+    baseline_s: float
+    baseline_complete: bool
+    n_written: int
+    lost: int
+    gaps: int
+    flagged: int
+    peak: float
+    trigger_time: float | None
+    trigger_from_feedback: bool
+    window_closed: bool
+
+
 class Timeline:
-    """State of one run's samples. Only the acquisition thread calls ``process``; the control
-    thread reads the counters (plain ints/floats) and calls ``mark_trigger``."""
+    """State of one run's samples. Only the acquisition thread calls ``process``; other threads read
+    its state through ``counters()`` and the properties, and mark the trigger, all under its lock
+    (re-entrant: a hook called from ``process`` may read the counters again)."""
 
     def __init__(self, settings, fs: float, manoeuvre: tuple[float, float, float], ceiling_m: float,
                  pressure_channel: str, valve_channel: str | None, hooks, write, on_window_closed,
@@ -64,7 +83,7 @@ class Timeline:
         self.ceiling = ceiling_m
         self.pch, self.vch = pressure_channel, valve_channel
         self.hooks = hooks
-        self.write = write  # write(op tuple) -> the writer stage
+        self.write = write  # write(velab.recording.ops message) -> the writer stage
         self.on_window_closed = on_window_closed
         self.on_baseline = on_baseline  # wakes the control thread: a queued trigger goes out at once
         # the fit's lead part of the window (velab.fitting.lead): on_lead() when it is in, clean
@@ -100,20 +119,31 @@ class Timeline:
         self._seen_quality: set = set()
         self._last_host: float | None = None  # host arrival time of the last processed sample
         self._last_idx = 0
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()
 
     # ---------------------------------------------------------------- counters (any thread)
     @property
     def now_axis(self) -> float:
-        return (self.gidx - self.n_pre) / self.fs
+        with self._lock:
+            return (self.gidx - self.n_pre) / self.fs
 
     @property
     def baseline_s(self) -> float:
-        return self.gidx / self.fs
+        with self._lock:
+            return self.gidx / self.fs
 
     @property
-    def baseline_complete(self) -> bool:
-        return self.gidx >= self.n_pre
+    def triggered(self) -> bool:
+        """The trigger is marked (the command is going out or went out)."""
+        with self._lock:
+            return self.trigger_idx is not None
+
+    def counters(self) -> Counters:
+        with self._lock:
+            return Counters(now_axis=(self.gidx - self.n_pre) / self.fs, baseline_s=self.gidx / self.fs,
+                            baseline_complete=self.gidx >= self.n_pre, n_written=self.n_written, lost=self.lost,
+                            gaps=self.gaps, flagged=self.flagged, peak=self.peak, trigger_time=self.trigger_time,
+                            trigger_from_feedback=self.trigger_from_feedback, window_closed=self.window_closed)
 
     def steady_head(self, fallback: float | None) -> float | None:
         """The fit path's steady head (velab.fitting.window) of the baseline recorded so far: before
@@ -154,7 +184,7 @@ class Timeline:
         with self._lock:
             if self.trigger_from_feedback:
                 return False
-            self.write(("trigger", self.trigger_time))
+            self.write(Trigger(self.trigger_time))
             return True
 
     def _measure_trigger(self) -> None:
@@ -171,7 +201,7 @@ class Timeline:
         estimate = self.trigger_time
         self.trigger_time = t0
         self.trigger_from_feedback = True
-        self.write(("trigger", t0))
+        self.write(Trigger(t0))
         self.hooks.log("trigger", f"trigger instant measured from the valve position: t = {t0:.5f} s")
         self.hooks.emit("trigger", {"trigger_time_s": t0, "measured": True, "estimate_s": estimate})
 
@@ -211,7 +241,7 @@ class Timeline:
         pos = b.column(self.vch) if has_v else np.full(n, np.nan)
         pos_raw = b.raw_column(self.vch).astype(np.int32) if has_v else np.zeros(n, np.int32)
         vq = v_codes if v_codes is not None else np.zeros(n, np.uint8)
-        self.write(("append", t, {
+        self.write(Append(t, {
             "head": head, "valve_position": pos, "pressure": b.values[:, pi], "pressure_raw": b.raw[:, pi].astype(np.int32),
             "valve_position_raw": pos_raw, "sample_index": g, "host_time": b.host_times_s,
             "pressure_quality": p_codes, "valve_position_quality": vq,
@@ -241,7 +271,7 @@ class Timeline:
         self._check_boundaries()
 
     def _gap(self, lost: int, restarted: bool) -> None:
-        self.write(("gap", self.n_written, lost))
+        self.write(Gap(self.n_written, lost))
         self.lost += lost
         self.gaps += 1
         self.gidx += lost

@@ -122,6 +122,16 @@ class RunSummary:
 
 
 @dataclass(frozen=True)
+class EngineSnapshot:
+    """The engine's phase, its data (read-only) and the commands that can succeed now, as one value:
+    readers on any thread see the three together (``Recorder.snapshot``)."""
+
+    phase: str
+    data: Any  # a read-only mapping (MappingProxyType)
+    allowed: tuple
+
+
+@dataclass(frozen=True)
 class Hooks:
     """How a stage reports (explicit callables, no shared attributes):
 

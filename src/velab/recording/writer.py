@@ -1,8 +1,7 @@
 """The writer stage: the only thread that touches the run file (``velab.runfiles.writer.RunWriter``, SWMR).
 
-Operations arrive on a queue (``put(op)``): ``("append", t, channels)``, ``("event", t, kind,
-text)``, ``("gap", sample, lost)``, ``("trigger", t)``, ``("value", path, v)``, ``("slow",
-name, t, v[, host epoch])``, ``("close", status, reason)``. It flushes every ``flush_interval_s`` (or 0.5 s
+Operations arrive on a queue (``put(op)``), each a small immutable message of velab.recording.ops
+(Append, Event, Gap, Trigger, Value, Slow; Close last), applied through one table. It flushes every ``flush_interval_s`` (or 0.5 s
 of data) and checks the room the file can still grow by before each flush: below a reserve of
 4 MiB + 2 s of samples it ends the run (``failed``, "storage failure: disk full ...") while
 the file can still be closed properly. A write that fails anyway (h5py: OSError or
@@ -18,6 +17,8 @@ import shutil
 import sys
 import threading
 import time
+
+from velab.recording.ops import Append, Close, Event, Gap, Slow, Trigger, Value
 
 try:
     import resource
@@ -43,6 +44,11 @@ def storage_room(path) -> int | None:
         return None
 
 
+def _append(w, op: Append) -> int:
+    w.append(op.t, **op.channels)
+    return op.t.size
+
+
 class WriterStage:
     def __init__(self, writer, fs: float, flush_interval_s: float, hooks):
         self.w = writer
@@ -61,7 +67,7 @@ class WriterStage:
             self.q.put(op)
 
     def close(self, status: str, reason: str, timeout: float = 30.0) -> bool:
-        self.q.put(("close", status, reason))
+        self.q.put(Close(status, reason))
         self._thread.join(timeout)
         return not self._thread.is_alive()
 
@@ -69,22 +75,18 @@ class WriterStage:
         """Room kept free for the rest of a flush interval and closing the file (HDF5 allocates in chunks)."""
         return (4 << 20) + 4 * int(0.5 * self.fs * BYTES_PER_SAMPLE)
 
+    # each operation on the RunWriter ``w``; an append returns the samples it wrote (for the flush rule)
+    _APPLY = {
+        Append: lambda w, op: _append(w, op),
+        Event: lambda w, op: w.event(op.t, op.kind, op.text),
+        Gap: lambda w, op: w.gap(op.sample, op.lost),
+        Trigger: lambda w, op: w.set_trigger_time(op.t),
+        Value: lambda w, op: w.set_value(op.path, op.value),
+        Slow: lambda w, op: w.append_slow(op.name, op.t, op.value, epoch_s=op.epoch_s),
+    }
+
     def _apply(self, op) -> int:
-        kind, w = op[0], self.w
-        if kind == "append":
-            w.append(op[1], **op[2])
-            return op[1].size
-        if kind == "event":
-            w.event(op[1], op[2], op[3])
-        elif kind == "gap":
-            w.gap(op[1], op[2])
-        elif kind == "trigger":
-            w.set_trigger_time(op[1])
-        elif kind == "value":
-            w.set_value(op[1], op[2])
-        elif kind == "slow":
-            w.append_slow(op[1], op[2], op[3], epoch_s=op[4] if len(op) > 4 else None)
-        return 0
+        return self._APPLY[type(op)](self.w, op) or 0
 
     def _loop(self) -> None:
         last, pending, low, op = time.monotonic(), 0, False, None
@@ -94,9 +96,9 @@ class WriterStage:
                     op = self.q.get(timeout=self.interval / 2)
                 except queue.Empty:
                     op = None
-                if op is not None and op[0] == "close":
+                if isinstance(op, Close):
                     self.w.flush()
-                    self.w.close(op[1], op[2] or self.error)
+                    self.w.close(op.status, op.reason or self.error)
                     return
                 if op is not None:
                     pending += self._apply(op)
@@ -113,7 +115,7 @@ class WriterStage:
                     self.w.flush()
                     last, pending = now, 0
         except Exception as exc:  # noqa: BLE001 - disk full, I/O error (h5py: OSError or RuntimeError)
-            self._failed(exc, closing=op is not None and op[0] == "close")
+            self._failed(exc, closing=isinstance(op, Close))
         finally:
             self.closed.set()
 
@@ -131,9 +133,9 @@ class WriterStage:
             return
         while True:  # drain until the close request, then close as well as possible
             op = self.q.get()
-            if op[0] == "close":
+            if isinstance(op, Close):
                 try:
-                    self.w.close(op[1], op[2] or self.error)
+                    self.w.close(op.status, op.reason or self.error)
                 except Exception:  # noqa: BLE001
                     try:
                         self.w._fh.close()

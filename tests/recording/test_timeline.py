@@ -1,0 +1,101 @@
+"""velab.recording.timeline alone: synthetic blocks in, writer operations and hooks out (no devices,
+no clock): the axis, the baseline, gaps, quality, the ceiling, the trigger, the fit window, the
+steady head (the fit path's rule, velab.fitting.window)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stage_helpers import RecordingHooks, block
+from velab.fitting.window import steady_head
+from velab.recording.ops import Append, Gap, Trigger
+from velab.recording.settings import RecordSettings
+from velab.recording.timeline import Timeline
+
+FS = 1000.0
+
+
+def make(pretrigger_s=1.0, duration_s=3.0, fit_window_s=2.0, ceiling=100.0, **kw):
+    s = RecordSettings(pretrigger_s=pretrigger_s, duration_s=duration_s, fit_window_s=fit_window_s, fit=True,
+                       intermediate_fits=False, sample_rate_hz=FS)
+    rec, ops, closed, baseline = RecordingHooks(), [], [], []
+    tl = Timeline(s, FS, (10.0, 0.0, 0.0), ceiling, "pressure", "valve_position", rec.hooks, ops.append,
+                  lambda w, final: closed.append((w, final)), on_baseline=lambda: baseline.append(True), **kw)
+    return tl, rec, ops, closed, baseline
+
+
+def feed(tl, first, n, **kw):
+    b = block(first, n, rate_hz=FS, **kw)
+    tl.process(b, b.sample_quality[:, 0], b.sample_quality[:, 1])
+
+
+def test_the_axis_starts_at_minus_the_pretrigger_and_the_baseline_completes_once():
+    tl, rec, ops, _, baseline = make()
+    for i in range(12):
+        feed(tl, 100 * i, 100)
+    c = tl.counters()
+    assert c.n_written == 1200 and c.now_axis == pytest.approx(0.2) and c.baseline_complete
+    assert baseline == [True]
+    appends = [op for op in ops if isinstance(op, Append)]
+    assert appends[0].t[0] == pytest.approx(-1.0) and set(appends[0].channels) >= {"head", "pressure_quality"}
+    assert [k for k, _ in rec.emitted] == ["samples"] * 12 and not rec.faults and not rec.ends
+
+
+def test_lost_samples_are_a_gap_op_and_a_fault():
+    tl, rec, ops, _, _ = make()
+    feed(tl, 0, 100)
+    feed(tl, 150, 100, lost_before=50)
+    assert [op for op in ops if isinstance(op, Gap)] == [Gap(100, 50)]
+    assert tl.counters().lost == 50 and tl.counters().gaps == 1
+    assert rec.faults[0][2] == "samples_lost" and "50 samples lost before sample 150" in rec.faults[0][1]
+
+
+def test_a_flagged_pressure_before_the_trigger_aborts_the_run():
+    tl, rec, _, _, _ = make()
+    codes = np.zeros((100, 2), np.uint8)
+    codes[40:, 0] = 3  # open loop
+    feed(tl, 0, 100, codes=codes)
+    assert rec.faults[0][2] == "quality" and tl.counters().flagged == 60
+    assert rec.ends[0][0] == "aborted" and "before the trigger" in rec.ends[0][1]
+
+
+def test_a_head_above_the_ceiling_aborts_the_run():
+    tl, rec, _, _, _ = make(ceiling=50.0)
+    feed(tl, 0, 100, head_m=np.r_[np.full(50, 30.0), np.full(50, 60.0)])
+    assert rec.ends[0][0] == "aborted" and rec.ends[0][1].startswith("pressure ceiling")
+
+
+def test_the_trigger_window_and_end_from_the_sample_clock():
+    tl, rec, ops, closed, _ = make()
+    for i in range(15):
+        feed(tl, 100 * i, 100, host_time_s=(100 * i + 100) / FS)
+    t_est = tl.mark_trigger(1.5, clock_scale=1.0)  # the last block arrived at host 1.5 s: sample 1500
+    assert t_est == pytest.approx(0.5) and tl.commit_trigger()
+    assert [op for op in ops if isinstance(op, Trigger)] == [Trigger(t_est)]
+    for i in range(15, 45):  # the valve never moves here: the trigger stays the command's estimate
+        feed(tl, 100 * i, 100)
+    assert closed == [(2.0, True)] and tl.counters().window_closed
+    assert rec.ends == [("completed", "")]  # trigger + duration reached
+    assert any("no stroke seen" in f[1] for f in rec.faults)
+    t, h, trigger, w, note, pos = tl.fit_window(2.0)
+    assert trigger == t_est and w == 2.0 and not note
+    assert t[-1] == pytest.approx(t_est + 2.0 - 1 / FS) and pos.size == t.size
+
+
+def test_the_steady_head_is_the_fit_paths_baseline_mean():
+    tl, *_ = make(pretrigger_s=5.0)
+    rng = np.random.default_rng(1)
+    heads = 30.0 + rng.normal(0, 0.01, 5000)
+    heads[:1000] += 5.0  # more than the baseline's length before the trigger: not in it
+    for i in range(50):
+        feed(tl, 100 * i, 100, head_m=heads[100 * i:100 * i + 100], host_time_s=(100 * i + 100) / FS)
+    tl.mark_trigger(5.0)
+    t = (np.arange(5000) - 5000) / FS
+    assert tl.steady_head(None) == pytest.approx(steady_head(t, heads, 0.0, np.nan, FS), abs=1e-12)
+    assert tl.steady_head(None) == pytest.approx(30.0, abs=0.002)
+
+
+def test_no_baseline_yet_is_the_fallback():
+    tl, *_ = make()
+    assert tl.steady_head(12.0) == 12.0
