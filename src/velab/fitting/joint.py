@@ -315,6 +315,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     check_same_pipe(sources)
     t0 = time.perf_counter()
     ms = parse_models(list(models) if isinstance(models, range) else models)
+
     def make(s):
         try:
             return _Run(s, window_s, manoeuvre, friction, friction_unsteady)
@@ -328,7 +329,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     sw = _JointSweep(runs, bounds, selection, progress)
     base = sw.start()
     total = len(ms)
-    for done, m in enumerate(range(0, max(ms) + 1), 1):
+    for m in range(0, max(ms) + 1):
         fin = base if m == 0 else sw.fit_model(m, base)
         if m == 0:
             fin = sw.polish(ParamMap(0, bounds), base.sol.x, base)
@@ -340,7 +341,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     # the closure's shape; from its early window alone a slow element takes up a wrong shape), then every
     # model continued from its optimum under them
     for _ in range(REFINE_PASSES if any(r.vi.source == "fitted" for r in runs) else 0):
-        first = _first_pass_best(sw, ms, selection)
+        first = _first_pass_best(sw, ms)
         p = first.sol.pm.unpack(first.sol.x)
 
         def refine(r, first=first, p=p):
@@ -363,7 +364,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
                          models=fits, selection=selection)
     best = result.best
     result.settings = _settings(runs, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s)
-    result.runs, result.warnings = _per_run(runs, sw, sw.final[best.m], best, bounds, selection)
+    result.runs, result.warnings = _per_run(runs, sw, sw.final[best.m], best, bounds)
     if all(r["disagrees"] for r in result.runs):
         # every run beyond its noise: the model (or the rig files), not one run, does not describe them
         result.warnings.insert(0, {"code": "misfit", "message": f"the best model {best.name} leaves residuals above "
@@ -391,7 +392,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     return result
 
 
-def _first_pass_best(sw: _JointSweep, ms, selection) -> _Model:
+def _first_pass_best(sw: _JointSweep, ms) -> _Model:
     """The model of the first pass with the least white AIC (sum n_r ln F_r + 2 (2m + 1))."""
     return min((sw.final[m] for m in ms), key=lambda f: f.loglik(sw.runs) + 2 * f.sol.pm.size)
 
@@ -409,7 +410,7 @@ def _settings(runs, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s) -> 
                                  if runs[0].tm.active else runs[0].tm.describe()}}
 
 
-def _per_run(runs, sw: _JointSweep, fin: _Model, best: ModelFit, bounds, selection):
+def _per_run(runs, sw: _JointSweep, fin: _Model, best: ModelFit, bounds):
     """Per run: its F and noise ratio under the joint wall, whether it disagrees (the single fit's misfit
     rule on that run: velab.fitting.adequacy.assess), and its own wall under the best model (a polish
     from the joint wall on that run alone) for the campaign figure."""
