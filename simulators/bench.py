@@ -40,6 +40,7 @@ import threading
 from pathlib import Path
 from typing import Callable
 
+from velab.benchrig import rig_for_bench
 from velab.config import load_material, load_rig
 from velab.configpath import load_config
 from velab.drivers.bench import Bench, BenchDevice
@@ -246,6 +247,8 @@ class SimulatedBench:
             rig, material = load_rig(top["rig"]), load_material(top["material"])
         except ConfigError as exc:  # say which sim config named the rig or material
             raise ConfigError(f"{path}: rig/material: {exc}") from None
+        # the valve body's characteristic from its device profile, as the recorder takes it (velab.benchrig)
+        rig = rig_for_bench(rig, top["devices"] or {})
         self.rig = SimulatedRig(rig, material, self.clock, seed=top["seed"], **top["model"])
         self.instants = self.rig.instants
         self.schedule = FaultSchedule(self.instants)

@@ -13,9 +13,10 @@ everywhere a name does. Files are read and checked by :mod:`velab.tomlschema`.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from velab.configpath import config_stem, load_config
@@ -40,6 +41,8 @@ from velab.tomlschema import non_negative as _non_negative
 from velab.tomlschema import positive as _positive
 from velab.tomlschema import read_toml  # noqa: F401  (re-exported for callers of velab.config.read_toml)
 from velab.valvelaw import CHARACTERISTICS, DEFAULT_SERIES_SHARE, VALVE_LAWS, Valve, check_table
+
+log = logging.getLogger("velab.config")
 
 # Retardation times of the paper's "reduced" Sm: the first m of these are fixed.
 REDUCED_RETARDATION_TIMES_S = (0.01, 0.1, 1.0, 10.0, 100.0)
@@ -195,39 +198,85 @@ def _share(v: float) -> str | None:
 
 def _valve_keys(r: "_Reader") -> Valve:
     """The optional [valve] table (velab.valvelaw): the flow law, MV's characteristic, its loss share."""
+    table = r.table("valve", required=False) or {}
     v = r.read(
-        r.table("valve", required=False) or {},
+        table,
         "[valve] ",
         {
             "law": _Key(str, False, "orifice", choices=VALVE_LAWS),
-            "characteristic": _Key(str, False, "butterfly", choices=CHARACTERISTICS),
             "series_loss_share": _Key(float, False, DEFAULT_SERIES_SHARE, _share),
-            "exponent": _Key(float, False, None, _positive),
-            "position_pct": _Key(list, False, None),
-            "flow_ratio": _Key(list, False, None),
+            **CHARACTERISTIC_KEYS,
         },
     )
+    return Valve(law=v["law"], series_loss_share=v["series_loss_share"], **_characteristic(r, v, "[valve]"),
+                 characteristic_from="rig" if "characteristic" in table else "")
+
+
+# MV's inherent flow characteristic: in the rig's [valve] table or in the valve's device profile
+CHARACTERISTIC_KEYS = {
+    "characteristic": _Key(str, False, "butterfly", choices=CHARACTERISTICS),
+    "exponent": _Key(float, False, None, _positive),
+    "position_pct": _Key(list, False, None),
+    "flow_ratio": _Key(list, False, None),
+}
+
+
+def _characteristic(r: "_Reader", v: dict, where: str) -> dict:
+    """The characteristic keys read into Valve's fields, checked together (one line naming the key)."""
     ch = v["characteristic"]
     if ch == "power" and v["exponent"] is None:
-        raise r.fail("[valve] exponent", 'missing key (needed with characteristic = "power")')
+        raise r.fail(f"{where} exponent", 'missing key (needed with characteristic = "power")')
     if ch != "power" and v["exponent"] is not None:
-        raise r.fail("[valve] exponent", 'only used with characteristic = "power"')
+        raise r.fail(f"{where} exponent", 'only used with characteristic = "power"')
     table = (v["position_pct"], v["flow_ratio"])
     if ch == "table":
         for key, val in zip(("position_pct", "flow_ratio"), table):
             if val is None:
-                raise r.fail(f"[valve] {key}", 'missing key (needed with characteristic = "table")')
+                raise r.fail(f"{where} {key}", 'missing key (needed with characteristic = "table")')
             if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in val):
-                raise r.fail(f"[valve] {key}", "must be an array of finite numbers")
+                raise r.fail(f"{where} {key}", "must be an array of finite numbers")
         try:
             check_table(*table)
         except ValueError as exc:
-            raise r.fail("[valve] position_pct", str(exc)) from None
+            raise r.fail(f"{where} position_pct", str(exc)) from None
     elif any(x is not None for x in table):
-        raise r.fail("[valve] position_pct", 'only used with characteristic = "table"')
-    return Valve(law=v["law"], characteristic=ch, series_loss_share=v["series_loss_share"], exponent=v["exponent"],
-                 position_pct=tuple(float(x) for x in table[0] or ()),
-                 flow_ratio=tuple(float(x) for x in table[1] or ()))
+        raise r.fail(f"{where} position_pct", 'only used with characteristic = "table"')
+    return {"characteristic": ch, "exponent": v["exponent"],
+            "position_pct": tuple(float(x) for x in table[0] or ()),
+            "flow_ratio": tuple(float(x) for x in table[1] or ())}
+
+
+def profile_characteristic(profile) -> dict | None:
+    """The [valve] table of a valve actuator's device profile (the valve body's inherent characteristic,
+    as the rig's [valve] keys ``characteristic``, ``exponent``, ``position_pct``, ``flow_ratio``) as
+    Valve fields, or None when the profile has none. ConfigError naming the profile's file and key."""
+    table = profile.sections.get("valve")
+    if table is None:
+        return None
+    r = _Reader(profile.path or profile.name, {"valve": table})
+    v = r.read(r.table("valve"), "[valve] ", CHARACTERISTIC_KEYS)
+    if "characteristic" not in table:
+        raise r.fail("[valve] characteristic", "missing key (the valve body's characteristic)")
+    return _characteristic(r, v, "[valve]")
+
+
+def with_valve_profile(rig: Rig, profile) -> Rig:
+    """The rig with MV's characteristic from the valve's device profile, unless the rig file names its
+    own (then the rig's wins: it describes this bench's assembly; the disagreement is logged). The
+    characteristic's origin goes into the run file with the rig (``Valve.characteristic_from``)."""
+    fields = profile_characteristic(profile)
+    if fields is None:
+        return rig
+    name = f"profile {profile.name}"
+    if rig.valve.characteristic_from == "rig":
+        ours = replace(rig.valve, characteristic_from="")
+        theirs = replace(rig.valve, **fields, characteristic_from="")
+        if ours != theirs:
+            log.warning("%s: the rig's [valve] characteristic (%s) differs from the valve's %s (%s): the rig's is used",
+                        rig.source or rig.name, rig.valve.describe_characteristic(), name,
+                        theirs.describe_characteristic())
+        return rig
+    return rig.with_changes(valve=replace(rig.valve, **fields, characteristic_from=name))
 
 
 def _brunone_k3(v: float) -> str | None:

@@ -44,6 +44,9 @@ class Valve:
     exponent: float | None = None
     position_pct: tuple[float, ...] = ()
     flow_ratio: tuple[float, ...] = ()
+    # where the characteristic was given: "rig" (the rig file's [valve] table), "profile NAME" (the
+    # valve's device profile, velab.config.with_valve_profile) or "" (not given: the default)
+    characteristic_from: str = ""
 
     def __post_init__(self):
         if self.law not in VALVE_LAWS:
@@ -79,18 +82,21 @@ class Valve:
         """tau(p): the valve pair's effective opening (1 fully open, 0 shut)."""
         return effective_opening(self.flow_ratio_at(position_pct), self.series_loss_share)
 
+    def describe_characteristic(self) -> str:
+        return (f"table of {len(self.position_pct)} points" if self.characteristic == "table"
+                else f"{self.characteristic} (p/100)^{self.power:g}")
+
     def describe(self) -> str:
         if self.law == "imposed":
             return "imposed sigmoid flow Q0 / (1 + exp(beta t + gamma)) (the paper's valve model)"
-        ch = (f"table of {len(self.position_pct)} points" if self.characteristic == "table"
-              else f"{self.characteristic} (p/100)^{self.power:g}")
-        return (f"orifice law through the valve pair: characteristic {ch}, the valve's share of the steady "
-                f"loss {self.series_loss_share:g}")
+        origin = f" (from the valve's {self.characteristic_from})" if self.characteristic_from.startswith("profile") else ""
+        return (f"orifice law through the valve pair: characteristic {self.describe_characteristic()}{origin}, the "
+                f"valve's share of the steady loss {self.series_loss_share:g}")
 
     def to_dict(self) -> dict:
         return {"law": self.law, "characteristic": self.characteristic, "series_loss_share": self.series_loss_share,
                 "exponent": self.exponent, "position_pct": list(self.position_pct),
-                "flow_ratio": list(self.flow_ratio)}
+                "flow_ratio": list(self.flow_ratio), "characteristic_from": self.characteristic_from}
 
 
 def check_table(position_pct, flow_ratio) -> None:
@@ -112,7 +118,7 @@ def valve_from_dict(d: dict | None) -> Valve:
     return Valve(law=d.get("law", "orifice"), characteristic=d.get("characteristic", "butterfly"),
                  series_loss_share=float(d.get("series_loss_share", DEFAULT_SERIES_SHARE)),
                  exponent=d.get("exponent"), position_pct=tuple(d.get("position_pct") or ()),
-                 flow_ratio=tuple(d.get("flow_ratio") or ()))
+                 flow_ratio=tuple(d.get("flow_ratio") or ()), characteristic_from=str(d.get("characteristic_from", "")))
 
 
 def effective_opening(flow_ratio, series_loss_share: float) -> np.ndarray:
