@@ -21,21 +21,12 @@ from dataclasses import replace
 
 import numpy as np
 
-from velab.fitting.engine import HeadEvaluator
-from velab.fitting.manoeuvre import PARAM_NAMES, T50_MAX_FACTOR, _coupling, closure_flow, from_solver, to_solver
+from velab.fitting.engine import HeadEvaluator, gram, sumsq
+from velab.fitting.manoeuvre import PARAM_NAMES, _coupling, closure_bounds, closure_flow, from_solver, to_solver
 from velab.fitting.params import ParamMap, creep_const
-from velab.fitting.engine import gram
-from velab.fitting.stats import covariance, standard_errors
+from velab.fitting.stats import covariance, lag1, standard_errors
 
 STEP = 1e-6  # in the solver's variables (logs of beta, power and share; t50, coupling and tail as they are)
-
-
-def closure_box(rig) -> tuple[np.ndarray, np.ndarray]:
-    """The closure's bounds in the solver's variables, as velab.fitting.manoeuvre.refine_closure has them."""
-    m = rig.manoeuvre
-    lo = np.array([math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), 0.0, 0.0])
-    hi = np.array([math.log(m.beta_per_s * 5), T50_MAX_FACTOR * m.half_closure_s + 1.0, math.log(6.0), 0.0, 1.0, 1.0])
-    return lo, hi
 
 
 def closure_rows(rig, t, d, ev_full: HeadEvaluator, vi, params) -> np.ndarray:
@@ -45,7 +36,7 @@ def closure_rows(rig, t, d, ev_full: HeadEvaluator, vi, params) -> np.ndarray:
     if vi.source != "fitted" or not vi.params:
         return np.zeros((0, np.size(t)))
     v0 = np.array(to_solver([float(vi.params.get(k, 0.0)) for k in PARAM_NAMES]))
-    lo, hi = closure_box(rig)
+    lo, hi = closure_bounds(rig)
     span = hi - lo
     hc = _coupling(np.asarray(t, dtype=float), np.asarray(d, dtype=float), rig)
     h0 = ev_full.head(*params)
@@ -116,3 +107,24 @@ def marginalised(f, pm: ParamMap, x, wall_rows: np.ndarray, nuisance: list[np.nd
         E_se_pa=sel([se["E"][i] * E[i] for i in range(m)]), eta_se_pa_s=sel([se["eta"][i] * eta[i] for i in range(m)]),
         tau_se_s=sel([se["tau"][i] * tau[i] if pm.tau_free else math.nan for i in range(m)]),
         J_rel_se=sel([se["J_rel"][i] * Jr[i] for i in range(m)]))
+
+
+def marginalise_single(rig, t, d, vi):
+    """For one run's sweep (velab.fitting.sweep.fit_sweep's ``marginalise``): f, stage, sol -> f with
+    the wall's covariance marginalised over the run's fitted closure ``vi`` (no change for a flow from
+    the recorded position or the rig's sigmoid). The closure was fitted from the same record; held
+    fixed, it made the standard errors and the creep band too narrow on head-only data."""
+    if vi.source != "fitted" or not vi.params:
+        return None
+
+    def apply(f, stage, sol):
+        params = sol.pm.unpack(sol.x)
+        rows = closure_rows(rig, t, d, stage.ev, vi, params)
+        if not rows.size:
+            return f
+        h, jac = stage.ev.head_jac_x(*params, sol.pm.tau_free)
+        res = h - stage.d
+        return marginalised(f, sol.pm, sol.x, jac, [rows], [slice(None)], [1.0], sumsq(res) / res.size,
+                            lag1(res), rig)
+
+    return apply

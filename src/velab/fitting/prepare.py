@@ -34,6 +34,7 @@ from velab.fitting.adequacy import assess, baseline_noise
 from velab.fitting.friction import fit_rig
 from velab.fitting.lead import lead_window_s, matches, options_key
 from velab.fitting.manoeuvre import refine_closure, valve_input
+from velab.fitting.nuisance import marginalise_single
 from velab.fitting.window import MIN_WINDOW_SAMPLES, baseline_slice, steady_head, window_slice
 from velab.fitting.results import SweepResult
 from velab.fitting.sweep import fit_sweep
@@ -188,13 +189,15 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
     # own), which makes the time-domain polish
     refining = vi.source == "fitted" and closure is None
     result = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=vi.flow, time_domain_polish=not refining,
-                       **sweep_options)
+                       marginalise=None if refining else marginalise_single(frig, rec.t, rec.h, vi), **sweep_options)
     if refining and result.models:
         refined = refine_closure(rec.t, rec.h, frig, vi, result.best)
         if refine == "only":
             result.settings["manoeuvre_refined"] = refined.describe()
         else:
-            again = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=refined.flow, **(sweep_options | {"lead": result}))
+            again = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=refined.flow,
+                              marginalise=marginalise_single(frig, rec.t, rec.h, refined),
+                              **(sweep_options | {"lead": result}))
             again.settings["lead"] = None  # (a continuation of this fit's own first pass, not of a lead fit)
             again.duration_s += result.duration_s
             again.evaluations += result.evaluations

@@ -528,6 +528,7 @@ def fit_sweep(
     lead: SweepResult | None = None,
     flow=None,
     time_domain_polish: bool = True,
+    marginalise: Callable | None = None,
 ) -> SweepResult:
     """Calibrate EL/Sm models on a head record and rank them.
 
@@ -551,6 +552,8 @@ def fit_sweep(
     ``time_domain_polish``: with a nonlinear friction law the competitive models end on the time-domain
     model's own optimum (False: where the defect correction stops; a lead fit, which only seeds its
     continuation).
+    ``marginalise``: f, stage, sol -> f, applied to each model's summary (velab.fitting.nuisance:
+    the covariance marginalised over a closure fitted from the same record).
     Pure computation: no I/O, no shared state; safe to call from worker threads.
     """
     if method not in METHODS:
@@ -601,8 +604,10 @@ def fit_sweep(
     for job in order:
         fin = sw.final[job]
         ev, jac, n_starts = spent[job]
-        fits.append(summarise(sw.final_stage(sw.current_corr(fin)), fin.sol, model_name(*job), sw.rig, bounds,
-                              evaluations=ev, jacobians=jac, starts=n_starts, friction=sw.friction_info(fin)))
+        stage = sw.final_stage(sw.current_corr(fin))
+        f = summarise(stage, fin.sol, model_name(*job), sw.rig, bounds, evaluations=ev, jacobians=jac, starts=n_starts,
+                      friction=sw.friction_info(fin))
+        fits.append(marginalise(f, stage, fin.sol) if marginalise is not None else f)
 
     apply_criteria(fits, selection)
     settings = {
