@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import datetime as _dt
+import functools
 import io
 import json
 import math
@@ -83,15 +84,24 @@ def row_flow(row: dict) -> float | None:
     return None
 
 
+@functools.lru_cache(maxsize=1 << 16)
+def _instant(s: str) -> float | None:
+    """An ISO 8601 start time -> epoch s (local time when no offset); remembered: the GUI sorts the same rows
+    again at every added batch and filter change, and parsing is most of a sort by start."""
+    try:
+        d = _dt.datetime.fromisoformat(s)
+    except ValueError:
+        return None
+    return (d if d.tzinfo else d.astimezone()).timestamp()
+
+
 def row_time(row: dict) -> float | None:
     """When the run started (epoch s); the file's mtime for a damaged file or a run without a start time."""
     s = row.get("start_time")
     if s:
-        try:
-            d = _dt.datetime.fromisoformat(s)
-            return (d if d.tzinfo else d.astimezone()).timestamp()
-        except ValueError:
-            pass
+        t = _instant(s)
+        if t is not None:
+            return t
     m = row.get("mtime")
     return float(m) if isinstance(m, (int, float)) else None
 

@@ -29,7 +29,7 @@ from velab.gui.widgets import ComboBox, DoubleSpinBox, SpinBox
 class _Rows(QObject):
     """Carries row batches from the indexing worker thread to the GUI thread (a queued signal)."""
 
-    rows = Signal(object, bool, str)  # rows, replace, folder
+    rows = Signal(object, bool, str, int)  # rows, replace, folder, generation
 
 
 JOINT_FIT_TIP = "Fit several runs together: a joint fit does not exist in velab yet"
@@ -215,15 +215,15 @@ class ArchiveBrowser(QWidget):
         gen = self._generation
         self.index_label.setText("indexing…")
         emit = self._relay.rows.emit
-        tasks.submit(index_folder, folder, lambda rows, replace: emit(rows, replace, str(folder)),
+        tasks.submit(index_folder, folder, lambda rows, replace: emit(rows, replace, str(folder), gen),
                      stop=lambda: gen != self._generation, owner=self,
                      on_done=lambda listing: self._indexed(gen, listing),
                      on_error=lambda exc: self._index_failed(gen, exc),
                      on_progress=lambda d, t, _s: self._index_progress(gen, d, t))
 
-    def _rows_arrived(self, rows, replace: bool, folder: str) -> None:
-        if folder != str(self.settings.value("archive/folder", "")):
-            return  # another folder was chosen meanwhile
+    def _rows_arrived(self, rows, replace: bool, folder: str, gen: int) -> None:
+        if gen != self._generation or folder != str(self.settings.value("archive/folder", "")):
+            return  # another folder was chosen, or the same one rescanned, meanwhile: that indexing's rows
         if replace:
             self.model.set_rows(rows)
         else:
@@ -237,10 +237,19 @@ class ArchiveBrowser(QWidget):
     def _indexed(self, gen, listing) -> None:
         if gen != self._generation:
             return
-        self.model.set_rows(listing.rows)  # files gone since the index last saw them leave the table
+        if not self._same_rows(listing):  # files gone since the index last saw them leave the table
+            self.model.set_rows(listing.rows)
         self._show_count(f"; {listing.read} file(s) read in {listing.seconds:.1f} s"
                          + (f"; {len(listing.others)} HDF5 file(s) that are not runs skipped" if listing.others else ""))
         self.indexed.emit(len(listing.rows))
+
+    def _same_rows(self, listing) -> bool:
+        """The table already shows these rows (nothing read or removed, no status changed): no second refresh of
+        thousands of rows on the GUI thread."""
+        if listing.read or listing.removed or len(listing.rows) != len(self.model.all):
+            return False
+        shown = self.model.all
+        return all(shown.get(r["path"], {}).get("status") == r.get("status") for r in listing.rows)
 
     def _index_failed(self, gen, exc) -> None:
         if gen == self._generation:
