@@ -30,6 +30,7 @@ from velab.rig import (  # noqa: F401
     Manoeuvre,
     Pipe,
     Rig,
+    Section,
     Transducer,
     constraint_coefficient,
     rig_from_dict,
@@ -74,7 +75,7 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
     path, doc = load_config("rigs", name_or_path)
     r = _Reader(path, doc)
     top = r.read(
-        {k: v for k, v in doc.items() if not isinstance(v, dict)},
+        {k: v for k, v in doc.items() if not isinstance(v, dict) and k != "transducers"},
         "",
         {"name": _Key(str, False, config_stem(path)), "description": _Key(str, False, "")},
     )
@@ -175,6 +176,7 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
         source=str(path),
         fit=FitSettings(**fit),
         valve=valve,
+        transducers=_transducers(r, pipe["length_m"]),
     )
     try:  # derived quantities of absurd (if finite) inputs can overflow: a config error, not a crash
         steady_head_m = rig.steady_head_m
@@ -186,6 +188,33 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
     if steady_head_m <= 0:
         raise r.fail("[flow] reservoir_head_m", f"smaller than the steady head loss {rig.steady_head_loss_m:.3g} m")
     return rig
+
+
+def _transducers(r: "_Reader", length_m: float) -> tuple[Section, ...]:
+    """The optional [[transducers]] tables: name and position_m (distance from the upstream reservoir,
+    0 < x <= L, the valve's at L); names unique. None: the rig has the one at the valve (Rig.sections)."""
+    tables = r.doc.get("transducers")
+    if tables is None:
+        return ()
+    if not isinstance(tables, list) or not tables:
+        raise r.fail("[[transducers]]", "must be one or more [[transducers]] tables")
+    out, names = [], set()
+    for i, t in enumerate(tables):
+        where = f"[[transducers]] #{i + 1} "
+        if not isinstance(t, dict):
+            raise r.fail(where, "must be a table")
+        v = r.read(t, where, {"name": _Key(str), "position_m": _Key(float)})
+        name, x = v["name"].strip(), v["position_m"]
+        if not name:
+            raise r.fail(where + "name", "must not be empty")
+        if name in names:
+            raise r.fail(where + "name", f"{name!r} is already the name of another transducer")
+        if not 0 < x <= length_m:
+            raise r.fail(where + "position_m", f"must be in (0, {length_m:g}] m (from the reservoir; the valve is at "
+                                               f"the pipe's length), got {x:g}")
+        names.add(name)
+        out.append(Section(name, x))
+    return tuple(out)
 
 
 def _water_temperature(v: float) -> str | None:

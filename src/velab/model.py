@@ -77,9 +77,31 @@ def series_impedance(s, rig: Rig) -> np.ndarray:
     return W
 
 
-def _impedance_s(s: np.ndarray, a: float, phi_s: np.ndarray, rig: Rig, W=None) -> np.ndarray:
+def section_ratio(mu: np.ndarray, x: float, L: float) -> np.ndarray:
+    """sinh(mu x) / cosh(mu L) (physics.md section 12), written with decaying exponentials only
+    (Re mu >= 0): the plain form overflows where the wall damps the high frequencies."""
+    e = np.exp(-2.0 * mu * L)
+    return (np.exp(mu * (x - L)) - np.exp(-mu * (x + L))) / (1.0 + e)
+
+
+def check_position(rig: Rig, position_m: float | None) -> float | None:
+    """A section's distance from the reservoir, None for the valve's (x = L is the valve too)."""
+    if position_m is None:
+        return None
+    x = float(position_m)
+    L = rig.pipe.length_m
+    if not 0.0 < x <= L:
+        raise ValueError(f"a section's position must be in (0, {L:g}] m (the pipe's length), got {position_m!r}")
+    return None if x == L else x
+
+
+def _impedance_s(s: np.ndarray, a: float, phi_s: np.ndarray, rig: Rig, W=None,
+                 position_m: float | None = None) -> np.ndarray:
     """Z(s) = -Zc tanh(mu L) for s != 0; s == 0 gets the steady -R L. ``W``: the series impedance on s
-    if not the rig's own (a fit's equivalent linear friction, velab.fitting.friction)."""
+    if not the rig's own (a fit's equivalent linear friction, velab.fitting.friction). ``position_m``:
+    the transfer impedance to the head at x from the reservoir, -Zc sinh(mu x) / cosh(mu L) (steady:
+    -R x); None is the valve's (x = L)."""
+    x = check_position(rig, position_m)
     p = rig.pipe
     C = GRAVITY_M_S2 * p.area_m2 / a**2
     s = np.asarray(s, dtype=complex)
@@ -87,14 +109,18 @@ def _impedance_s(s: np.ndarray, a: float, phi_s: np.ndarray, rig: Rig, W=None) -
     s_safe = np.where(zero, 1.0, s)
     Y = s_safe * C * (1.0 + phi_s)  # shunt admittance per unit length
     mu = np.sqrt(Y * (series_impedance(s_safe, rig) if W is None else W))  # principal branch: Re(mu) >= 0
-    Z = -(mu / Y) * np.tanh(mu * p.length_m)
-    return np.where(zero, -rig.linear_resistance * p.length_m, Z)
+    if x is None:
+        Z = -(mu / Y) * np.tanh(mu * p.length_m)
+        return np.where(zero, -rig.linear_resistance * p.length_m, Z)
+    Z = -(mu / Y) * section_ratio(mu, x, p.length_m)
+    return np.where(zero, -rig.linear_resistance * x, Z)
 
 
-def impedance(omega, rig: Rig, material: Material) -> np.ndarray:
-    """Z(i omega) at the valve, in m of head per m^3/s of flow."""
+def impedance(omega, rig: Rig, material: Material, position_m: float | None = None) -> np.ndarray:
+    """Z(i omega) at the valve (or the transfer impedance to the section at ``position_m`` from the
+    reservoir), in m of head per m^3/s of the valve's flow."""
     s = 1j * np.asarray(omega, dtype=float)
-    return _impedance_s(s, material.wave_speed_m_s, phi(omega, rig, material), rig)
+    return _impedance_s(s, material.wave_speed_m_s, phi(omega, rig, material), rig, position_m=position_m)
 
 
 def wave_speed_dispersion(omega, rig: Rig, material: Material) -> np.ndarray:
@@ -168,13 +194,17 @@ class ValveHeadModel:
     trigger_step : if given, the flow is only a step of this size (m^3/s) at the
         trigger's exact, possibly off-grid, instant (velab.moc integrates the
         continuous rest of a closure in the time domain and adds this step's response).
+    position_m : the head at this distance from the reservoir (0 < x <= L) instead of at the
+        valve (None, or x = L: the same computation); the valve's flow still drives the pipe.
     """
 
     LEAD_SAMPLES = 64  # full band: the step's pre-ringing one lead-in away is < 0.2 % of it
 
     def __init__(self, rig: Rig, t_s, *, band_hz: float | str | None = "auto", pad: float = 2.0,
-                 sigma_T: float = 8.0, flow=None, trigger_step: float | None = None):
+                 sigma_T: float = 8.0, flow=None, trigger_step: float | None = None,
+                 position_m: float | None = None):
         t = np.asarray(t_s, dtype=float)
+        self.position_m = check_position(rig, position_m)  # None: at the valve
         if t.ndim != 1 or t.size < 2:
             raise ValueError("time grid must be a 1-D array of at least 2 samples")
         self.rig = rig
@@ -244,7 +274,7 @@ class ValveHeadModel:
     def impedance(self, a: float, J_rel, tau, W=None) -> np.ndarray:
         """Z on the band's bins for wave speed a and KV elements (J'_k, tau_k); ``W`` the series
         impedance on the band's bins if not the rig's own."""
-        return _impedance_s(self.s_band, a, _phi_s(self.s_band, J_rel, tau), self.rig, W)
+        return _impedance_s(self.s_band, a, _phi_s(self.s_band, J_rel, tau), self.rig, W, self.position_m)
 
     def to_time(self, impedance_spectra: np.ndarray) -> np.ndarray:
         """Impedance on the band's bins (..., n_bins) -> head series (..., len(t)).
@@ -282,7 +312,7 @@ class ValveHeadModel:
 
     def head_params(self, a: float, J_rel, tau) -> np.ndarray:
         """Head perturbation h(t) for wave speed a and KV elements (J'_k = J_k a^2 rho alpha D/e, tau_k)."""
-        return self.to_time(_impedance_s(self.s_band, a, _phi_s(self.s_band, J_rel, tau), self.rig))
+        return self.to_time(self.impedance(a, J_rel, tau))
 
     def head(self, material: Material) -> np.ndarray:
         """Head perturbation h(t) (m) at the valve for a pipe-wall material."""
@@ -292,9 +322,11 @@ class ValveHeadModel:
         return self.head_params(a, J_rel, tau)
 
 
-def valve_head(t_s, rig: Rig, material: Material, *, band_hz: float | str | None = None) -> np.ndarray:
-    """Head perturbation at the valve (m above the steady head) on the grid t_s (s from the trigger).
+def valve_head(t_s, rig: Rig, material: Material, *, band_hz: float | str | None = None,
+               position_m: float | None = None) -> np.ndarray:
+    """Head perturbation at the valve (m above the steady head) on the grid t_s (s from the trigger),
+    or at the section ``position_m`` from the reservoir.
 
     Full band by default: this is the reference used to synthesise runs.
     """
-    return ValveHeadModel(rig, t_s, band_hz=band_hz).head(material)
+    return ValveHeadModel(rig, t_s, band_hz=band_hz, position_m=position_m).head(material)

@@ -61,6 +61,18 @@ class Transducer:
     accuracy_fs: float = 0.0015
 
 
+VALVE_SECTION = "valve"  # the name of the one transducer of a rig without a [[transducers]] table
+
+
+@dataclass(frozen=True)
+class Section:
+    """A pressure transducer along the pipe: its name and its distance from the upstream reservoir
+    (0 < x <= L; the valve's is at L). A ``[[transducers]]`` table of the rig file."""
+
+    name: str
+    position_m: float
+
+
 @dataclass(frozen=True)
 class FitSettings:
     """Optional ``[fit]`` table of a rig file: the calibration's retardation-time bounds (s).
@@ -99,6 +111,8 @@ class Rig:
     fit: FitSettings = field(default_factory=FitSettings)  # the [fit] table (velab.fitting)
     # the valve pair and its flow law (velab.valvelaw, physics.md section 10): the [valve] table
     valve: Valve = field(default_factory=Valve)
+    # the pressure transducers along the pipe ([[transducers]]); empty: the one at the valve (``sections``)
+    transducers: tuple[Section, ...] = ()
 
     def __post_init__(self):
         for name, value, allowed in (("friction", self.friction, STEADY_LAWS),
@@ -108,6 +122,11 @@ class Rig:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {value!r}")
         if not (self.roughness_m >= 0 and self.brunone_k3 >= 0):
             raise ValueError("roughness_m and brunone_k3 must not be negative")
+
+    @property
+    def sections(self) -> tuple[Section, ...]:
+        """The rig's transducers, the one at the valve ("valve", x = L) when the rig names none."""
+        return self.transducers or (Section(VALVE_SECTION, self.pipe.length_m),)
 
     # ---- derived quantities, named as in physics.md
     @property
@@ -207,6 +226,8 @@ def rig_from_dict(d: dict) -> Rig:
             source=d.get("source", ""),
             fit=FitSettings(**(d.get("fit") or {})),
             valve=_valve_from_stored(d),
+            transducers=tuple(Section(name=str(x["name"]), position_m=float(x["position_m"]))
+                              for x in d.get("transducers") or ()),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"rig description: invalid or incomplete ({exc})") from None

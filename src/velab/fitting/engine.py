@@ -58,9 +58,12 @@ class HeadEvaluator:
     _MAX_M = 6  # the work buffers are sized for this many elements (S6) at the first evaluation
 
     def __init__(self, rig: Rig, t_s=None, *, band_hz="auto", extra_impedance=None, workers: int = 1,
-                 flow=None, _model: ValveHeadModel | None = None):
-        # flow: the flow at the valve on t_s (velab.fitting.manoeuvre; None: the rig's sigmoid)
-        vm = _model if _model is not None else ValveHeadModel(rig, t_s, band_hz=band_hz, flow=flow)
+                 flow=None, position_m: float | None = None, _model: ValveHeadModel | None = None):
+        # flow: the flow at the valve on t_s (velab.fitting.manoeuvre; None: the rig's sigmoid);
+        # position_m: the head at that distance from the reservoir (a section, velab.fitting.sections)
+        vm = _model if _model is not None else ValveHeadModel(rig, t_s, band_hz=band_hz, flow=flow,
+                                                              position_m=position_m)
+        self.position_m = vm.position_m  # None: at the valve
         p = rig.pipe
         self.rig = rig
         self.model = vm
@@ -184,6 +187,9 @@ class HeadEvaluator:
         np.tanh(g, out=th)
         np.divide(mu, Y, out=zc)  # Zc
         b = ws["buf"]
+        if self.position_m is not None:
+            self._section_columns(ws, b, sl, jac, m, J_rel, tau_free, mq, q2)
+            return
         np.multiply(zc, th, out=b[0])
         b[0] *= mq  # Z = -Zc tanh(mu L), times the summed flow spectrum
         if jac:
@@ -208,6 +214,32 @@ class HeadEvaluator:
                     np.divide(Ju, J_rel[:, None], out=ct)
                     ct -= 1.0
                     ct *= cJ
+
+    def _section_columns(self, ws, b, sl, jac, m, J_rel, tau_free, mq, q2) -> None:
+        """:meth:`_columns` at a section x: Z_x = -Zc r, r = sinh(mu x) / cosh(mu L) (velab.model), and
+        dZ_x/dY = (Zc / 2Y)(r - mu x c + mu L r tanh(mu L)), c = cosh(mu x) / cosh(mu L) (x = L: the
+        valve's (Zc / 2Y)(tanh g - g sech^2 g)). Plain arrays: the fits that use it are not the hot path."""
+        x, L = self.position_m, self.L
+        mu, th, zc = ws["mu"], ws["th"], ws["zc"]
+        e = np.exp(-2.0 * mu * L)
+        up, down = np.exp(mu * (x - L)), np.exp(-mu * (x + L))
+        r = (up - down) / (1.0 + e)
+        b[0] = zc * r * mq
+        if not jac:
+            return
+        c = (up + down) / (1.0 + e)
+        P = zc * (r - mu * x * c + mu * L * r * th) * q2  # dZ_x/dY Y q
+        b[1] = -2.0 * P  # dY/d ln a = -2 Y
+        if m:
+            P = P / ws["phi"]
+            Ju = ws["Ju"]
+            cJ = b[2 : 2 + m]
+            np.multiply(Ju, P, out=cJ)
+            if tau_free:
+                ct = b[2 + m :]
+                np.divide(Ju, J_rel[:, None], out=ct)
+                ct -= 1.0
+                ct *= cJ
 
     def head(self, a: float, J_rel, tau, out: np.ndarray | None = None) -> np.ndarray:
         """h(t) for wave speed a (m/s) and KV elements J'_k (dimensionless), tau_k (s)."""

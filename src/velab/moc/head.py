@@ -41,9 +41,9 @@ from threading import Lock
 import numpy as np
 
 from velab.config import Rig
-from velab.model import ValveHeadModel, flow_perturbation
+from velab.model import ValveHeadModel, check_position, flow_perturbation
 from velab.moc import kernel
-from velab.moc.solver import check_laws, run
+from velab.moc.solver import check_laws, run_probes
 from velab.valvelaw import commanded_position_pct, imposed_flow
 
 DEFAULT_DT_S = 2e-3  # MOC step when none is given: second order, ~1e-4 hJ on the reference rig (docs/model.md)
@@ -70,15 +70,16 @@ def n_reaches(rig: Rig, dt_s: float) -> int:
     return max(2, int(round(rig.pipe.length_m / (rig.nominal_wave_speed_m_s * dt_s))))
 
 
-def _step_model(rig: Rig, t: np.ndarray) -> ValveHeadModel:
-    """Full-band frequency model of a unit flow step at the trigger on grid t (cached per rig and grid)."""
-    key = (rig, float(t[0]), float(t[1] - t[0]), t.size)
+def _step_model(rig: Rig, t: np.ndarray, position_m: float | None = None) -> ValveHeadModel:
+    """Full-band frequency model of a unit flow step at the trigger on grid t, the head at the valve or at
+    ``position_m`` (cached per rig, grid and position)."""
+    key = (rig, float(t[0]), float(t[1] - t[0]), t.size, position_m)
     with _STEP_LOCK:
         model = _STEP_MODELS.get(key)
         if model is not None:
             _STEP_MODELS.move_to_end(key)
             return model
-    model = ValveHeadModel(rig, t, band_hz=None, trigger_step=1.0)
+    model = ValveHeadModel(rig, t, band_hz=None, trigger_step=1.0, position_m=position_m)
     with _STEP_LOCK:
         _STEP_MODELS[key] = model
         while len(_STEP_MODELS) > _STEP_CACHE_SIZE:
@@ -93,16 +94,67 @@ class ValveTransient:
     head_m : head h(t) just upstream of the valve (m above the steady head).
     flow_m3_s : flow q(t) = Q(t) - Q0 through the valve (m^3/s): the imposed flow, or the one the
         orifice law gave.
+    section_heads_m : the heads at the sections ``sections_m`` asked for, shape (sections, samples).
     """
 
     head_m: np.ndarray
     flow_m3_s: np.ndarray
+    section_heads_m: np.ndarray | None = None
+
+
+class _Sections:
+    """Sections along the pipe on the characteristic grid: each x = xi dx (xi = x N / L) is read as the
+    cubic (4-point Lagrange) interpolation in space of the heads at the nodes around it, each resampled
+    in time on its own side of the trigger's fronts; x = L is the valve's own head."""
+
+    def __init__(self, rig: Rig, sections_m, n_reach: int):
+        L = rig.pipe.length_m
+        self.xs = tuple(float(x) for x in sections_m)
+        for x in self.xs:
+            check_position(rig, x)
+        self.n_reach = N = n_reach
+        self.stencils = []  # per section: None (the valve) or (nodes, weights)
+        nodes = set()
+        for x in self.xs:
+            if x == L:
+                self.stencils.append(None)
+                continue
+            xi = x * N / L
+            lo = min(max(int(np.floor(xi)) - 1, 0), max(N - 3, 0))
+            idx = [j for j in range(lo, min(lo + 4, N + 1))]
+            w = [float(np.prod([(xi - k) / (j - k) for k in idx if k != j])) for j in idx]
+            self.stencils.append((idx, w))
+            nodes.update(idx)
+        self.nodes = np.array(sorted(nodes), dtype=np.int64)
+        self.column = {int(j): c for c, j in enumerate(self.nodes)}
+
+    def heads(self, valve_head: np.ndarray, probe_heads: np.ndarray, dt: float, t_after: np.ndarray,
+              fronts: bool) -> np.ndarray:
+        """Each section's head on t_after from the grid series (``fronts``: resampled on one side of
+        the trigger's fronts, for a series that has them)."""
+        N = self.n_reach
+        out = np.zeros((len(self.xs), t_after.size))
+        cache = {}
+        for s, st in enumerate(self.stencils):
+            if st is None:
+                out[s] = valve_head
+                continue
+            for j, w in zip(*st):
+                if j not in cache:
+                    v = np.ascontiguousarray(probe_heads[:, self.column[j]])
+                    cache[j] = (kernel.resample_cubic_fronts(v, dt, t_after, 2 * N, (N - j) % (2 * N),
+                                                             (N + j) % (2 * N)) if fronts
+                                else kernel.resample_cubic(v, dt, t_after, 0))
+                out[s] += w * cache[j]
+        return out
 
 
 def moc_head(rig: Rig, wave_speed_m_s: float, J_rel, tau_s, t_s, *, friction: str | None = None,
              unsteady: str | None = None, dt_s: float | None = None, flow=None, opening=None,
-             position=None) -> np.ndarray:
-    """Head perturbation (m) at the valve on the sample grid t_s, from the time-domain model.
+             position=None, sections_m=None) -> np.ndarray:
+    """Head perturbation (m) at the valve on the sample grid t_s, from the time-domain model; with
+    ``sections_m`` (distances from the reservoir, 0 < x <= L), the heads at those sections instead,
+    shape (len(sections_m), len(t_s)) (x = L is the valve's head).
 
     t_s : uniform grid, s from the trigger; it may start negative (zeros before 0) and
         the trigger may fall between samples.
@@ -125,17 +177,19 @@ def moc_head(rig: Rig, wave_speed_m_s: float, J_rel, tau_s, t_s, *, friction: st
         its law "orifice" -> the orifice law with tau = ``rig.valve.opening(p)``; "imposed" ->
         the flow Q0 p / 100 imposed.
     """
-    return _transient(rig, wave_speed_m_s, J_rel, tau_s, t_s, friction, unsteady, dt_s, flow, opening, position,
-                      with_flow=False).head_m
+    tr = _transient(rig, wave_speed_m_s, J_rel, tau_s, t_s, friction, unsteady, dt_s, flow, opening, position,
+                    with_flow=False, sections_m=sections_m)
+    return tr.head_m if sections_m is None else tr.section_heads_m
 
 
 def moc_transient(rig: Rig, wave_speed_m_s: float, J_rel, tau_s, t_s, *, friction: str | None = None,
                   unsteady: str | None = None, dt_s: float | None = None, flow=None, opening=None,
-                  position=None) -> ValveTransient:
+                  position=None, sections_m=None) -> ValveTransient:
     """Head and flow at the valve on the sample grid t_s: :func:`moc_head`'s arguments, and the
-    valve's flow as well (what the orifice law made of the opening, or the imposed flow)."""
+    valve's flow as well (what the orifice law made of the opening, or the imposed flow); with
+    ``sections_m``, the heads there too (``section_heads_m``)."""
     return _transient(rig, wave_speed_m_s, J_rel, tau_s, t_s, friction, unsteady, dt_s, flow, opening, position,
-                      with_flow=True)
+                      with_flow=True, sections_m=sections_m)
 
 
 def commanded_opening(rig: Rig):
@@ -145,7 +199,7 @@ def commanded_opening(rig: Rig):
 
 
 def _transient(rig, wave_speed_m_s, J_rel, tau_s, t_s, friction, unsteady, dt_s, flow, opening, position,
-               with_flow: bool) -> ValveTransient:
+               with_flow: bool, sections_m=None) -> ValveTransient:
     friction = rig.friction if friction is None else friction
     unsteady = rig.friction_unsteady if unsteady is None else unsteady
     check_laws(friction, unsteady)
@@ -165,9 +219,12 @@ def _transient(rig, wave_speed_m_s, J_rel, tau_s, t_s, friction, unsteady, dt_s,
     out = np.zeros(t.size)
     q_out = np.zeros(t.size) if with_flow else out
     after = t >= 0.0
-    if not after.any():
-        return ValveTransient(out, q_out)
     n_reach = n_reaches(rig, default_dt_s(rig) if dt_s is None else float(dt_s))
+    secs = None if sections_m is None else _Sections(rig, sections_m, n_reach)
+    s_out = None if secs is None else np.zeros((len(secs.xs), t.size))
+    if not after.any():
+        return ValveTransient(out, q_out, s_out)
+    probes = None if secs is None else secs.nodes
     dt = rig.pipe.length_m / (n_reach * a)
     n_steps = int(np.floor(t[-1] / dt)) + 4  # the stencil reaches three points past the last sample
     t_grid = np.arange(n_steps) * dt
@@ -182,16 +239,21 @@ def _transient(rig, wave_speed_m_s, J_rel, tau_s, t_s, friction, unsteady, dt_s,
         tau_grid = np.asarray(opening(t_grid), dtype=float).reshape(-1)
         if tau_grid.size != n_steps:
             raise ValueError("the opening must be a callable t -> tau(t) giving one value per instant")
-        head_grid, _, q_grid = run(rig, J_rel, tau_s, None, n_reach, dt, a, friction, unsteady, opening=tau_grid)
+        head_grid, _, q_grid, probe_grid = run_probes(rig, J_rel, tau_s, None, n_reach, dt, a, friction, unsteady,
+                                               opening=tau_grid, probes=probes)
         step = float(q_grid[0])
         if step == 0.0:
             out[after] = kernel.resample_cubic(head_grid, dt, t_after, 0)
+            if secs is not None:
+                s_out[:, after] = secs.heads(out[after], probe_grid, dt, t_after, False)
             if with_flow:
                 q_out[after] = kernel.resample_cubic(q_grid, dt, t_after, 0)
         else:
-            step_grid, _, _ = run(rig, J_rel, tau_s, np.full(n_steps, step), n_reach, dt, a, lin_friction,
-                                  lin_unsteady)
+            step_grid, _, _, step_probes = run_probes(rig, J_rel, tau_s, np.full(n_steps, step), n_reach, dt, a,
+                                               lin_friction, lin_unsteady, probes=probes)
             out[after] = kernel.resample_cubic(head_grid - step_grid, dt, t_after, 2 * n_reach)
+            if secs is not None:
+                s_out[:, after] = secs.heads(out[after], probe_grid - step_probes, dt, t_after, True)
             if with_flow:  # the step sits at the trigger's exact instant; the fronts it sends back stay sharp
                 q_out[after] = step + kernel.resample_cubic(q_grid - step, dt, t_after, 2 * n_reach)
         if with_flow:  # the interpolation must not undershoot where the orifice law shut the flow off
@@ -203,13 +265,19 @@ def _transient(rig, wave_speed_m_s, J_rel, tau_s, t_s, friction, unsteady, dt_s,
         # (in laminar flow the "quadratic" law is Poiseuille's, linear)
         linear = (friction == lin_friction or rig.laminar) and unsteady == lin_unsteady
         if linear or step == 0.0:
-            head_grid, _, _ = run(rig, J_rel, tau_s, q_grid - step, n_reach, dt, a, friction, unsteady)
+            head_grid, _, _, probe_grid = run_probes(rig, J_rel, tau_s, q_grid - step, n_reach, dt, a, friction, unsteady,
+                                              probes=probes)
             out[after] = kernel.resample_cubic(head_grid, dt, t_after, 0)
+            if secs is not None:
+                s_out[:, after] = secs.heads(out[after], probe_grid, dt, t_after, False)
         else:
-            head_grid, _, _ = run(rig, J_rel, tau_s, q_grid, n_reach, dt, a, friction, unsteady)
-            step_grid, _, _ = run(rig, J_rel, tau_s, np.full(n_steps, step), n_reach, dt, a, lin_friction,
-                                  lin_unsteady)
+            head_grid, _, _, probe_grid = run_probes(rig, J_rel, tau_s, q_grid, n_reach, dt, a, friction, unsteady,
+                                              probes=probes)
+            step_grid, _, _, step_probes = run_probes(rig, J_rel, tau_s, np.full(n_steps, step), n_reach, dt, a,
+                                               lin_friction, lin_unsteady, probes=probes)
             out[after] = kernel.resample_cubic(head_grid - step_grid, dt, t_after, 2 * n_reach)
+            if secs is not None:
+                s_out[:, after] = secs.heads(out[after], probe_grid - step_probes, dt, t_after, True)
         if with_flow:
             q_out[after] = np.asarray(q_of(t_after), dtype=float)
     if step != 0.0:
@@ -217,8 +285,18 @@ def _transient(rig, wave_speed_m_s, J_rel, tau_s, t_s, friction, unsteady, dt_s,
         h_step = _step_model(lin, t).head_params(a, np.asarray(J_rel, dtype=float), np.asarray(tau_s, dtype=float))
         # (the band-limited step's pre-ringing on a sample less than half a step before the
         # trigger, which valve_head keeps, is dropped: zeros before the trigger)
+        if secs is not None:
+            for i, x in enumerate(secs.xs):
+                if secs.stencils[i] is not None:
+                    h_x = _step_model(lin, t, x).head_params(a, np.asarray(J_rel, dtype=float),
+                                                             np.asarray(tau_s, dtype=float))
+                    s_out[i, after] += step * h_x[after]
         out[after] += step * h_step[after]
-    return ValveTransient(out, q_out)
+    if secs is not None:  # a section at the valve is the valve's head, step included
+        for i, st in enumerate(secs.stencils):
+            if st is None:
+                s_out[i] = out
+    return ValveTransient(out, q_out, s_out)
 
 
 def warm_up() -> None:
@@ -228,5 +306,6 @@ def warm_up() -> None:
     for mode in (kernel.UNSTEADY_NONE, kernel.UNSTEADY_WEIGHTING):
         kernel.march(2, 1.0, q, kernel.VALVE_IMPOSED, 0.0, kernel.STEADY_QUADRATIC, 0.0, 1e-3, 1e-3, np.ones(1),
                      np.ones(1) * 0.5, np.ones(1), np.ones(1) * 0.1, np.ones(1) * 0.01, 0.1, mode, np.ones(1) * 0.5,
-                     np.ones(1), 0.0, 0.0)
+                     np.ones(1), 0.0, 0.0, np.zeros(1, dtype=np.int64))
     kernel.resample_cubic(q, 1.0, np.linspace(0.0, 4.0, 5), 4)
+    kernel.resample_cubic_fronts(q, 1.0, np.linspace(0.0, 4.0, 5), 4, 1, 3)

@@ -28,10 +28,11 @@ VALVE_IMPOSED, VALVE_ORIFICE = 0, 1
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
 def march(n_reach, B, valve, valve_law, hv0, steady, adt_R, adt_k, q0,
           creep_old, creep_decay, creep_new, creep_rate, creep_J, creep_gain,
-          unsteady, wf_decay, wf_weight, wf_gain, k3_B):
+          unsteady, wf_decay, wf_weight, wf_gain, k3_B, probes):
     """March n_steps = valve.size steps from the undisturbed state.
 
-    Returns (head at the valve, reservoir flow, valve flow), perturbations at t_n = n dt.
+    Returns (head at the valve, reservoir flow, valve flow, heads at the nodes ``probes``), perturbations
+    at t_n = n dt; the last has shape (n_steps, probes.size) (sections along the pipe, velab.moc.head).
 
     n_reach : N (N + 1 nodes, node 0 at the reservoir, node N at the valve).
     B : a / (g A).
@@ -68,6 +69,7 @@ def march(n_reach, B, valve, valve_law, hv0, steady, adt_R, adt_k, q0,
     U = np.zeros(n1)  # weighting-function friction term wf_gain sum_k y_k at each node
     dq = np.zeros(n1)
     head = np.empty(n_steps)
+    probe_head = np.empty((n_steps, probes.size))
     q_res = np.empty(n_steps)
     q_val = np.empty(n_steps)
     half_G1 = 1.0 + 0.5 * creep_gain
@@ -169,9 +171,11 @@ def march(n_reach, B, valve, valve_law, hv0, steady, adt_R, adt_k, q0,
                     y[k, j] = yk
                     U[j] += wf_gain * yk
         head[n] = h[n_reach]
+        for p in range(probes.size):
+            probe_head[n, p] = h[probes[p]]
         q_res[n] = q[0]
         q_val[n] = qv
-    return head, q_res, q_val
+    return head, q_res, q_val, probe_head
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
@@ -211,3 +215,56 @@ def resample_cubic(values, dt, t, jump_period):
             acc += w * v
         out[p] = acc
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def resample_cubic_fronts(values, dt, t, period, phase_a, phase_b):
+    """:func:`resample_cubic` of a node's series whose fronts fall at every n >= 1 with n % period equal to
+    phase_a or phase_b (a section's node j: the trigger's front passes at N - j and N + j, period 2N).
+    The 4-point stencil is taken on t's side of a front; where two fronts are too close for that, the
+    2-point (linear) one between them."""
+    out = np.empty(t.size)
+    n = values.size
+    for p in range(t.size):
+        x = t[p] / dt
+        xr = np.floor(x + 0.5)
+        if abs(x - xr) < 1e-9:
+            x = xr
+        i = int(np.floor(x))
+        if _front(i, period, phase_a, phase_b):
+            lo = i
+        elif _front(i + 1, period, phase_a, phase_b):
+            lo = i - 3
+        elif _front(i + 2, period, phase_a, phase_b):
+            lo = i - 2
+        else:
+            lo = i - 1
+        ok = True
+        for j in range(lo + 1, lo + 4):
+            if _front(j, period, phase_a, phase_b):
+                ok = False
+        if not ok:  # fronts on both sides: linear between i and i + 1 (or i's value, a front at i + 1)
+            v0 = values[i] if 0 <= i < n else 0.0
+            v1 = values[i + 1] if 0 <= i + 1 < n else 0.0
+            out[p] = v0 if _front(i + 1, period, phase_a, phase_b) else v0 + (x - i) * (v1 - v0)
+            continue
+        f = x - lo
+        acc = 0.0
+        for k in range(4):
+            j = lo + k
+            v = values[j] if 0 <= j < n else 0.0
+            w = 1.0
+            for m in range(4):
+                if m != k:
+                    w *= (f - m) / (k - m)
+            acc += w * v
+        out[p] = acc
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _front(j, period, phase_a, phase_b):
+    if j < 1 or period <= 0:
+        return False
+    r = j % period
+    return r == phase_a or r == phase_b

@@ -113,16 +113,25 @@ def weighting_coefficients(rig: Rig, dt: float, dx: float):
 
 
 _EMPTY = np.zeros(0)
+_NO_PROBES = np.zeros(0, dtype=np.int64)
 
 
 def run(rig: Rig, J_rel, tau, q_valve, n_reach: int, dt: float, a: float,
         friction: str, unsteady: str, *, opening=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(head at the valve, reservoir flow, valve flow): :func:`run_probes` without sections."""
+    return run_probes(rig, J_rel, tau, q_valve, n_reach, dt, a, friction, unsteady, opening=opening)[:3]
+
+
+def run_probes(rig: Rig, J_rel, tau, q_valve, n_reach: int, dt: float, a: float,
+               friction: str, unsteady: str, *, opening=None, probes=None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Build the kernel's coefficients and march from the steady state.
 
     The valve node takes the imposed flow perturbation ``q_valve`` at t_n = n dt, or, with
     ``q_valve=None`` and ``opening`` (the valve pair's effective opening tau at t_n), the orifice law
     Q = Q0 tau sqrt((Hv0 + h)/Hv0) with Hv0 = ``rig.valve_head_m`` (physics.md section 10).
-    Returns (head at the valve, reservoir flow, valve flow), perturbations at t_n.
+    Returns (head at the valve, reservoir flow, valve flow, heads at the nodes ``probes`` (indices 0..N,
+    shape (n_steps, len(probes)))), perturbations at t_n.
     """
     check_laws(friction, unsteady)
     if (q_valve is None) == (opening is None):
@@ -158,7 +167,8 @@ def run(rig: Rig, J_rel, tau, q_valve, n_reach: int, dt: float, a: float,
     return kernel.march(int(n_reach), float(B), valve, int(valve_law), hv0, int(steady),
                         float(dx * R), float(dx * f / (2 * GRAVITY_M_S2 * p.inner_diameter_m * A**2)),
                         float(rig.steady_flow_m3_s), co, cd, cn, cr, J_rel, G,
-                        int(mode), wd, ww, float(wg), float(rig.brunone_k3 * B))
+                        int(mode), wd, ww, float(wg), float(rig.brunone_k3 * B),
+                        np.ascontiguousarray(_NO_PROBES if probes is None else probes, dtype=np.int64))
 
 
 def material_creep(rig: Rig, material: Material) -> tuple[np.ndarray, np.ndarray]:
