@@ -154,8 +154,8 @@ def test_fault_table(tmp_path, thread_errors, source, target, fault, instant, ex
                 # at arm: the fault is switched on as the baseline starts; the trigger goes out only after
                 # 1 s more of baseline (device time), so the fault is in the baseline, not after the trigger
                 rec.arm().result(timeout=DEADLINE_S)
-                start = rec._timeline.baseline_s
-                while rec._timeline.baseline_s < start + 1.0 and rec.phase in ("armed", "triggerable"):
+                start = rec.current_run.timeline.baseline_s
+                while rec.current_run.timeline.baseline_s < start + 1.0 and rec.phase in ("armed", "triggerable"):
                     time.sleep(0.005)
                 try:
                     rec.trigger().result(timeout=DEADLINE_S)

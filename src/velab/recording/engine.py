@@ -1,11 +1,13 @@
-"""The engine: sequences connect / arm / trigger / record / conclude and owns the threads.
+"""The engine (``Recorder``): the device session, the command queue and the phase; ``arm`` makes a
+``Run`` (velab.recording.run), which owns that run's stages and outcome.
 
 Threads (none of them Qt): the *control* thread runs every command (queued, each returns a
-``concurrent.futures.Future``) and the phase timers (baseline countdown, queued trigger,
-armed timeout); the pressure source's *acquisition* thread feeds the time line; the slow
-channels poll the valve and the flowmeter; the *writer* is the only one touching the file;
-the online fit runs on its own; a *conclude* thread waits for the final fit and publishes the
-summary. Stages report through ``Hooks`` (emit, log, fault, request_end). docs/recording.md.
+``concurrent.futures.Future``), the run's timers (baseline countdown, queued trigger, armed
+timeout) and is the only one to publish the phase (``snapshot``); the pressure stage's
+*acquisition* thread feeds the time line; the slow channels poll the valve and the flowmeter;
+the *writer* is the only one touching the file; the online fit runs on its own; a *conclude*
+thread waits for the final fit and hands the summary to the control thread. A run's stages report
+through its ``Hooks`` (emit, log, fault, request_end). docs/recording.md.
 """
 
 from __future__ import annotations
@@ -27,19 +29,19 @@ from velab.drivers.identity import identity
 from velab.drivers.pressure_source import pressure_source
 from velab.recording.devices import bench_armed_timeout, check_valve_open, profile_contents, reopen_valve, resolve_roles
 from velab.recording.events import EventQueue
-from velab.recording.ops import Event
-from velab.recording.run import DEFER, RunControl
+from velab.recording.run import DEFER, Run
 from velab.recording.safety import predict_surge
 from velab.recording.settings import RecordSettings
 from velab.recording.slow import valve_event
 from velab.recording.types import (
-    DEVICE_ERRORS, DeviceFailure, DeviceStatus, EngineSnapshot, Fault, Hooks, RecorderEvent, RunSummary)
+    DEVICE_ERRORS, DeviceFailure, DeviceStatus, EngineSnapshot, Fault, RecorderEvent, RunSummary)
 
 log = logging.getLogger(__name__)
 
 
-class Recorder(RunControl):
-    """One engine for ``velab record`` and the GUI. See the module docstring and docs/recording.md."""
+class Recorder:
+    """One engine for ``velab record`` and the GUI: the device session, the command queue and the phase;
+    each armed run is a ``Run`` (velab.recording.run). See the module docstring and docs/recording.md."""
 
     def __init__(self, bench, rig: Rig, settings: RecordSettings, *, sim=None, owns_sim: bool = False):
         self.bench, self.rig, self.settings = bench, rig, settings
@@ -60,8 +62,7 @@ class Recorder(RunControl):
         self._cmds: queue.Queue = queue.Queue()
         self._closing = threading.Event()
         self._current_fut: cf.Future | None = None
-        self.hooks = Hooks(emit=self._emit, log=self._log, fault=self._fault, request_end=self._request_end)
-        self._init_run_state()
+        self.current_run: Run | None = None  # the current (or last) run; replaced by the next arm
         self._control = threading.Thread(target=self._control_loop, name="velab-recorder-control", daemon=True)
         self._control.start()
 
@@ -124,33 +125,31 @@ class Recorder(RunControl):
 
     def _publish(self, phase: str, data) -> None:
         """On the control thread: the new snapshot, in one assignment."""
-        allowed = P.allowed_commands(phase, valve_open=self.valve_open, trigger_queued=self._trigger_fut is not None)
+        run = self.current_run
+        allowed = P.allowed_commands(phase, valve_open=self.valve_open,
+                                     trigger_queued=run is not None and run.trigger_fut is not None)
         self.snapshot = EngineSnapshot(phase, MappingProxyType(dict(data)), allowed)
 
     def _set_phase(self, phase: str, **data) -> None:
         self._publish(phase, data)
         self._emit("phase", {"phase": phase, **data, "allowed": list(self.snapshot.allowed)})
-        if self._writer is not None and not self._writer.closed.is_set():
+        run = self.current_run
+        if run is not None and run.writer is not None and not run.writer.closed.is_set():
             extra = ", ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in data.items()
                               if k in ("baseline_s", "armed_timeout_s", "trigger_time_s", "fit_window_s"))
-            self._log("phase", phase + (f" ({extra})" if extra else ""))
+            run.log("phase", phase + (f" ({extra})" if extra else ""))
 
     def _message(self, text: str) -> None:
         self._emit("message", text)
         self._log("message", text)
 
-    def _fault(self, who: str, message: str, kind: str = "error", **extra) -> None:
-        """A ``fault`` event (Fault), a line in the run file's event log, and a mark on the run."""
+    def _make_fault(self, who: str, message: str, kind: str = "error", **extra) -> Fault:
+        """A Fault naming the bench device of a role (``who``: a role or a device name)."""
         role = who if who in self.roles else ""
         device = self.roles.get(who, who)
         if message.startswith(f"{device}: "):  # driver errors name their device: once is enough
             message = message[len(device) + 2:]
-        f = Fault(device, message, kind, role, **extra)
-        self._emit("fault", f)
-        self._log("fault", str(f))
-        if self._writer is not None:
-            with self._end_lock:  # (faults come from every thread; the end reads the marks)
-                self._marks.setdefault(f"{device}:{kind}", str(f))
+        return Fault(device, message, kind, role, **extra)
 
     def _emit_valve(self, st) -> None:
         self._note_valve(st)
@@ -170,10 +169,17 @@ class Recorder(RunControl):
         return self._valve_state in (ValveState.IDLE, ValveState.ARMED) and (self._valve_position or 0.0) >= 99.0
 
     def _log(self, kind: str, text: str) -> None:
-        """An event into the run file's event log, if one is open."""
-        w = self._writer
-        if w is not None:
-            w.put(Event(self._timeline.now_axis if self._timeline else 0.0, kind, text))
+        """An event into the current run's file, if one is open."""
+        run = self.current_run
+        if run is not None:
+            run.log(kind, text)
+
+    def _run_active(self) -> bool:
+        return self.current_run is not None and self.current_run.active
+
+    def _end(self, status: str, reason: str):
+        """On the control thread: end the current run (idempotent; nothing to end: nothing done)."""
+        return self.current_run.end(status, reason) if self.current_run is not None else None
 
     # ------------------------------------------------------------------ control thread
     def _submit(self, fn: Callable[[], Any]) -> cf.Future:
@@ -204,7 +210,8 @@ class Recorder(RunControl):
                 self._tick()
             except Exception as exc:  # noqa: BLE001 - a bug in a timer: end the run, say why
                 log.exception("control tick")
-                self._request_end("failed", f"recorder error: {type(exc).__name__}: {exc}")
+                if self.current_run is not None:
+                    self.current_run.request_end("failed", f"recorder error: {type(exc).__name__}: {exc}")
 
     def _sleep(self, dt: float) -> None:
         """Wait dt seconds of device time (the simulation clock if there is one)."""
@@ -217,6 +224,24 @@ class Recorder(RunControl):
     def connect(self) -> cf.Future:
         """(Re)connect every device of the bench: phase connecting -> ready."""
         return self._submit(self._do_connect)
+
+    def _do_arm(self):
+        if self._run_active() or self.phase in (P.CONNECTING, P.FITTING):
+            raise VelabError(f"cannot arm while {self.phase}")
+        if not self._devices_ready():
+            self._do_connect()
+        self.current_run = Run(self)
+        return self.current_run.arm()
+
+    def _do_trigger(self):
+        if self.current_run is None:
+            raise VelabError(f"cannot trigger while {self.phase}" + (" (arm first)" if self.phase in
+                                                                     (P.READY, P.DISCONNECTED) + P.END_PHASES else ""))
+        return self.current_run.trigger(self._current_fut)
+
+    def _tick(self) -> None:
+        if self.current_run is not None:
+            self.current_run.tick()
 
     def arm(self, settings: "RecordSettings | dict | None" = None) -> cf.Future:
         """Arm a run (connects first if needed); ``settings`` replace the current ones for this and the
@@ -237,18 +262,20 @@ class Recorder(RunControl):
 
     def stop(self) -> cf.Future:
         """End cleanly, keep the data (status stopped); the fit is kept if its window is in."""
-        return self._submit(lambda: self._do_end(P.STOPPED, "stopped by the operator"))
+        return self._submit(lambda: self._end(P.STOPPED, "stopped by the operator"))
 
     def abort(self, reason: str = "") -> cf.Future:
         """Valve to its safe state, end and mark the run (status aborted)."""
-        return self._submit(lambda: self._do_end(P.ABORTED, reason or "aborted by the operator"))
+        return self._submit(lambda: self._end(P.ABORTED, reason or "aborted by the operator"))
 
     def halt(self) -> None:
         """Stop now: valve safe, file closed "aborted" (reason "halted"), no fit; returns within ~5 s."""
-        self._halt.set()
-        if self._fit is not None:
-            self._fit.cancel()
-        fut = self._submit(lambda: self._do_end(P.ABORTED, "halted"))
+        run = self.current_run
+        if run is not None:
+            run.halt_ev.set()
+            if run.fit is not None:
+                run.fit.cancel()
+        fut = self._submit(lambda: self._end(P.ABORTED, "halted"))
         try:
             fut.result(timeout=5.0)
         except Exception:  # noqa: BLE001 - halting never raises
@@ -265,7 +292,7 @@ class Recorder(RunControl):
         if beta_per_s is not None or gamma is not None:
             s = s.with_changes(beta_per_s=beta_per_s if beta_per_s is not None else s.beta_per_s,
                                gamma=gamma if gamma is not None else s.gamma)
-        return predict_surge(self.rig, s, self._steady)
+        return predict_surge(self.rig, s, self.current_run.steady if self.current_run is not None else None)
 
     def _set_settings(self, settings) -> None:
         if self._run_active():
@@ -349,9 +376,10 @@ class Recorder(RunControl):
 
     # ------------------------------------------------------------------ closing
     def wait(self, timeout: float | None = None) -> RunSummary:
-        if not self._done.wait(timeout):
+        run = self.current_run
+        if run is None or not run.done.wait(timeout):
             raise TimeoutError(f"run not finished within {timeout} s")
-        return self._summary
+        return run.summary
 
     def _deadline(self, device_seconds: float) -> float:
         scale = getattr(self.clock, "scale", 1.0) if self.clock is not None else 1.0
@@ -371,7 +399,8 @@ class Recorder(RunControl):
         try:
             self.trigger().result(timeout=self._deadline(s.armed_timeout(self.bench_armed_timeout_s)) + 30)
         except VelabError:
-            if not self._done.is_set() and not self._finished.is_set():
+            run = self.current_run
+            if run is None or (not run.done.is_set() and not run.finished.is_set()):
                 raise
         return self.wait(self._deadline(s.duration_s + s.pretrigger_s) + 600.0)
 
@@ -382,8 +411,8 @@ class Recorder(RunControl):
                 self.stop().result(timeout=60)
             except Exception:  # noqa: BLE001
                 pass
-        if self._writer is not None:
-            self._done.wait(60)
+        if self.current_run is not None and self.current_run.writer is not None:
+            self.current_run.done.wait(60)
         self._closing.set()
         self._control.join(10.0)
         for d in self.devices.values():
