@@ -9,6 +9,7 @@ from PySide6.QtCore import QSettings, Qt, Signal
 from PySide6.QtWidgets import (QCheckBox, QFormLayout, QGroupBox, QLabel, QLineEdit,
                                QVBoxLayout, QWidget)
 
+from velab.errors import VelabError
 from velab.gui.widgets import ComboBox, DoubleSpinBox
 from velab.recording.phases import ACTIVE_PHASES
 
@@ -127,8 +128,7 @@ class RunPanel(QWidget):
         )
 
     def _models(self) -> tuple:
-        from velab.errors import VelabError
-        from velab.fitting import parse_models
+        from velab.fitting import parse_models  # (velab.fitting.sweep: 1.7 s of imports, only when a run is set up)
 
         try:
             return tuple(parse_models(self.models_edit.text().strip() or "0-6"))
