@@ -12,7 +12,7 @@ pytest.importorskip("pyqtgraph")
 
 from gui_operator import STALL_LIMIT_S, Operator, StallProbe, make_window, run_file  # noqa: E402
 
-pytestmark = [pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]
+pytestmark = [pytest.mark.slow, pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]  # the integration layer: the simulated bench (tests/recording: the stages alone)
 
 
 # (phase to press in, window settings that make the phase last long enough to be seen at each clock)

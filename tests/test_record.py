@@ -20,6 +20,8 @@ from velab.errors import SafetyError, VelabError
 from velab.recording import Recorder, RecordSettings, RunRefused
 from velab.runfiles.reader import read_run
 
+pytestmark = pytest.mark.slow  # the integration layer: the simulated bench (tests/recording: the stages alone)
+
 A_TRUE = 353.73
 
 

@@ -23,6 +23,8 @@ from record_helpers import CWF, fast_sim, recorder, run_bounded, short_settings,
 from velab.recording import Recorder, RecordSettings, RunRefused
 from velab.runfiles.reader import read_run
 
+pytestmark = pytest.mark.slow  # the integration layer: the simulated bench (tests/recording: the stages alone)
+
 
 def _spawn(out: Path, *extra):
     return subprocess.Popen(

@@ -24,6 +24,8 @@ from velab.runfiles.reader import read_run
 from velab.simulators.bench import SimulatedBench
 from velab.simulators.clock import make_clock
 
+pytestmark = pytest.mark.slow  # the integration layer: the simulated bench (tests/recording: the stages alone)
+
 REFUSED = "refused"  # arm raises RunRefused (3) or DeviceFailure (5): nothing moved
 
 # (source, target, fault, instant, expected statuses)

@@ -18,6 +18,8 @@ from velab.runfiles.reader import read_run
 from velab.simulators.bench import SimulatedBench
 from velab.simulators.clock import make_clock
 
+pytestmark = pytest.mark.slow  # the integration layer: the simulated bench (tests/recording: the stages alone)
+
 CLI = [sys.executable, "-m", "velab.cli"]
 
 

@@ -21,6 +21,8 @@ import pytest
 
 from velab.runfiles.reader import read_run
 
+pytestmark = pytest.mark.slow  # the integration layer: the simulated bench (tests/recording: the stages alone)
+
 CLI = [sys.executable, "-m", "velab.cli"]
 
 

@@ -26,7 +26,7 @@ from velab.drivers.blocks import QUALITY_CODES
 from velab.runfiles.reader import read_run
 from velab.simulators.bench import load_sim_config
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]  # the integration layer: the simulated bench (tests/recording: the stages alone)
 
 SENSOR = {  # fault -> (schedule entry, expected quality by source)
     "stuck": ({"device": "rig", "fault": {"stuck_channels": [0]}}, {"streaming_adc": "stale", "pressure_adc": "stale"}),

@@ -18,7 +18,7 @@ import pytest
 from record_helpers import CWF, FAILED, fast_sim, recorder, run_bounded, short_settings, thread_errors  # noqa: F401
 from velab.runfiles.reader import read_run
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]  # the integration layer: the simulated bench (tests/recording: the stages alone)
 TRANSPORTS = {"tcp": None, "rtu": ("rtu-pty", "socket", "tcp")}  # the valve's endpoint (bench preference)
 
 
