@@ -163,3 +163,17 @@ def test_a_busy_index_is_not_deleted(small_archive, tmp_path, monkeypatch):
     assert index.stat().st_ino == inode
     with sqlite3.connect(index) as db:
         assert db.execute("SELECT count(*) FROM files").fetchone()[0] == 5
+
+
+def test_an_index_replaced_under_an_open_catalogue(small_archive, tmp_path):
+    """Another process deleted a damaged index and made a new one: our rows go into the new file, not the deleted."""
+    from velab.catalogue.index import Catalogue
+
+    index = tmp_path / "index.sqlite"
+    with Catalogue(index) as cat:
+        for suffix in ("", "-wal", "-shm"):
+            (tmp_path / ("index.sqlite" + suffix)).unlink(missing_ok=True)
+        Catalogue(index).close()  # the other process's fresh, empty index
+        assert len(cat.update([small_archive], jobs=1).rows) == 5
+    with sqlite3.connect(index) as db:
+        assert db.execute("SELECT count(*) FROM files").fetchone()[0] == 5

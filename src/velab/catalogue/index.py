@@ -169,6 +169,9 @@ class Catalogue:
         except BaseException:
             db.close()
             raise
+        if self.path != ":memory:":
+            st = os.stat(self.path)
+            self._file_id = (st.st_dev, st.st_ino)
         return db
 
     @staticmethod
@@ -373,9 +376,22 @@ class Catalogue:
         self._write(lambda db: db.executemany(sql, values))
         return {v[0]: v[4] for v in values}
 
+    def _replaced(self) -> bool:
+        """The index file under our path is no longer the one our connection has open."""
+        if self.path == ":memory:":
+            return False
+        try:
+            st = os.stat(self.path)
+        except FileNotFoundError:
+            return True
+        return (st.st_dev, st.st_ino) != self._file_id
+
     def _write(self, fn) -> None:
         """One write transaction. Busy past the timeout: this batch is not kept. The table gone (another
         process rebuilt a damaged index under us) or the file damaged: opened again and the batch retried once."""
+        if self._replaced():  # rebuilt by another process (it was damaged): ours is a deleted file now
+            self.db.close()
+            self.db = self._open()
         for attempt in (0, 1):
             try:
                 self.db.execute("BEGIN IMMEDIATE")
