@@ -49,7 +49,8 @@ class Recorder:
         self.clock = getattr(sim, "clock", None)
         self.bench_armed_timeout_s = bench_armed_timeout(bench)
         self.events = EventQueue(maxsize=1000)  # bounded: memory stays flat without a consumer
-        self._listeners: list[Callable[[RecorderEvent], None]] = []
+        # replaced whole (a tuple) when one is added: engine threads read it without a lock
+        self._listeners: tuple[Callable[[RecorderEvent], None], ...] = ()
         # phase, its data and the commands allowed now: one immutable snapshot, replaced whole (any
         # thread reads it with one attribute read); only the control thread publishes it
         self.snapshot = EngineSnapshot(P.DISCONNECTED, MappingProxyType({}), P.allowed_commands(P.DISCONNECTED))
@@ -96,7 +97,7 @@ class Recorder:
     # ------------------------------------------------------------------ events
     def add_listener(self, fn: Callable[[RecorderEvent], None]) -> None:
         """fn(RecorderEvent), called from engine threads (keep it short, thread-safe)."""
-        self._listeners.append(fn)
+        self._listeners = self._listeners + (fn,)
 
     @property
     def events_dropped(self) -> int:
@@ -113,7 +114,7 @@ class Recorder:
     def _emit(self, kind: str, data: Any) -> None:
         ev = RecorderEvent(kind, time.time(), data)
         self.events.offer(ev)  # a phase, fault or fit is never lost: live data make room
-        for fn in list(self._listeners):
+        for fn in self._listeners:
             try:
                 fn(ev)
             except Exception:  # noqa: BLE001 - a listener's bug never stops a recording
