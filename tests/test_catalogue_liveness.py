@@ -106,3 +106,47 @@ def test_network_file_systems_wait_for_the_quiet_time():
     mounts = [("/srv/lab", "nfs4"), ("/", "ext4")]
     assert is_local("/tmp/x.h5", mounts) and not is_local("/srv/lab/runs/x.h5", mounts)
     assert not is_local("/anything", [])  # unknown: not taken for local
+
+
+def test_the_archive_tab_shows_a_killed_writer_as_interrupted(qtbot, tmp_path):
+    pytest.importorskip("PySide6")
+    pytest.importorskip("pyqtgraph")
+    from PySide6.QtCore import Qt
+
+    from velab.gui.app import ensure_app
+    from velab.gui.main_window import MainWindow, make_settings
+
+    writer = (
+        "import sys, numpy as np\n"
+        "from velab.config import load_rig\n"
+        "from velab.runfile import RunWriter\n"
+        "w = RunWriter(sys.argv[1], load_rig('perugia'), sample_rate_hz=1000.0, title='killed')\n"
+        "t = np.arange(100) / 1000.0\n"
+        "w.append(t, head=30 + t); w.flush()\n"
+        "print('flushed', flush=True); sys.stdin.readline()\n"
+    )
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    proc = subprocess.Popen([sys.executable, "-c", writer, str(runs / "killed.h5")], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "flushed"
+    proc.kill()
+    proc.wait(timeout=30)
+    ensure_app()
+    win = MainWindow(settings=make_settings(tmp_path / "gui.ini"))
+    qtbot.addWidget(win)
+    win.show()
+    try:
+        arch = win.archive
+        with qtbot.waitSignal(arch.indexed, timeout=60000):
+            arch.set_folder(runs)
+        assert arch.model.rowCount() == 1
+        assert arch.model.data(arch.model.index(0, 1)).startswith("interrupted")
+        tip = arch.model.data(arch.model.index(0, 0), Qt.ToolTipRole)
+        assert "no writer holds it" in tip and "velab recover" in tip
+        arch.status_filter.setCurrentText("interrupted")
+        qtbot.waitUntil(lambda: arch.model.rowCount() == 1, timeout=5000)
+        arch.status_filter.setCurrentText("recording")
+        qtbot.waitUntil(lambda: arch.model.rowCount() == 0, timeout=5000)
+    finally:
+        win.close()
