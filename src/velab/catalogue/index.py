@@ -18,6 +18,12 @@ transaction. A damaged or foreign index file is deleted and rebuilt without a wo
 (it holds nothing that is not in the run files), under a lock file and only when it
 is still damaged under that lock; "locked" or "busy" is never taken for damage (a
 fresh index being set up by another process is waited for). Run files are only ever read.
+
+Each row is kept as its JSON text plus the :data:`LIGHT` columns (what filters and
+sort keys read): ``update(light=True)`` answers 10,000 rows without decoding them,
+and ``velab runs --json`` copies the texts (:attr:`Listing.texts`) into its document.
+Whether a ``recording`` row is live or interrupted is decided at each listing
+(:mod:`velab.catalogue.liveness`), never stored.
 """
 
 from __future__ import annotations
