@@ -51,7 +51,8 @@ def test_a_stored_rig_without_transducers_reads_as_the_valve_one():
      "[[transducers]] #2 name", "already the name"),
     ('\n[[transducers]]\nposition_m = 10.0\n', "[[transducers]] #1 name", "missing key"),
     ('\n[[transducers]]\nname = "a"\nposition_m = 10.0\nchannel = 2\n', "[[transducers]] #1 channel", "unknown key"),
-    ('\n[[transducers]]\nname = " "\nposition_m = 10.0\n', "[[transducers]] #1 name", "must not be empty"),
+    ('\n[[transducers]]\nname = " "\nposition_m = 10.0\n', "[[transducers]] #1 name", "must be letters"),
+    ('\n[[transducers]]\nname = "a/b"\nposition_m = 10.0\n', "[[transducers]] #1 name", "must be letters"),
 ])
 def test_bad_transducers_are_one_line_naming_file_table_key(tmp_path, extra, where, reason):
     p = _rig(tmp_path, extra)
@@ -59,3 +60,12 @@ def test_bad_transducers_are_one_line_naming_file_table_key(tmp_path, extra, whe
         load_rig(p)
     msg = str(exc.value)
     assert "\n" not in msg and str(p) in msg and where in msg and reason in msg, msg
+
+
+def test_channels_and_steady_heads(tmp_path):
+    rig = load_rig(_rig(tmp_path, TWO))
+    valve, mid = rig.sections
+    assert rig.head_section == valve
+    assert [rig.section_channel(s) for s in rig.sections] == ["head", "head_mid"]
+    assert rig.steady_head_at_m(rig.pipe.length_m) == rig.steady_head_m
+    assert rig.steady_head_at_m(41.03) == pytest.approx(rig.reservoir_head_m - rig.steady_head_loss_m * 41.03 / 102.58)

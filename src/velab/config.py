@@ -205,8 +205,9 @@ def _transducers(r: "_Reader", length_m: float) -> tuple[Section, ...]:
             raise r.fail(where, "must be a table")
         v = r.read(t, where, {"name": _Key(str), "position_m": _Key(float)})
         name, x = v["name"].strip(), v["position_m"]
-        if not name:
-            raise r.fail(where + "name", "must not be empty")
+        if not name or not all(c.isalnum() or c in "_-" for c in name):
+            raise r.fail(where + "name", f"must be letters, digits, _ or - (it names a CSV column and a run file's "
+                                         f"channel), got {v['name']!r}")
         if name in names:
             raise r.fail(where + "name", f"{name!r} is already the name of another transducer")
         if not 0 < x <= length_m:

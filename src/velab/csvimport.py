@@ -4,13 +4,18 @@ The CSV has a header row, then one sample per row: a time column in seconds and
 a pressure column, either pressure head in m or gauge pressure in Pa, kPa or
 bar (converted with rho g of the rig's fluid). Every malformed row is reported
 with its line number.
+
+A rig with several transducers (``[[transducers]]``) takes one pressure column per
+transducer: the column named as the transducer, or the one ``head_columns`` maps it to
+(``velab import --head-column NAME=COLUMN``). The head channel's transducer
+(``Rig.head_section``, the valve's) gives ``head_m``, the others ``section_heads``.
 """
 
 from __future__ import annotations
 
 import csv
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -39,6 +44,31 @@ class CsvRecord:
     sample_rate_hz: float
     valve_position_pct: np.ndarray | None = None  # the valve position column (% open), if named
     valve_column: str = ""
+    # a rig with several transducers: the heads of those other than the head channel's, by transducer name,
+    # and every transducer's column
+    section_heads: dict = field(default_factory=dict)
+    section_columns: dict = field(default_factory=dict)
+
+
+def head_columns_for(rig: Rig, value_column: str | None, head_columns: dict | None) -> dict[str, str | None]:
+    """Transducer name -> its CSV column (None: the default, the second column) for ``rig``. One transducer:
+    ``value_column`` or its ``head_columns`` entry. Several: each its ``head_columns`` entry, else the column
+    named as the transducer. DataError (one line) for names the rig has not, or --value-column with several."""
+    sections = rig.sections
+    names = [x.name for x in sections]
+    head_columns = dict(head_columns or {})
+    unknown = [n for n in head_columns if n not in names]
+    if unknown:
+        raise DataError(f"--head-column {unknown[0]}=...: the rig {rig.name} has no transducer {unknown[0]!r} "
+                        f"(its transducers: {', '.join(names)})")
+    if len(sections) == 1:
+        if value_column is not None and head_columns:
+            raise DataError("give --value-column or --head-column, not both")
+        return {names[0]: head_columns.get(names[0], value_column)}
+    if value_column is not None:
+        raise DataError(f"--value-column: the rig {rig.name} has {len(names)} transducers ({', '.join(names)}): "
+                        f"name the columns after them or give --head-column NAME=COLUMN for each")
+    return {n: head_columns.get(n, n) for n in names}
 
 
 def _pick(header: list[str], wanted: str | None, default_index: int, path: Path, what: str) -> int:
@@ -59,14 +89,17 @@ def read_csv_record(
     time_column: str | None = None,
     value_column: str | None = None,
     valve_column: str | None = None,
+    head_columns: dict[str, str] | None = None,
     uneven_tolerance: float = 0.01,
 ) -> CsvRecord:
-    """Parse and validate a CSV record; raises DataError naming the line."""
+    """Parse and validate a CSV record; raises DataError naming the line. ``head_columns``: transducer name ->
+    column, for a rig with several transducers (:func:`head_columns_for`)."""
     import numpy as np  # here, so that `velab --help` (which reads PRESSURE_UNITS) stays light
 
     from velab.config import GRAVITY_M_S2
 
     path = Path(path)
+    wanted = head_columns_for(rig, value_column, head_columns)
     if units not in PRESSURE_UNITS:
         raise DataError(f"--units: must be one of {', '.join(PRESSURE_UNITS)}, got {units!r}")
     check_input_file(path, "CSV file", MAX_CSV_BYTES)
@@ -92,19 +125,22 @@ def read_csv_record(
             if all(_is_number(h) for h in header if h):
                 raise DataError(f"{path}: line 1: expected a header row (column names), found numbers")
             ti = _pick(header, time_column, 0, path, "time")
-            vi = _pick(header, value_column, 1, path, "pressure")
+            what = "pressure" if len(wanted) == 1 else "pressure (transducer {})"
+            his = {n: _pick(header, c, 1, path, what.format(repr(n))) for n, c in wanted.items()}
             pi = None if valve_column is None else _pick(header, valve_column, -1, path, "valve position")
-            times, values, positions = [], [], []
+            times, positions = [], []
+            values = {n: [] for n in his}
+            last = max([ti, -1 if pi is None else pi, *his.values()])
             for row in reader:
                 line = reader.line_num
                 if not row or all(not c.strip() for c in row):
                     continue
-                if len(row) <= max(ti, vi, -1 if pi is None else pi):
+                if len(row) <= last:
                     raise DataError(f"{path}: line {line}: expected {len(header)} columns, found {len(row)}")
                 t = _number(row[ti], path, line, header[ti])
-                v = _number(row[vi], path, line, header[vi])
                 times.append(t)
-                values.append(v)
+                for n, i in his.items():
+                    values[n].append(_number(row[i], path, line, header[i]))
                 if pi is not None:
                     p = _number(row[pi], path, line, header[pi])
                     if not -1.0 <= p <= 101.0:  # a little beyond 0..100: feedback calibration
@@ -118,7 +154,6 @@ def read_csv_record(
     if len(times) < MIN_SAMPLES:
         raise DataError(f"{path}: too few samples ({len(times)}; at least {MIN_SAMPLES} needed)")
     t = np.asarray(times)
-    v = np.asarray(values)
     dt = np.diff(t)
     # data lines start at 2 (line 1 is the header); blank lines are rare enough to ignore here
     bad = np.nonzero(dt <= 0)[0]
@@ -134,9 +169,14 @@ def read_csv_record(
             f"{step:g} s by more than {uneven_tolerance:.0%}"
         )
     factor = PRESSURE_UNITS[units]
-    head = v if factor is None else v * factor / (rig.fluid.density_kg_m3 * GRAVITY_M_S2)
+    heads = {n: np.asarray(v) if factor is None else np.asarray(v) * factor / (rig.fluid.density_kg_m3 * GRAVITY_M_S2)
+             for n, v in values.items()}
+    main = rig.head_section.name
     pos = np.asarray(positions) if pi is not None else None
-    return CsvRecord(t, head, header[ti], header[vi], units, 1.0 / step, pos, header[pi] if pi is not None else "")
+    others = {n: h for n, h in heads.items() if n != main} if len(heads) > 1 else {}
+    return CsvRecord(t, heads[main], header[ti], header[his[main]], units, 1.0 / step, pos,
+                     header[pi] if pi is not None else "", section_heads=others,
+                     section_columns={n: header[i] for n, i in his.items()} if len(heads) > 1 else {})
 
 
 def _is_number(text: str) -> bool:

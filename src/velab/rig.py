@@ -128,6 +128,21 @@ class Rig:
         """The rig's transducers, the one at the valve ("valve", x = L) when the rig names none."""
         return self.transducers or (Section(VALVE_SECTION, self.pipe.length_m),)
 
+    @property
+    def head_section(self) -> Section:
+        """The transducer whose head is a run's ``head`` channel (what a single fit reads): the first at
+        the valve, else the first listed."""
+        at_valve = [s for s in self.sections if s.position_m == self.pipe.length_m]
+        return (at_valve or list(self.sections))[0]
+
+    def section_channel(self, section: Section) -> str:
+        """A transducer's channel in a run file: ``head`` for :attr:`head_section`, else ``head_<name>``."""
+        return "head" if section == self.head_section else f"head_{section.name}"
+
+    def steady_head_at_m(self, position_m: float) -> float:
+        """The steady head at a distance x from the reservoir: the friction loss grows linearly along the pipe."""
+        return self.reservoir_head_m - self.steady_head_loss_m * position_m / self.pipe.length_m
+
     # ---- derived quantities, named as in physics.md
     @property
     def reynolds(self) -> float:

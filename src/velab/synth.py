@@ -19,6 +19,10 @@ the head depends on the valve law and the friction laws (the rig's, or overridde
 
 The noise depends only on the seed and the time grid, so materials A and B get
 the same noise, as in the paper.
+
+A rig with several transducers (``[[transducers]]``): :func:`synthesise_sections` gives the head
+at every other section (the same model with ``position_m`` / ``sections_m``), each on its own
+steady head and with its own noise (seeded from the run's seed and the section's index).
 """
 
 from __future__ import annotations
@@ -159,6 +163,39 @@ def transient(t_s, rig: Rig, material: Material, position=None) -> tuple[np.ndar
     flow = lambda x: imposed_flow(position(x), q0) - q0  # noqa: E731
     return (transient_head(t, rig, material, flow=flow),
             np.where(t >= 0, flow(np.maximum(t, 0.0)), 0.0))
+
+
+def section_transients(t_s, rig: Rig, material: Material) -> np.ndarray:
+    """Head perturbations at every section of the rig (``rig.sections``), shape (sections, samples), for the
+    rig's valve law (the commanded sigmoid) and friction laws: the model :func:`transient` uses."""
+    t = np.asarray(t_s, dtype=float)
+    xs = [x.position_m for x in rig.sections]
+    if uses_frequency_model(rig):
+        return np.array([ValveHeadModel(rig, t, band_hz=None, position_m=x).head(material) for x in xs])
+    from velab.moc import moc_head, moc_transient  # numba: imported when needed
+
+    if rig.valve.law == "orifice":
+        m = rig.manoeuvre
+        position = lambda x: commanded_position_pct(x, m.beta_per_s, m.gamma)  # noqa: E731
+        return moc_transient(rig, *_moc_params(rig, material), t, position=position, sections_m=xs).section_heads_m
+    return moc_head(rig, *_moc_params(rig, material), t, sections_m=xs)
+
+
+def synthesise_sections(rig: Rig, material: Material, s: SynthSettings) -> dict[str, np.ndarray]:
+    """The absolute heads (noise included) of the rig's transducers other than its ``head`` channel's
+    (``rig.head_section``, which :func:`synthesise` gives), by name, on :func:`synth_time_grid`. Each has its
+    own steady head (the friction loss up to it) and its own noise: the run's seed and the section's index."""
+    t = synth_time_grid(s)
+    n_pre = int(np.count_nonzero(t < 0))
+    heads = section_transients(t, rig, material)
+    out = {}
+    for i, (sec, h) in enumerate(zip(rig.sections, heads)):
+        if sec == rig.head_section:
+            continue
+        noise = synth_noise(replace(s, seed=int(np.random.SeedSequence([s.seed, i + 1]).generate_state(1)[0])),
+                            t.size - n_pre, n_pre)
+        out[sec.name] = rig.steady_head_at_m(sec.position_m) + h + noise
+    return out
 
 
 def synthesise(rig: Rig, material: Material, s: SynthSettings) -> SynthRecord:

@@ -26,7 +26,8 @@ def register(sub) -> None:
         help="synthesise a run of a known material (the rig's valve and friction; --friction linear --valve "
         "imposed: the paper's experiment)",
         description="Synthesise the head at the valve for a pipe-wall material on a rig, add white noise, and "
-        "write a run file. The rig's valve and friction laws make the data (the reference rigs: the actuator "
+        "write a run file (a rig with several [[transducers]]: one head channel per transducer, 'head' for the "
+        "valve's and 'head_NAME' for the others, each with its own noise). The rig's valve and friction laws make the data (the reference rigs: the actuator "
         "moves the butterfly valve along the sigmoid in position and the flow obeys the orifice law, with "
         "quadratic Darcy-Weisbach friction, through the time-domain model); --friction linear --valve imposed "
         "gives the paper's synthetic experiment (the sigmoid is the flow; the frequency-domain model). "
@@ -137,6 +138,12 @@ def run(args: argparse.Namespace) -> int:
     channels = {"flow": (flow, "m^3/s")}
     if position is not None:
         channels["valve_position"] = (position, "%")
+    if len(rig.sections) > 1:  # one head channel per transducer of the rig, named after it
+        from velab.synth import synthesise_sections
+
+        by_name = {x.name: x for x in rig.sections}
+        for name, h in synthesise_sections(rig, material, s).items():
+            channels[rig.section_channel(by_name[name])] = (h, "m")
     title = args.title or f"synthetic {material.model_name} material {material.name} on {rig.name}"
     write_run(
         out, rig, t, head, status="synthetic", title=title, material=material, noise_std_m=s.noise_std_m,
@@ -144,7 +151,9 @@ def run(args: argparse.Namespace) -> int:
         source={"kind": "synth", "material": str(args.material), "rig": str(args.rig), **s.__dict__, **friction},
         settings={"synth": {**s.__dict__, **friction}, "rig": str(args.rig), "material": str(args.material)},
     )
+    sections = "" if len(rig.sections) < 2 else "; sections: " + ", ".join(
+        f"{x.name} at {x.position_m:g} m ({rig.section_channel(x)})" for x in rig.sections)
     print(f"wrote {out}: {material.model_name} material {material.name}, {t.size} samples at {s.sample_rate_hz:g} Hz, "
           f"noise {s.noise_std_m:g} m (seed {s.seed}); valve: {rig.valve.describe()}; friction "
-          f"{rig.friction_description} ({model})")
+          f"{rig.friction_description} ({model}){sections}")
     return 0

@@ -232,6 +232,30 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
     return result
 
 
+def run_heads(run) -> dict:
+    """Each transducer's absolute head of a run read back from its file (velab.runfiles.reader.Run), by name:
+    the channel ``rig.section_channel`` names (``head`` for the valve's, ``head_NAME`` for the others).
+    DataError (one line, naming the file and the channel) for a transducer the file has no channel of."""
+    rig = run.rig
+    out = {}
+    for sec in rig.sections:
+        ch = rig.section_channel(sec)
+        h = run.head_m if ch == "head" else run.channels.get(ch)
+        if h is None:
+            raise DataError(f"{run.path}: no channel {ch!r} for the transducer {sec.name!r} of its rig "
+                            f"(channels: head, {', '.join(sorted(run.channels))})")
+        out[sec.name] = h
+    return out
+
+
+def fit_run_sections(run, window_s: float | None, **options) -> SectionsResult:
+    """:func:`fit_sections` on a run read back from its file, every transducer of its rig (what ``velab fit``
+    of a run with several sections would call; velab.fitting.prepare.fit_run is its one-section form)."""
+    run.fit_window(window_s)  # the reader's own checks of the window (gaps, NaN), with the file's name
+    return fit_sections(run.time_s, run_heads(run), run.trigger_time_s, run.rig, window_s,
+                        record_rate_hz=run.sample_rate_hz, position_pct=run.channels.get("valve_position"), **options)
+
+
 def _closure_rows(run: _SectionRun, d_valve, vi, params) -> np.ndarray:
     """d h_x / d v of the fitted closure's parameters not on a bound, at this section (the closure drives
     every section; velab.fitting.nuisance.closure_rows at the valve, here at x). Empty if not fitted."""

@@ -1,0 +1,86 @@
+"""Several transducers through velab synth (one head channel each) and velab import (one column each), and
+a fit of the run file with every section."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from velab.cli import main
+from velab.fitting.sections import fit_run_sections
+from velab.runfile import read_run
+
+ROOT = Path(__file__).resolve().parents[1]
+TWO = '\n[[transducers]]\nname = "valve"\nposition_m = 102.58\n\n[[transducers]]\nname = "mid"\nposition_m = 41.032\n'
+
+
+@pytest.fixture(scope="module")
+def two(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sections")
+    rig = d / "two.toml"
+    rig.write_text((ROOT / "configs" / "rigs" / "perugia.toml").read_text() + TWO)
+    run = d / "two.h5"
+    assert main(["synth", "--rig", str(rig), "--duration", "6", "-o", str(run)]) == 0
+    return d, rig, run
+
+
+def test_synth_writes_one_head_channel_per_transducer(two):
+    d, rig, path = two
+    r = read_run(path)
+    assert [s.name for s in r.rig.sections] == ["valve", "mid"]
+    mid = r.channels["head_mid"]
+    assert mid.shape == r.head_m.shape and r.channel_units["head_mid"] == "m"
+    pre = r.time_s < 0
+    # its own steady head (the loss up to 40 % of the pipe) and its own noise
+    assert np.mean(mid[pre]) == pytest.approx(r.rig.steady_head_at_m(41.032), abs=0.02)
+    assert 0.08 < np.std(mid[pre]) < 0.12 and abs(np.corrcoef(mid[pre], r.head_m[pre])[0, 1]) < 0.1
+    # the wave reaches mid-pipe (L - x)/a after the valve: its surge starts later
+    first = lambda h: r.time_s[np.argmax(h - np.mean(h[pre]) > 1.0)]  # noqa: E731
+    assert first(mid) - first(r.head_m) == pytest.approx((102.58 - 41.032) / 353.73, abs=0.01)
+
+
+def _csv(path, r, names):
+    with open(path, "w") as fh:
+        fh.write(",".join(["time", *names]) + "\n")
+        for i in range(r.time_s.size):
+            fh.write(f"{r.time_s[i]:.6f},{r.head_m[i]:.6f},{r.channels['head_mid'][i]:.6f}\n")
+
+
+@pytest.mark.parametrize("names, options", [(["valve", "mid"], []),
+                                            (["H1", "H2"], ["--head-column", "valve=H1", "--head-column", "mid=H2"])])
+def test_import_takes_one_column_per_transducer(two, names, options):
+    d, rig, path = two
+    r = read_run(path)
+    csv = d / f"{names[0]}.csv"
+    _csv(csv, r, names)
+    out = d / f"{names[0]}.h5"
+    assert main(["import", str(csv), "--rig", str(rig), "-o", str(out), *options]) == 0
+    back = read_run(out)
+    np.testing.assert_allclose(back.head_m, r.head_m, atol=1e-6)
+    np.testing.assert_allclose(back.channels["head_mid"], r.channels["head_mid"], atol=1e-6)
+    assert back.source["head_columns"] == {"valve": names[0], "mid": names[1]}
+
+
+@pytest.mark.parametrize("options, message", [
+    ([], "no pressure (transducer 'valve') column 'valve'"),
+    (["--value-column", "H1"], "has 2 transducers (valve, mid)"),
+    (["--head-column", "valve=H1", "--head-column", "pipe=H2"], "has no transducer 'pipe'"),
+    (["--head-column", "valve"], "expected NAME=COLUMN"),
+])
+def test_import_errors_are_one_line(two, capsys, options, message):
+    d, rig, path = two
+    csv = d / "H1.csv"
+    if not csv.exists():
+        _csv(csv, read_run(path), ["H1", "H2"])
+    assert main(["import", str(csv), "--rig", str(rig), "-o", str(d / "x.h5"), *options]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err, err
+
+
+def test_fit_of_the_run_file_uses_both_sections(two):
+    d, rig, path = two
+    res = fit_run_sections(read_run(path), 6.0, models="3")
+    assert [s["name"] for s in res.sections] == ["valve", "mid"]
+    assert abs(res.best.wave_speed_m_s - 353.73) <= 0.5 and not res.warnings
+    assert all(0.7 < s["noise_ratio"] < 1.5 for s in res.sections)
+    assert res.settings["manoeuvre"]["source"] == "position"  # the synthetic run's valve position channel
