@@ -156,13 +156,14 @@ class Run:
                                   on_baseline=lambda: self.rec._submit(lambda: None),
                                   lead_window_s=self.fit.lead_window_s(), on_lead=self._lead_ready)
         valve = self.rec.devices[self.rec.roles["valve"]]
-        self.slow = SlowChannels(valve, self.rec.roles["valve"], self.rec.devices[self.rec.roles["flowmeter"]], self.hooks,
-                                  self.writer.put, lambda: self.timeline.now_axis,
-                                  lambda: self.timeline.triggered, s.stall_timeout_s,
-                                  # the valve's state reaches the control thread as a message
-                                  on_valve=lambda st: (self.rec._submit(lambda: self.rec._note_valve(st)), mon.valve(st)),
-                                  on_flow=lambda r: mon.flow(r.value) if r.quality.value == "ok"
-                                  and not self.timeline.triggered else None)
+        rec = self.rec
+        self.slow = SlowChannels(valve, rec.roles["valve"], rec.devices[rec.roles["flowmeter"]], self.hooks,
+                                 self.writer.put, lambda: self.timeline.now_axis,
+                                 lambda: self.timeline.triggered, s.stall_timeout_s,
+                                 # the valve's state reaches the control thread as a message
+                                 on_valve=lambda st: (rec._submit(lambda: rec._note_valve(st)), mon.valve(st)),
+                                 on_flow=lambda r: mon.flow(r.value) if r.quality.value == "ok"
+                                 and not self.timeline.triggered else None)
         # 5. start the stream, then arm the actuator
         try:
             actual = source.start(fs, s.stall_timeout_s, self.timeline.process, self.hooks)
@@ -177,7 +178,7 @@ class Run:
         self.slow.start()
         self.log("operator", f"actuator armed: beta {beta:g} 1/s, gamma {gamma:g}, end {end:g} %")
         self.rec._set_phase(P.ARMED, path=str(self.path), baseline_s=s.pretrigger_s, remaining_s=s.pretrigger_s,
-                        armed_timeout_s=self.armed_timeout_s)
+                            armed_timeout_s=self.armed_timeout_s)
         return self.path
 
     # ------------------------------------------------------------------ trigger
@@ -223,8 +224,8 @@ class Run:
         estimate_kept = tl.commit_trigger()  # not if the feedback measured it already (a slow read-back)
         self.writer.put(Value("manoeuvre/trigger_host_time", sent))
         self.log("operator", f"trigger commanded at about t = {t_est:.3f} s")
-        self.rec._set_phase(P.RECORDING, trigger_time_s=tl.counters().trigger_time, fit_window_s=self.settings.fit_window_s,
-                        remaining_s=self.settings.fit_window_s)
+        self.rec._set_phase(P.RECORDING, trigger_time_s=tl.counters().trigger_time,
+                            fit_window_s=self.settings.fit_window_s, remaining_s=self.settings.fit_window_s)
         if estimate_kept:
             self.rec._emit("trigger", {"trigger_time_s": t_est, "measured": False})
         if self.fit is not None:

@@ -371,21 +371,23 @@ class Timeline:
         Flagged or lost samples inside the window shorten it to the clean part before them (if at
         least 2 s); otherwise ValueError says why there is no fit.
         """
-        note = ""
-        if self.clean_until is not None:
-            avail = self.clean_until - self.trigger_time
-            if avail < window_s:
-                if avail < MIN_FIT_WINDOW_S:
-                    raise ValueError(f"no fit: flagged or lost samples {max(avail, 0):.2f} s after the trigger, "
-                                     f"inside the fit window (a clean window of at least {MIN_FIT_WINDOW_S:g} s is needed)")
-                window_s = math.floor(avail * self.fs) / self.fs
-                note = f"fit window shortened to {window_s:.2f} s: flagged or lost samples after it"
-        n = self._fit_n
-        end = window_slice(self._fit_t[:n], self.trigger_time, window_s, self.fs).stop
-        t = np.concatenate([b[0] for b in self._pre_blocks] + [self._fit_t[:end]])
-        h = np.concatenate([b[1] for b in self._pre_blocks] + [self._fit_h[:end]])
-        pos = None
-        if self.vch:  # the manoeuvre's input (velab.fitting.manoeuvre); open before the trigger
-            pre = sum(b[0].size for b in self._pre_blocks)
-            pos = np.concatenate([np.full(pre, 100.0), self._fit_p[:end]])
-        return t, h, float(self.trigger_time), window_s, note, pos
+        with self._lock:  # (the acquisition thread may be adding samples)
+            note = ""
+            if self.clean_until is not None:
+                avail = self.clean_until - self.trigger_time
+                if avail < window_s:
+                    if avail < MIN_FIT_WINDOW_S:
+                        raise ValueError(f"no fit: flagged or lost samples {max(avail, 0):.2f} s after the trigger, "
+                                         f"inside the fit window (a clean window of at least "
+                                         f"{MIN_FIT_WINDOW_S:g} s is needed)")
+                    window_s = math.floor(avail * self.fs) / self.fs
+                    note = f"fit window shortened to {window_s:.2f} s: flagged or lost samples after it"
+            n = self._fit_n
+            end = window_slice(self._fit_t[:n], self.trigger_time, window_s, self.fs).stop
+            t = np.concatenate([b[0] for b in self._pre_blocks] + [self._fit_t[:end]])
+            h = np.concatenate([b[1] for b in self._pre_blocks] + [self._fit_h[:end]])
+            pos = None
+            if self.vch:  # the manoeuvre's input (velab.fitting.manoeuvre); open before the trigger
+                pre = sum(b[0].size for b in self._pre_blocks)
+                pos = np.concatenate([np.full(pre, 100.0), self._fit_p[:end]])
+            return t, h, float(self.trigger_time), window_s, note, pos
