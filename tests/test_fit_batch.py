@@ -262,6 +262,9 @@ def test_table_and_progress(sources, tmp_path, capsys):
     for line, p in zip(lines[1:4], files):
         cols = line.split()
         assert cols[0] == p.name and cols[1] == "fitted" and cols[2] in ("EL", "S1") and 300 < float(cols[3]) < 400
+        # F / the record's noise, and the fit's warning codes ("-": none)
+        assert 0.5 < float(cols[5]) < 3 and cols[-1] in ("-", "bound", "misfit", "bound,misfit"), line
+    assert lines[0].split()[-1] == "warnings"
     assert lines[4].startswith("3 runs: 3 fitted, 0 failed")
     assert out.err == ""  # progress only on a terminal, or with -v
     assert all(_fits(p) == [] for p in files)  # --no-save

@@ -131,6 +131,9 @@ def test_the_manoeuvre_input_modes():
     ("imperial", "EL", "linear"),
     ("imperial", "S3", "power1.5"),
     ("imperial", "S1", "quick"),
+    # a valve that shuts abruptly and a fast element smooth the fronts alike: the lead's early-window
+    # closure took the element up (S2 named); the continuation searches again under the refined closure
+    ("perugia", "S3", "quick"),
 ])
 def test_a_real_valve_head_only_record_names_the_truth(rig_name, truth, valve):
     """No position in the record: the closure is fitted with the wall. The true model, its wave speed

@@ -9,7 +9,8 @@ from pathlib import Path
 from velab.batch.runner import Batch
 from velab.errors import ExitCode, one_line
 
-_HEAD = f"{'run':<32} {'status':<16}{'best':>5}{'a (m/s)':>10}{'F (m^2)':>13}{'2nd':>5}{'dAIC':>8}{'time (s)':>9}"
+_HEAD = (f"{'run':<32} {'status':<16}{'best':>5}{'a (m/s)':>10}{'F (m^2)':>13}{'F/noise':>9}{'2nd':>5}{'dAIC':>8}"
+         f"{'time (s)':>9}  warnings")
 
 
 def exit_code(batch: Batch) -> ExitCode:
@@ -23,14 +24,17 @@ def _row(o: dict) -> str:
     t = o.get("seconds")
     t = f"{t:>9.2f}" if isinstance(t, (int, float)) else f"{'-':>9}"  # no time: the fit never came back
     if not o["ok"]:
-        return f"{name:<32} {'FAILED ' + o['reason']:<16}{'-':>5}{'-':>10}{'-':>13}{'-':>5}{'-':>8}{t}"
+        return f"{name:<32} {'FAILED ' + o['reason']:<16}{'-':>5}{'-':>10}{'-':>13}{'-':>9}{'-':>5}{'-':>8}{t}"
     fit = o["fit"]
     models = fit.get("models") or []
     best = next((m for m in models if m.get("name") == fit.get("best")), {})
     others = sorted((m for m in models if m is not best), key=lambda m: _num(m.get("delta_aic")))
     second = others[0] if others else {}
+    # the fit's own warnings (misfit, bound, cavitation: velab.fitting.adequacy), by code
+    codes = sorted({str(w.get("code")) for w in fit.get("warnings") or [] if isinstance(w, dict)})
     return (f"{name:<32} {o['status']:<16}{fit.get('best', '-'):>5}{_num(best.get('wave_speed')):>10.2f}"
-            f"{_num(best.get('F')):>13.5e}{second.get('name', '-'):>5}{_num(second.get('delta_aic')):>8.2f}{t}")
+            f"{_num(best.get('F')):>13.5e}{_num(best.get('noise_ratio')):>9.2f}{second.get('name', '-'):>5}"
+            f"{_num(second.get('delta_aic')):>8.2f}{t}  {','.join(codes) or '-'}")
 
 
 def _num(v) -> float:
@@ -38,7 +42,8 @@ def _num(v) -> float:
 
 
 def table(batch: Batch) -> str:
-    """One line per run (the best model, its wave speed and F, the runner-up and its delta AIC), then a total."""
+    """One line per run (the best model, its wave speed, F and F / the record's noise, the runner-up and its
+    delta AIC, the fit's warning codes), then a total."""
     lines = [_HEAD, *(_row(o) for o in batch.outcomes)]
     failed = sum(not o["ok"] for o in batch.outcomes)
     n = len(batch.outcomes)

@@ -24,33 +24,51 @@ import numpy as np
 from velab.fitting.engine import HeadEvaluator, gram, sumsq
 from velab.fitting.manoeuvre import PARAM_NAMES, _coupling, closure_bounds, closure_flow, from_solver, to_solver
 from velab.fitting.params import ParamMap, creep_const
+from velab.model import ValveHeadModel
 from velab.fitting.stats import covariance, lag1, standard_errors
 
 STEP = 1e-6  # in the solver's variables (logs of beta, power and share; t50, coupling and tail as they are)
 
 
-def closure_rows(rig, t, d, ev_full: HeadEvaluator, vi, params) -> np.ndarray:
-    """d h / d v of the run's closure parameters v not on a bound (rows, on the run's grid t), at the wall
-    ``params`` = (a, J', tau); ``ev_full`` the run's full-band evaluator (its linear friction stand-in is
-    kept); ``vi`` the run's ValveInput. No rows for a closure that was not fitted."""
+def closure_models(rig, t, d, vi) -> list[tuple[float, ValveHeadModel]]:
+    """(step, model) per closure parameter not on a bound: the frequency model driven by the closure with
+    that parameter moved by ``step`` (the flow's spectrum is the costly part, and it does not depend on
+    the wall: built once per record, evaluated at every model's wall). [] for a closure not fitted."""
     if vi.source != "fitted" or not vi.params:
-        return np.zeros((0, np.size(t)))
+        return []
     v0 = np.array(to_solver([float(vi.params.get(k, 0.0)) for k in PARAM_NAMES]))
     lo, hi = closure_bounds(rig)
     span = hi - lo
-    hc = _coupling(np.asarray(t, dtype=float), np.asarray(d, dtype=float), rig)
-    h0 = ev_full.head(*params)
-    rows = []
+    t = np.asarray(t, dtype=float)
+    hc = _coupling(t, np.asarray(d, dtype=float), rig)
+    out = []
     for i in range(v0.size):
         if not (lo[i] + 1e-6 * span[i] < v0[i] < hi[i] - 1e-6 * span[i]):
             continue  # on a bound: held fixed, as a wall parameter on a bound is
         v = v0.copy()
         step = STEP if v[i] + STEP <= hi[i] else -STEP
         v[i] += step
-        q = closure_flow(t, hc, rig, from_solver(v))
-        ev = HeadEvaluator(rig, t, band_hz=None, flow=q, extra_impedance=ev_full.extra_impedance)
-        rows.append((ev.head(*params) - h0) / step)
-    return np.array(rows).reshape(len(rows), np.size(t))
+        out.append((step, ValveHeadModel(rig, t, band_hz=None, flow=closure_flow(t, hc, rig, from_solver(v)))))
+    return out
+
+
+def rows_at(models, ev_full: HeadEvaluator, params) -> np.ndarray:
+    """d h / d v at the wall ``params`` = (a, J', tau) from ``closure_models``; ``ev_full`` the run's
+    full-band evaluator (its linear friction stand-in is kept)."""
+    if not models:
+        return np.zeros((0, ev_full.n_t))
+    h0 = ev_full.head(*params)
+    rows = [(HeadEvaluator(ev_full.rig, extra_impedance=ev_full.extra_impedance, _model=vm).head(*params) - h0) / step
+            for step, vm in models]
+    return np.array(rows)
+
+
+def closure_rows(rig, t, d, ev_full: HeadEvaluator, vi, params) -> np.ndarray:
+    """d h / d v of the run's closure parameters v not on a bound (rows, on the run's grid t), at the wall
+    ``params`` = (a, J', tau); ``ev_full`` the run's full-band evaluator (its linear friction stand-in is
+    kept); ``vi`` the run's ValveInput. No rows for a closure that was not fitted."""
+    models = closure_models(rig, t, d, vi)
+    return rows_at(models, ev_full, params) if models else np.zeros((0, np.size(t)))
 
 
 def _square_root(A: np.ndarray) -> np.ndarray:
@@ -114,12 +132,13 @@ def marginalise_single(rig, t, d, vi):
     the wall's covariance marginalised over the run's fitted closure ``vi`` (no change for a flow from
     the recorded position or the rig's sigmoid). The closure was fitted from the same record; held
     fixed, it made the standard errors and the creep band too narrow on head-only data."""
-    if vi.source != "fitted" or not vi.params:
+    models = closure_models(rig, t, d, vi)
+    if not models:
         return None
 
     def apply(f, stage, sol):
         params = sol.pm.unpack(sol.x)
-        rows = closure_rows(rig, t, d, stage.ev, vi, params)
+        rows = rows_at(models, stage.ev, params)
         if not rows.size:
             return f
         h, jac = stage.ev.head_jac_x(*params, sol.pm.tau_free)

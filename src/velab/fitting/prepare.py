@@ -188,15 +188,18 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
     # a closure still to be refined: this sweep only seeds a continuation (the lead's, or this fit's
     # own), which makes the time-domain polish
     refining = vi.source == "fitted" and closure is None
+    # a continuation under a closure its lead refined: the lead's early-window closure had taken up
+    # what a fast element does, so what vanished there is searched again
     result = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=vi.flow, time_domain_polish=not refining,
-                       marginalise=None if refining else marginalise_single(frig, rec.t, rec.h, vi), **sweep_options)
+                       marginalise=None if refining else marginalise_single(frig, rec.t, rec.h, vi),
+                       trust_lead=vi.source != "fitted", **sweep_options)
     if refining and result.models:
         refined = refine_closure(rec.t, rec.h, frig, vi, result.best)
         if refine == "only":
             result.settings["manoeuvre_refined"] = refined.describe()
         else:
             again = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=refined.flow,
-                              marginalise=marginalise_single(frig, rec.t, rec.h, refined),
+                              marginalise=marginalise_single(frig, rec.t, rec.h, refined), trust_lead=False,
                               **(sweep_options | {"lead": result}))
             again.settings["lead"] = None  # (a continuation of this fit's own first pass, not of a lead fit)
             again.duration_s += result.duration_s
@@ -274,6 +277,10 @@ def _stage_progress(progress, stage: int, suffix: str):
 def fit_run(run, window_s: float | None, **sweep_options) -> SweepResult:
     """``fit_record`` on a run read back from its file (velab.runfiles.reader.Run): what ``velab fit`` and the
     GUI archive's re-fit call. Lost samples inside the window are refused (a gap cannot be fitted)."""
+    if len(run.rig.sections) > 1:  # several transducers: every section at once (velab.fitting.sections)
+        from velab.fitting.sections import fit_run_sections
+
+        return fit_run_sections(run, window_s, **sweep_options)
     run.fit_window(window_s)  # the reader's own checks of the window (gaps, NaN), with the file's name
     return fit_record(run.time_s, run.head_m, run.trigger_time_s, run.rig, window_s,
                       record_rate_hz=run.sample_rate_hz, position_pct=run.channels.get("valve_position"),

@@ -136,6 +136,7 @@ class _Sweep:
                  threads: int, initial: SweepResult | None, lead: SweepResult | None = None, flow=None):
         self.t, self.d, self.rig, self.bounds = t, d, rig, bounds
         self.method, self.polish, self.seed, self.initial, self.lead = method, polish, seed, initial, lead
+        self.trust_lead = True  # fit_sweep(trust_lead=): a model that vanished in the lead stays so
         self.threads = threads
         self.parallel_starts = threads > 1 and PARALLEL_STARTS
         self.max_starts = 1 if method == "least-squares" else starts
@@ -399,6 +400,8 @@ class _Sweep:
         """In the lead fit, S(m) ended as a smaller model plus vanished (or split) elements: its search over
         the record's first part found no use for one more element, and the rest of the window (the
         transient's most damped part) holds less of the structure an element would fit."""
+        if not self.trust_lead:
+            return False
         old = self.lead.get(model_name(m, False)) if self.lead is not None else None
         return old is not None and bool(old.equivalent_to)
 
@@ -529,6 +532,7 @@ def fit_sweep(
     flow=None,
     time_domain_polish: bool = True,
     marginalise: Callable | None = None,
+    trust_lead: bool = True,
 ) -> SweepResult:
     """Calibrate EL/Sm models on a head record and rank them.
 
@@ -552,6 +556,9 @@ def fit_sweep(
     ``time_domain_polish``: with a nonlinear friction law the competitive models end on the time-domain
     model's own optimum (False: where the defect correction stops; a lead fit, which only seeds its
     continuation).
+    ``trust_lead``: False -- a model that vanished in the lead fit is searched again here (the lead
+    was driven by another flow: a closure fitted on the early window, refined since; under it the
+    closure had taken up what a fast element does).
     ``marginalise``: f, stage, sol -> f, applied to each model's summary (velab.fitting.nuisance:
     the covariance marginalised over a closure fitted from the same record).
     Pure computation: no I/O, no shared state; safe to call from worker threads.
@@ -577,6 +584,7 @@ def fit_sweep(
     if threads is None:
         threads = min(2, os.cpu_count() or 1)
     sw = _Sweep(t, d, rig, bounds, method, polish, starts, seed, threads, initial, lead, flow)
+    sw.trust_lead = trust_lead
 
     jobs = [(m, False) for m in ms]
     if reduced:
