@@ -84,3 +84,19 @@ def test_fit_of_the_run_file_uses_both_sections(two):
     assert abs(res.best.wave_speed_m_s - 353.73) <= 0.5 and not res.warnings
     assert all(0.7 < s["noise_ratio"] < 1.5 for s in res.sections)
     assert res.settings["manoeuvre"]["source"] == "position"  # the synthetic run's valve position channel
+
+
+def test_velab_fit_of_a_run_with_two_sections(two, capsys):
+    """velab fit of the run file: the fit path (velab.fitting.prepare.fit_run) takes every section; the JSON
+    has `sections`; a single sweep's search option is refused in one line."""
+    import json
+
+    d, rig, path = two
+    assert main(["fit", str(path), "--window", "6", "--models", "3", "--json", "--no-save"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [s["name"] for s in doc["sections"]] == ["valve", "mid"] and doc["method"] == "sections"
+    assert doc["adequacy"]["baseline_samples"] > 0 and doc["best"] == "S3"
+    assert abs(next(m for m in doc["models"] if m["name"] == "S3")["wave_speed"] - 353.73) < 0.5
+    assert main(["fit", str(path), "--window", "6", "--models", "3", "--reduced", "--no-save"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "not for a fit of several sections" in err and "\n" not in err, err

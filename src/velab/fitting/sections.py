@@ -52,6 +52,17 @@ class SectionsResult(SweepResult):
         d["sections"] = [dict(s) for s in self.sections]
         return d
 
+    def report(self, elements: bool = True) -> str:
+        """The single fit's report and the sections' table (each under the best model's wall)."""
+        lines = [f"sections (each under the {self.best.name} wall):",
+                 f"  {'section':<16}{'x (m)':>9}{'n':>8}{'F/noise':>9}{'bound':>7}  disagrees"]
+        for s in self.sections:
+            ratio, bound = s.get("noise_ratio"), s.get("misfit_bound")
+            lines.append(f"  {s['name']:<16}{s['position_m']:>9.2f}{s['n']:>8}"
+                         f"{'-' if ratio is None else format(ratio, '.3f'):>9}{'-' if bound is None else format(bound, '.2f'):>7}"
+                         f"  {'yes' if s['disagrees'] else 'no'}")
+        return super().report(elements) + "\n" + "\n".join(lines)
+
 
 class _SharedTime:
     """The time-domain model of every section at one wall: one MOC run gives them all (cached for the
@@ -222,7 +233,12 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
     result.record_rate_hz = valve_rec.record_rate_hz
     result.anti_alias_filter = valve_rec.filter
     if all(r.noise_var for r in runs):
+        # pooled as F is (n-weighted geometric mean), so that a model's noise_ratio is F / noise^2
         result.baseline_noise_m = math.exp(sum(r.n * math.log(r.noise_var) for r in runs) / (2 * result.n))
+        result.baseline_lag1 = float(np.average([r.rec.baseline_lag1 for r in runs], weights=[r.n for r in runs]))
+    result.adequacy = {"baseline_samples": int(sum(r.rec.baseline_samples for r in runs)), "misfit_bound": None,
+                       "per_section": "the misfit rule is applied to each section (sections[].misfit_bound, "
+                                      "sections[].disagrees)"}
     if best.at_bounds:
         result.warnings.append({"code": "bound", "message": bound_message(best)})
     result.notes.append(f"fit of {len(runs)} sections ({', '.join(f'{r.name} at {r.position_m:g} m' for r in runs)}): "
@@ -248,9 +264,19 @@ def run_heads(run) -> dict:
     return out
 
 
+# the single sweep's search options (velab.fitting.sweep.fit_sweep): the sections' fit is the joint sweep's
+SWEEP_ONLY = {"method": "auto", "reduced": False, "starts": None, "polish": True}
+
+
 def fit_run_sections(run, window_s: float | None, **options) -> SectionsResult:
-    """:func:`fit_sections` on a run read back from its file, every transducer of its rig (what ``velab fit``
-    of a run with several sections would call; velab.fitting.prepare.fit_run is its one-section form)."""
+    """:func:`fit_sections` on a run read back from its file, every transducer of its rig (velab.fitting.prepare
+    .fit_run calls it for a rig with several). The single sweep's search options (``SWEEP_ONLY``) are accepted
+    at their defaults; another value is one line (DataError): this fit searches as a joint fit does."""
+    for key, default in SWEEP_ONLY.items():
+        value = options.pop(key, default)
+        if value != default and not (key == "starts" and value is None):
+            raise DataError(f"{run.path}: {key} = {value!r}: not for a fit of several sections (its rig has "
+                            f"{len(run.rig.sections)} transducers; the search is the joint fit's)")
     run.fit_window(window_s)  # the reader's own checks of the window (gaps, NaN), with the file's name
     return fit_sections(run.time_s, run_heads(run), run.trigger_time_s, run.rig, window_s,
                         record_rate_hz=run.sample_rate_hz, position_pct=run.channels.get("valve_position"), **options)
