@@ -281,10 +281,6 @@ def fit_run(run, window_s: float | None, **sweep_options) -> SweepResult:
         from velab.fitting.sections import fit_run_sections
 
         return fit_run_sections(run, window_s, **sweep_options)
-    if len(run.rig.sections) > 1:  # several transducers: every section at once (velab.fitting.sections)
-        from velab.fitting.sections import fit_run_sections
-
-        return fit_run_sections(run, window_s, **sweep_options)
     run.fit_window(window_s)  # the reader's own checks of the window (gaps, NaN), with the file's name
     return fit_record(run.time_s, run.head_m, run.trigger_time_s, run.rig, window_s,
                       record_rate_hz=run.sample_rate_hz, position_pct=run.channels.get("valve_position"),
