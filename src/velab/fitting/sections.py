@@ -164,11 +164,10 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
     names = [s.name for s in sections]
     missing = [n for n in names if n not in heads]
     unknown = [n for n in heads if n not in names]
-    if missing or unknown:
-        raise DataError(f"sections: {'no head for ' + ', '.join(missing) if missing else ''}"
-                        f"{'; ' if missing and unknown else ''}"
-                        f"{'no transducer named ' + ', '.join(unknown) + ' in the rig' if unknown else ''}"
-                        f" (the rig's: {', '.join(names)})")
+    problems = ([f"no head for {', '.join(missing)}"] if missing else []) + \
+        ([f"no transducer named {', '.join(unknown)} in the rig"] if unknown else [])
+    if problems:
+        raise DataError(f"sections: {'; '.join(problems)} (the rig's: {', '.join(names)})")
     L = rig.pipe.length_m
     at_valve = [s.name for s in sections if s.position_m == L]
     if not at_valve:
