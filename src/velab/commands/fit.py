@@ -189,10 +189,8 @@ _NOT_JOINT = (("reduced", "--reduced"), ("starts", "--starts"), ("no_polish", "-
 
 
 def _joint_sources(args, window_s):
-    """The runs of a joint fit read and checked before anything is fitted or written: a missing or damaged
-    file, a window a run does not hold, a run given twice or runs of different pipes -> DataError naming it."""
-    from velab.fitting.joint import CampaignRun, check_same_pipe
-    from velab.runfile import read_run
+    """The options a joint fit refuses, then its runs read and checked (velab.jointfiles.read_sources)."""
+    from velab.jointfiles import read_sources
 
     if len(args.runs) < 2:
         raise DataError("--joint needs two or more runs")
@@ -203,27 +201,18 @@ def _joint_sources(args, window_s):
         raise DataError("--jobs does not apply to a joint fit (--joint: one fit over all the runs)")
     if args.method != "auto":
         raise DataError(f"--method {args.method}: a joint fit has its own search (--joint takes the default)")
-    sources, seen = [], {}
-    for path in args.runs:
-        run = read_run(path)
-        run.fit_window(window_s)  # gaps, NaN, a window longer than the run: named with the file
-        src = CampaignRun.from_run(run)
-        key = Path(path).resolve()
-        if key in seen or src.head_sha256 in seen.values():
-            raise DataError(f"{path}: given twice (the same run, or the same record in another file)")
-        seen[key] = src.head_sha256
-        sources.append(src)
-    check_same_pipe(sources)
-    return sources
+    return read_sources(args.runs, window_s)
 
 
 def _run_joint(args, opts: dict) -> int:
     """velab fit RUN1 RUN2 ... --joint: one wall over all the runs (velab.fitting.joint)."""
-    from velab.fitting.joint import JOINT_KIND, fit_joint, runs_report
-    from velab.runfile import RunStillOpen
-    from velab.runfiles.fits import save_fit, validate_fit_name
+    from velab.fitting.joint import fit_joint, runs_report
+    from velab.jointfiles import default_name, save_joint
+    from velab.runfiles.fits import validate_fit_name
 
     sources = _joint_sources(args, opts["window_s"])
+    if opts["save"] and opts["name"]:
+        validate_fit_name(opts["name"])  # a bad name is said before the fit, not after it
     with ProgressLine.for_args(args) as progress:
         def cb(done, total, name):
             progress.update(f"velab fit --joint ({len(sources)} runs): {done}/{total} models, fitted {name}")
@@ -234,21 +223,8 @@ def _run_joint(args, opts: dict) -> int:
     result.settings["window_s_requested"] = opts["window_s"]
     name = None
     if opts["save"]:
-        name = validate_fit_name(opts["name"] or f"joint_w{opts['window_s']:g}s")
-        saved = []
-        for i, src in enumerate(sources):
-            # every run holds the whole joint fit and names the others by path and content hash
-            doc = result.to_dict() | {"run_index": i, "other_runs": [
-                {"path": o.path, "resolved_path": str(Path(o.path).resolve()), "head_sha256": o.head_sha256}
-                for j, o in enumerate(sources) if j != i]}
-            try:
-                save_fit(src.path, doc, name, kind=JOINT_KIND)
-                saved.append(src.path)
-            except RunStillOpen as exc:
-                result.notes.append(f"not saved into {src.path}: {exc}")
-            except OSError as exc:
-                raise DataError(f"{src.path}: cannot write the joint fit into the run: {exc}"
-                                + (f" (already saved into {', '.join(saved)})" if saved else "")) from None
+        name = opts["name"] or default_name(opts["window_s"])
+        save_joint(result, sources, name)  # into every run, naming the others
     if opts["plot"]:
         from velab.fitting.campaign import campaign_figure
 
