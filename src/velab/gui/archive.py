@@ -32,7 +32,37 @@ class _Rows(QObject):
     rows = Signal(object, bool, str, int)  # rows, replace, folder, generation
 
 
-JOINT_FIT_TIP = "Fit several runs together: a joint fit does not exist in velab yet"
+JOINT_FIT_TIP = "Fit several runs together: select two or more different runs of one pipe (velab fit --joint)"
+JOINT_FIT_READY_TIP = ("Fit the selected runs together: one wall for all, each run its own steady state, manoeuvre and "
+                       "noise (velab fit --joint with the Re-fit settings' models and window; saved into each run)")
+
+
+def _recording_key(row: dict) -> tuple:
+    """What tells two rows apart as recordings: copies of one run share it, whatever their titles (a joint fit
+    refuses one record twice); start times are kept to the millisecond."""
+    return row.get("start_time"), row.get("n_samples"), row.get("sample_rate_hz"), row.get("steady_flow_l_s")
+
+
+def joint_fit(paths: list[str], opts: RefitOptions) -> dict:
+    """``velab fit --joint`` on the runs, in a process of its own (the command's checks, saving into every run and
+    one-line errors; the fit's CPU off the GUI's process); its JSON document."""
+    import json
+    import subprocess
+    import sys
+
+    from velab.errors import DataError
+
+    cmd = [sys.executable, "-m", "velab.cli", "fit", "--joint", *map(str, paths), "--models", opts.models,
+           "-q", "--json"]
+    if opts.window_s:
+        cmd += ["--window", f"{opts.window_s:g}"]
+    if not opts.save:
+        cmd.append("--no-save")
+    out = subprocess.run(cmd, capture_output=True, text=True)
+    if out.returncode != 0:
+        lines = [ln for ln in out.stderr.strip().splitlines() if ln.strip()]
+        raise DataError(lines[-1].removeprefix("velab: ") if lines else f"velab fit --joint: exit {out.returncode}")
+    return json.loads(out.stdout)
 
 
 class ArchiveBrowser(QWidget):
@@ -328,6 +358,7 @@ class ArchiveBrowser(QWidget):
         self.joint_fit_button = QPushButton("Fit together")
         self.joint_fit_button.setEnabled(False)
         self.joint_fit_button.setToolTip(JOINT_FIT_TIP)
+        self.joint_fit_button.clicked.connect(lambda: self.fit_together())
         self.export_rows_button = QPushButton("Export rows…")
         self.export_rows_button.setToolTip("the selected rows (every column, as velab runs --csv) as CSV")
         self.export_rows_button.clicked.connect(lambda: self.export_selected_rows())
@@ -412,6 +443,39 @@ class ArchiveBrowser(QWidget):
                      on_error=self._refit_failed,
                      on_progress=lambda d, t, s: (self.progress.setRange(0, t), self.progress.setValue(d),
                                                   self.progress.setFormat(f"{d}/{t}: {s}")))
+
+    def fit_together(self) -> None:
+        """The joint fit of the selected runs (velab fit --joint) in the background; the rows show it when done."""
+        paths = [r["path"] for r in self.selected_rows() if r.get("kind") == "run"]
+        if len(paths) < 2 or self.busy:
+            return
+        opts = self.options()
+        self.busy = True
+        self._update_buttons()
+        self.progress.setRange(0, 0)
+        self.progress.setFormat(f"fitting {len(paths)} runs together…")
+        self.message.emit(f"Fitting {len(paths)} runs together: models {opts.models}, window {opts.window_s:g} s",
+                          "info")
+        tasks.submit(joint_fit, paths, opts, owner=self, on_done=lambda doc: self._joint_done(doc, len(paths)),
+                     on_error=self._refit_failed)
+
+    def _joint_done(self, doc: dict, n: int) -> None:
+        self.busy = False
+        self.progress.setRange(0, 1)
+        self.progress.setValue(1)
+        best = doc.get("best") or "?"
+        self.progress.setFormat(f"joint fit: best {best}")
+        self._update_buttons()
+        model = next((m for m in doc.get("models") or [] if m.get("name") == best), {})
+        speed = model.get("wave_speed")
+        text = f"Joint fit of {n} runs: best {best}" + (f" (a = {speed:.1f} m/s)" if isinstance(speed, float) else "")
+        text += f", saved as /entry/fits/{doc['fit_name']} in each run" if doc.get("fit_name") else " (not saved)"
+        self.message.emit(text, "info")
+        for note in doc.get("notes") or []:
+            self.message.emit(f"Joint fit: {note}", "info")
+        self.refitted.emit(best)
+        if doc.get("fit_name"):
+            self.refresh_list()  # the runs' rows show the joint fit as their latest
 
     def _refit_many_done(self, outcomes) -> None:
         self.busy = False
@@ -611,4 +675,7 @@ class ArchiveBrowser(QWidget):
         if hasattr(self, "table"):
             runs = [r for r in self.selected_rows() if r.get("kind") == "run"]
             self.refit_selected_button.setEnabled(bool(runs) and not self.busy)
+            joint = len({_recording_key(r) for r in runs}) >= 2
+            self.joint_fit_button.setEnabled(joint and not self.busy)
+            self.joint_fit_button.setToolTip(JOINT_FIT_READY_TIP if joint else JOINT_FIT_TIP)
             self.open_selected_button.setEnabled(len(runs) >= 1)
