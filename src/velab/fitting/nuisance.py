@@ -30,10 +30,12 @@ from velab.fitting.stats import covariance, lag1, standard_errors
 STEP = 1e-6  # in the solver's variables (logs of beta, power and share; t50, coupling and tail as they are)
 
 
-def closure_models(rig, t, d, vi) -> list[tuple[float, ValveHeadModel]]:
+def closure_models(rig, t, d, vi, position_m: float | None = None) -> list[tuple[float, ValveHeadModel]]:
     """(step, model) per closure parameter not on a bound: the frequency model driven by the closure with
     that parameter moved by ``step`` (the flow's spectrum is the costly part, and it does not depend on
-    the wall: built once per record, evaluated at every model's wall). [] for a closure not fitted."""
+    the wall: built once per record, evaluated at every model's wall). [] for a closure not fitted.
+    ``d``: the head at the valve (the orifice coupling's); ``position_m``: the head at that section
+    (velab.fitting.sections; None: at the valve)."""
     if vi.source != "fitted" or not vi.params:
         return []
     v0 = np.array(to_solver([float(vi.params.get(k, 0.0)) for k in PARAM_NAMES]))
@@ -48,7 +50,8 @@ def closure_models(rig, t, d, vi) -> list[tuple[float, ValveHeadModel]]:
         v = v0.copy()
         step = STEP if v[i] + STEP <= hi[i] else -STEP
         v[i] += step
-        out.append((step, ValveHeadModel(rig, t, band_hz=None, flow=closure_flow(t, hc, rig, from_solver(v)))))
+        out.append((step, ValveHeadModel(rig, t, band_hz=None, flow=closure_flow(t, hc, rig, from_solver(v)),
+                                         position_m=position_m)))
     return out
 
 

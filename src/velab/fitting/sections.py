@@ -25,9 +25,8 @@ from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator, sumsq
 from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
 from velab.fitting.joint import REFINE_PASSES, _JointSweep, _first_pass_best
-from velab.fitting.manoeuvre import (PARAM_NAMES, _coupling, closure_bounds, closure_flow, from_solver, refine_closure,
-                                     to_solver, valve_input)
-from velab.fitting.nuisance import STEP, marginalised
+from velab.fitting.manoeuvre import refine_closure, valve_input
+from velab.fitting.nuisance import closure_models, marginalised, rows_at
 from velab.fitting.params import ParamMap, creep_const, derive_bounds
 from velab.fitting.prepare import prepare_record
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
@@ -283,26 +282,9 @@ def fit_run_sections(run, window_s: float | None, **options) -> SectionsResult:
 
 def _closure_rows(run: _SectionRun, d_valve, vi, params) -> np.ndarray:
     """d h_x / d v of the fitted closure's parameters not on a bound, at this section (the closure drives
-    every section; velab.fitting.nuisance.closure_rows at the valve, here at x). Empty if not fitted."""
-    t = run.rec.t
-    if vi.source != "fitted" or not vi.params:
-        return np.zeros((0, t.size))
-    v0 = np.array(to_solver([float(vi.params.get(k, 0.0)) for k in PARAM_NAMES]))
-    lo, hi = closure_bounds(run.rig)
-    span = hi - lo
-    hc = _coupling(t, np.asarray(d_valve, dtype=float), run.rig)
-    h0 = run.ev_f.head(*params)
-    out = []
-    for i in range(v0.size):
-        if not (lo[i] + 1e-6 * span[i] < v0[i] < hi[i] - 1e-6 * span[i]):
-            continue
-        v = v0.copy()
-        step = STEP if v[i] + STEP <= hi[i] else -STEP
-        v[i] += step
-        ev = HeadEvaluator(run.rig, t, band_hz=None, flow=closure_flow(t, hc, run.rig, from_solver(v)),
-                           extra_impedance=run.ev_f.extra_impedance, position_m=run.position_m)
-        out.append((ev.head(*params) - h0) / step)
-    return np.array(out).reshape(len(out), t.size)
+    every section; velab.fitting.nuisance at x). Empty if not fitted."""
+    models = closure_models(run.rig, run.rec.t, d_valve, vi, position_m=run.position_m)
+    return rows_at(models, run.ev_f, params) if models else np.zeros((0, run.rec.t.size))
 
 
 def _summarise(sw: _JointSweep, m: int, fin, k_nuisance: int, rows: list) -> ModelFit:
