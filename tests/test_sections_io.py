@@ -100,3 +100,18 @@ def test_velab_fit_of_a_run_with_two_sections(two, capsys):
     assert main(["fit", str(path), "--window", "6", "--models", "3", "--reduced", "--no-save"]) == 2
     err = capsys.readouterr().err.strip()
     assert "not for a fit of several sections" in err and "\n" not in err, err
+
+
+def test_velab_info_shows_a_saved_sections_fit(two, tmp_path, capsys):
+    import shutil
+
+    d, rig, path = two
+    run = tmp_path / "copy.h5"
+    shutil.copy(path, run)
+    assert main(["fit", str(run), "--window", "6", "--models", "3", "--name", "two_sections"]) == 0
+    capsys.readouterr()
+    assert main(["info", str(run)]) == 0
+    out = capsys.readouterr().out
+    assert "fit two_sections: 2 sections, best S3" in out
+    assert "section valve at 102.58 m: n " in out and "section mid at 41.032 m: n " in out
+    assert "F/noise " in out and "DISAGREES" not in out

@@ -37,9 +37,34 @@ def run(args: argparse.Namespace) -> int:
         if i:
             print()
         print(describe(read_run(path)))
-        for line in joint_lines(path):
+        for line in joint_lines(path) + sections_lines(path):
             print(line)
     return 0
+
+
+def sections_lines(path) -> list[str]:
+    """The fits of a run with several transducers (velab.fitting.sections): each section's position and
+    how the fitted wall describes it."""
+    import math
+
+    from velab.runfiles.summary import read_fits
+
+    out = []
+    for name, d in read_fits(path).items():
+        sections = d.get("sections")
+        if not isinstance(sections, list) or not sections:
+            continue
+        out.append(f"  fit {name}: {len(sections)} sections, best {d.get('best', '?')}")
+        for s in sections:
+            if not isinstance(s, dict):
+                continue
+            ratio = s.get("noise_ratio")
+            ratio = f"F/noise {ratio:.3g}" if isinstance(ratio, (int, float)) and math.isfinite(ratio) else "F/noise -"
+            x = s.get("position_m")
+            x = f"{x:g} m" if isinstance(x, (int, float)) else "? m"
+            out.append(f"    section {s.get('name', '?')} at {x}: n {s.get('n', '?')}, {ratio}"
+                       + (", DISAGREES with the fitted wall" if s.get("disagrees") else ""))
+    return out
 
 
 def joint_lines(path) -> list[str]:
