@@ -43,7 +43,8 @@ def _select_all(arch) -> None:
     from PySide6.QtCore import QItemSelectionModel
 
     for i in range(arch.model.rowCount()):
-        arch.table.selectionModel().select(arch.model.index(i, 0), QItemSelectionModel.Select | QItemSelectionModel.Rows)
+        arch.table.selectionModel().select(arch.model.index(i, 0),
+                                           QItemSelectionModel.Select | QItemSelectionModel.Rows)
 
 
 def test_fit_together_from_the_table(qtbot, archive):

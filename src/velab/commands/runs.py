@@ -20,8 +20,8 @@ def register(sub) -> None:
         description="One row per run file under the folders (recursively): start time, title / operator / "
                     "specimen, rig, Q0, beta, rate, duration, status and fault flags, the latest fit's best model, "
                     "wave speed +- SE and misfit flag, the number of fits. Damaged files are listed as 'damaged' "
-                    "with the reason; a run being recorded as 'recording', one whose recorder died as 'interrupted'. An index in the user's cache "
-                    "(XDG_CACHE_HOME/velab, or $VELAB_CATALOGUE) keeps later listings fast: only new or changed "
+                    "with the reason; a run being recorded as 'recording', one whose recorder died as "
+                    "'interrupted'. An index in the user's cache (XDG_CACHE_HOME/velab, or $VELAB_CATALOGUE) keeps later listings fast: only new or changed "
                     "files are read. Run files are never written.")
     p.add_argument("folders", nargs="*", default=["."], metavar="FOLDER",
                    help="folders (searched recursively) or run files; default: the current folder")
