@@ -447,12 +447,14 @@ def _damaged(exc: BaseException) -> bool:
 
 
 def _retry(fn, tries: int = 8):
-    """fn() again after a short, growing pause while SQLite answers busy or locked (a fresh file being set up)."""
+    """fn() again after a short, growing pause while SQLite answers busy or locked (a fresh file being set up,
+    where SQLite may answer at once, without its busy timeout); not past the busy timeout (5 s at least) in all."""
+    end = time.monotonic() + max(BUSY_TIMEOUT_MS / 1000, 5.0)
     for i in range(tries):
         try:
             return fn()
         except sqlite3.DatabaseError as exc:
-            if not _busy(exc) or i == tries - 1:
+            if not _busy(exc) or i == tries - 1 or time.monotonic() > end:
                 raise
             time.sleep(0.02 * 2 ** i)
 
