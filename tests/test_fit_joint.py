@@ -18,7 +18,8 @@ import pytest
 from velab.cli import main
 from velab.config import load_material, load_rig
 from velab.fitting.engine import HeadEvaluator
-from velab.fitting.joint import StackedEvaluator, head_sha256
+from velab.fitting.campaignrun import head_sha256
+from velab.fitting.stacked import StackedEvaluator
 from velab.runfile import read_run
 
 WINDOW = 8.0
@@ -230,7 +231,8 @@ def test_runs_may_differ_in_rate_manoeuvre_and_valve_input():
     """A 2 kHz run with its recorded valve position beside a 1 kHz head-only run with a slower actuator at
     another flow (the time-domain model, real butterfly valve, quadratic friction): the true model and
     wave speed; each run at its own fit rate; only the head-only run's closure counted as nuisance."""
-    from velab.fitting.joint import CampaignRun, fit_joint
+    from velab.fitting.campaignrun import CampaignRun
+    from velab.fitting.joint import fit_joint
     from velab.model import creep_scale
     from velab.moc import moc_head
     from velab.valvelaw import commanded_position_pct

@@ -206,7 +206,8 @@ def _joint_sources(args, window_s):
 
 def _run_joint(args, opts: dict) -> int:
     """velab fit RUN1 RUN2 ... --joint: one wall over all the runs (velab.fitting.joint)."""
-    from velab.fitting.joint import fit_joint, runs_report
+    from velab.fitting.joint import fit_joint
+    from velab.fitting.jointresult import runs_report
     from velab.jointfiles import default_name, save_joint
     from velab.runfiles.fits import validate_fit_name
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from velab.errors import DataError
 from velab.fitting.adequacy import assess, bound_message
-from velab.fitting.campaignrun import CampaignRun, check_same_pipe, head_sha256  # noqa: F401 (the API)
+from velab.fitting.campaignrun import CampaignRun, check_same_pipe
 from velab.fitting.creep import creep_curve
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator, sumsq
@@ -40,7 +40,7 @@ from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
 from velab.fitting.manoeuvre import refine_closure, valve_input
 from velab.fitting.nuisance import closure_rows, marginalised
 from velab.fitting.parallel import map_pair
-from velab.fitting.jointresult import JOINT_KIND, JointResult, runs_report  # noqa: F401 (the API)
+from velab.fitting.jointresult import JointResult
 from velab.fitting.params import ParamMap, creep_const, derive_bounds
 from velab.fitting.prepare import PreparedRecord, prepare_record
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
@@ -187,6 +187,19 @@ class _JointSweep:
         return _Model(sol, heads, F)
 
     # ------------------------------------------------------------ models
+    def sweep(self, ms: list[int], progress=None) -> None:
+        """EL, S1, ... up to the largest of ``ms``, each from the one before (``final``);
+        ``progress(done, total, name)`` after each model of ``ms``."""
+        base = self.start()
+        for m in range(0, max(ms) + 1):
+            fin = base if m == 0 else self.fit_model(m, base)
+            if m == 0:
+                fin = self.polish(ParamMap(0, self.bounds), base.sol.x, base)
+            self.final[m] = fin
+            base = fin
+            if progress is not None and m in ms:
+                progress(ms.index(m) + 1, len(ms), model_name(m))
+
     def start(self) -> _Model:
         pm0 = ParamMap(0, self.bounds)
         a_nom = self.runs[0].rig.nominal_wave_speed_m_s
@@ -327,16 +340,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     bounds = derive_bounds(runs[0].rig, dt, max(r.rec.window_s for r in runs), tau_min_s=tau_min_s,
                            tau_max_s=tau_max_s)
     sw = _JointSweep(runs, bounds, selection, progress)
-    base = sw.start()
-    total = len(ms)
-    for m in range(0, max(ms) + 1):
-        fin = base if m == 0 else sw.fit_model(m, base)
-        if m == 0:
-            fin = sw.polish(ParamMap(0, bounds), base.sol.x, base)
-        sw.final[m] = fin
-        base = fin
-        if progress is not None and m in ms:
-            progress(ms.index(m) + 1, total, model_name(m))
+    sw.sweep(ms, progress)
     # the fitted closures refined on each run's whole window with the best wall (every wave front carries
     # the closure's shape; from its early window alone a slow element takes up a wrong shape), then every
     # model continued from its optimum under them

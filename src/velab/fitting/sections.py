@@ -27,7 +27,7 @@ from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
 from velab.fitting.joint import REFINE_PASSES, _JointSweep, _first_pass_best
 from velab.fitting.manoeuvre import refine_closure, valve_input
 from velab.fitting.nuisance import closure_models, marginalised, rows_at
-from velab.fitting.params import ParamMap, creep_const, derive_bounds
+from velab.fitting.params import creep_const, derive_bounds
 from velab.fitting.prepare import prepare_record
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
 from velab.fitting.stats import lag1
@@ -189,15 +189,7 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
     valve_run = runs[names.index(at_valve[0])]
     bounds = derive_bounds(frig, float(t[1] - t[0]), valve_rec.window_s, tau_min_s=tau_min_s, tau_max_s=tau_max_s)
     sw = _JointSweep(runs, bounds, selection, progress)
-    base = sw.start()
-    for m in range(0, max(ms) + 1):
-        fin = base if m == 0 else sw.fit_model(m, base)
-        if m == 0:
-            fin = sw.polish(ParamMap(0, bounds), base.sol.x, base)
-        sw.final[m] = fin
-        base = fin
-        if progress is not None and m in ms:
-            progress(ms.index(m) + 1, len(ms), model_name(m))
+    sw.sweep(ms, progress)
     # the fitted closure refined on the valve's whole window with the best wall, then every model continued
     for _ in range(REFINE_PASSES if vi.source == "fitted" else 0):
         first = _first_pass_best(sw, ms)
