@@ -40,6 +40,7 @@ def _status_dict(name, st) -> dict:
 
 
 def run_command(args) -> int:
+    # here, not at the top: `velab --help` never loads numpy (velab.recording) or the drivers
     from velab.config import load_rig
     from velab.drivers.base import DeviceError, ProfileError
     from velab.drivers.bench import load_bench, open_device
