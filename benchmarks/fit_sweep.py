@@ -56,7 +56,7 @@ from velab.moc import moc_head
 def load(path):
     if path:
         from velab.fitting import prepare_record
-        from velab.runfile import read_run
+        from velab.runfiles import read_run
 
         run = read_run(path)
         # the fit path's preparation (steady head, window, decimation to the fit rate): what is fitted

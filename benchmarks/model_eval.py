@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from velab.config import GRAVITY_M_S2, load_material, load_rig
+from velab.config import load_material, load_rig
+from velab.rig import GRAVITY_M_S2
 from velab.model import ValveHeadModel, creep_scale, flow_perturbation, valve_head
 from velab.moc import moc_head, moc_solve, warm_up
 

@@ -44,7 +44,7 @@ from velab.config import load_rig
 from velab.drivers.bench import Bench
 from velab.fitting import SweepResult, fit_run
 from velab.recording import Recorder, RecordSettings
-from velab.runfile import read_run
+from velab.runfiles import read_run
 from velab.runfiles.summary import read_fits
 
 

@@ -54,7 +54,7 @@ def writer_baseline(rate: float, seconds: float, out: Path) -> float:
     import numpy as np
 
     from velab.config import load_rig
-    from velab.runfile import HEAD, Channel, RunWriter
+    from velab.runfiles import HEAD, Channel, RunWriter
 
     chans = (HEAD, Channel("pressure", "Pa"), Channel("pressure_raw", "counts", "i4"),
              Channel("valve_position", "%"), Channel("valve_position_raw", "counts", "i4"),
@@ -113,7 +113,7 @@ def main() -> None:
     if not args.skip_headroom:
         report_long("headroom", 50_000.0, args.headroom_seconds, 1.0, out)
     from velab.fitting import fit_sweep
-    from velab.runfile import read_run
+    from velab.runfiles import read_run
 
     lat, offline = [], []
     for _ in range(3):

@@ -35,7 +35,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from velab.config import GRAVITY_M_S2, Manoeuvre, Material, Rig
+from velab.config import Material
+from velab.rig import GRAVITY_M_S2, Manoeuvre, Rig
 # the actuator's state codes are the register contract: one definition, the driver's
 from velab.drivers.valve import ValveState  # noqa: F401 - re-exported for the simulators and tests
 from velab.simulators.rig_faults import (  # noqa: F401 - RigFaults, FAULT_FOLLOWING_ERROR re-exported

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import time
 
-from velab.runfile import read_run
+from velab.runfiles import read_run
 from velab.runfiles.summary import read_fits
 
 # The tests catch a GUI thread that blocks (I/O, fitting, a lock held across a device call): 1 s, far

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from velab.config import GRAVITY_M_S2
+from velab.rig import GRAVITY_M_S2
 from velab.friction import weighting_exponentials
 
 

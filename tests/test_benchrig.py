@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from record_helpers import recorder, run_bounded, short_settings, thread_errors  # noqa: F401 (fixture)
 
 from velab.benchrig import rig_for_bench, valve_profile_name
 from velab.config import load_rig, with_valve_profile
@@ -13,8 +14,9 @@ from velab.drivers.bench import load_bench
 from velab.drivers.profile import load_profile
 from velab.errors import ConfigError
 from velab.rig import rig_from_dict
+from velab.runfiles import read_run
 from velab.simulators.bench import SimulatedBench
-from velab.simulators.clock import ManualClock
+from velab.simulators.clock import ManualClock, make_clock
 
 ACTUATOR = Path(__file__).resolve().parents[1] / "configs" / "devices" / "valve_actuator.toml"
 TABLE = """
@@ -88,3 +90,18 @@ def test_the_simulated_rigs_valve_follows_its_profile(tmp_path):
         assert v.characteristic == "table" and v.characteristic_from == "profile my_valve"
         # the physics of the simulated rig uses it: its flow through the valve at 60 % open
         assert np.isclose(sim.rig.rig.valve.flow_ratio_at(60.0), 0.42)
+
+
+@pytest.mark.slow
+def test_a_recorded_run_stores_the_valve_profiles_characteristic(tmp_path, thread_errors):
+    """The recorder takes the rig through velab.benchrig: the run file's rig carries the bench's valve
+    (here a table in the valve's profile, the rig file naming none) and says where it came from."""
+
+    _, config = load_config("sim", "default")
+    config["devices"]["valve"]["profile"] = str(profile_with(tmp_path, TABLE))
+    sim = SimulatedBench(config, ephemeral=True, clock=make_clock("fast")).start()
+    out = run_bounded(recorder(sim, short_settings(tmp_path)))
+    assert out.summary is not None and out.summary.status == "completed", out
+    v = read_run(out.summary.path).rig.valve
+    assert v.characteristic == "table" and v.characteristic_from == "profile my_valve"
+    assert not thread_errors

@@ -57,7 +57,7 @@ WRITER = textwrap.dedent(
     """
     import sys, numpy as np
     from velab.config import load_rig
-    from velab.runfile import RunWriter
+    from velab.runfiles import RunWriter
     w = RunWriter(sys.argv[1], load_rig("perugia"), sample_rate_hz=1000.0, title="live one")
     for i in range(5):
         t = np.arange(i * 100, (i + 1) * 100) / 1000.0

@@ -79,7 +79,7 @@ def test_a_live_writer_holding_a_quiet_file_is_recording(tmp_path, capsys):
     writer = (
         "import sys, numpy as np\n"
         "from velab.config import load_rig\n"
-        "from velab.runfile import RunWriter\n"
+        "from velab.runfiles import RunWriter\n"
         "w = RunWriter(sys.argv[1], load_rig('perugia'), sample_rate_hz=1000.0, title='quiet')\n"
         "t = np.arange(100) / 1000.0\n"
         "w.append(t, head=30 + t); w.flush()\n"
@@ -119,7 +119,7 @@ def test_the_archive_tab_shows_a_killed_writer_as_interrupted(qtbot, tmp_path):
     writer = (
         "import sys, numpy as np\n"
         "from velab.config import load_rig\n"
-        "from velab.runfile import RunWriter\n"
+        "from velab.runfiles import RunWriter\n"
         "w = RunWriter(sys.argv[1], load_rig('perugia'), sample_rate_hz=1000.0, title='killed')\n"
         "t = np.arange(100) / 1000.0\n"
         "w.append(t, head=30 + t); w.flush()\n"

@@ -133,7 +133,7 @@ def test_a_record_clipped_at_the_vapour_head_gets_the_cavitation_warning(tmp_pat
     src = tmp_path / "a.h5"
     assert main(["synth", "--rig", str(_rig_file(tmp_path, 35.0, name="ref")), "--material", "A", "--friction",
                  "linear", "--duration", "4", "-o", str(src)]) == 0
-    from velab.runfile import read_run
+    from velab.runfiles import read_run
 
     run = read_run(src)
     low = load_rig(_rig_file(tmp_path))

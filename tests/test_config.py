@@ -5,7 +5,8 @@ import math
 import pytest
 
 from velab.cli import main
-from velab.config import KelvinVoigt, load_material, load_rig, constraint_coefficient
+from velab.config import KelvinVoigt, load_material, load_rig
+from velab.rig import constraint_coefficient
 from velab.errors import ConfigError
 
 RIG = """

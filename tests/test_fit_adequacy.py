@@ -23,7 +23,7 @@ from velab.fitting.adequacy import (MIN_BASELINE_SAMPLES, MISFIT_FLOOR, assess, 
                                     misfit_bound)
 from velab.fitting.prepare import prepare_record
 from velab.fitting.results import SweepResult
-from velab.runfile import read_run
+from velab.runfiles import read_run
 from velab.runfiles.fits import read_fit_group
 
 RIG = "configs/rigs/perugia.toml"

@@ -8,7 +8,7 @@ import pytest
 
 from velab.cli import main
 from velab.config import load_rig
-from velab.runfile import read_run, write_run
+from velab.runfiles import read_run, write_run
 
 
 @pytest.fixture(scope="module")
@@ -143,7 +143,8 @@ def test_many_files_one_bad(run_a, tmp_path, capsys):
 
 def test_bound_options_and_rig_fit_table(run_a, tmp_path, capsys):
     """--tau-min/--tau-max, the rig's [fit] table and their errors; the bounds go into the run file."""
-    from velab.config import load_rig, rig_from_dict
+    from velab.config import load_rig
+    from velab.rig import rig_from_dict
     from velab.errors import ConfigError
 
     for bad, msg in ((["--tau-min", "-1"], "--tau-min"), (["--tau-max", "0"], "--tau-max"),

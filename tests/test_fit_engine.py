@@ -110,7 +110,7 @@ def test_param_map_roundtrip_and_bounds(rig):
         derive_bounds(rig, 1e-3, 20.0, tau_min_s=300.0)
     with pytest.raises(DataError, match="positive"):
         derive_bounds(rig, 1e-3, 20.0, tau_max_s=-1.0)
-    from velab.config import FitSettings
+    from velab.rig import FitSettings
 
     b2 = derive_bounds(rig.with_changes(fit=FitSettings(tau_min_s=0.004, tau_max_s=50.0)), 1e-3, 20.0)
     assert (b2.tau_min_s, b2.tau_max_s) == (0.004, 50.0) and b2.sources["tau_min_s"] == "rig [fit] table"

@@ -20,7 +20,7 @@ from velab.config import load_material, load_rig
 from velab.fitting.engine import HeadEvaluator
 from velab.fitting.campaignrun import head_sha256
 from velab.fitting.stacked import StackedEvaluator
-from velab.runfile import read_run
+from velab.runfiles import read_run
 
 WINDOW = 8.0
 RIG = Path(__file__).resolve().parents[1] / "configs" / "rigs" / "perugia.toml"

@@ -202,7 +202,7 @@ def test_acceptance_head_only_csv_of_a_real_valve(tmp_path, capsys):
     |a - 353.73| <= 1 m/s, noise ratio <= 1.5, no misfit. With the position column: the same, from it."""
     run = tmp_path / "a.h5"
     assert main(["synth", "--material", "A", "-o", str(run)]) == 0
-    from velab.runfile import read_run
+    from velab.runfiles import read_run
 
     rec = read_run(run)
     assert rec.rig.valve.law == "orifice" and "valve_position" in rec.channels

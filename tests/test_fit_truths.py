@@ -90,7 +90,7 @@ def test_acceptance_material_a_quadratic(tmp_path, capsys):
 def test_fast_element_bound_is_flagged_and_lifted(tmp_path, capsys):
     """A true 5 ms element (below the default tau_min = closure / 10 = 13.7 ms): the report flags
     the bound and names --tau-min; with the option the true S2 is chosen, a within 1 m/s."""
-    from velab.runfile import write_run
+    from velab.runfiles import write_run
 
     rig = load_rig("perugia")
     a = rig.nominal_wave_speed_m_s

@@ -142,7 +142,7 @@ def test_the_final_fit_survives_the_loss_of_its_process(tmp_path):
     assert any("fit process lost" in m and "fitting in the recorder's process" in m for m in messages), messages
     # the same fit as velab fit of the file
     from velab.fitting import fit_run
-    from velab.runfile import read_run
+    from velab.runfiles import read_run
 
     offline = fit_run(read_run(s.path), 4.0, models=[0, 1, 2, 3])
     assert [m.F for m in offline.models] == [m.F for m in s.fit.models]

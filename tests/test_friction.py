@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from scipy import integrate, special
 
-from velab.config import GRAVITY_M_S2, load_rig, rig_from_dict
+from velab.config import load_rig
+from velab.rig import GRAVITY_M_S2, rig_from_dict
 from velab.errors import ConfigError
 from velab.friction import (
     colebrook,

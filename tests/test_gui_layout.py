@@ -24,7 +24,7 @@ pytestmark = [pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]
 def sweep(tmp_path_factory):
     """A real sweep of EL..S6 and the reduced S1r..S5r (12 rows) on a synthetic run of material A."""
     from velab.fitting import fit_sweep
-    from velab.runfile import read_run
+    from velab.runfiles import read_run
 
     path = tmp_path_factory.mktemp("runs") / "a.h5"
     assert velab_main(["synth", "--material", "A", "--duration", "4", "--friction", "linear", "--valve", "imposed", "-o", str(path)]) == 0

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from moc_reference import march_reference
 
-from velab.config import GRAVITY_M_S2, KelvinVoigt, Material, load_material, load_rig
+from velab.config import KelvinVoigt, Material, load_material, load_rig
+from velab.rig import GRAVITY_M_S2
 from velab.model import ValveHeadModel, creep_scale, flow_perturbation, valve_head
 from velab.moc import commanded_opening, grid, moc_head, moc_solve, moc_transient, moc_valve_head
 from velab.moc.solver import run

@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from velab.config import GRAVITY_M_S2, KelvinVoigt, Material, load_material, load_rig
+from velab.config import KelvinVoigt, Material, load_material, load_rig
+from velab.rig import GRAVITY_M_S2
 from velab.model import (
     ValveHeadModel,
     creep_scale,

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from velab.config import Manoeuvre, load_material, load_rig
+from velab.config import load_material, load_rig
+from velab.rig import Manoeuvre
 from velab.synth import transient
 from velab.valvelaw import commanded_position_pct
 from velab.simulators.clock import ManualClock, RealTimeClock

@@ -8,7 +8,7 @@ import pytest
 
 from velab.cli import main
 from velab.fitting.sections import fit_run_sections
-from velab.runfile import read_run
+from velab.runfiles import read_run
 
 ROOT = Path(__file__).resolve().parents[1]
 TWO = '\n[[transducers]]\nname = "valve"\nposition_m = 102.58\n\n[[transducers]]\nname = "mid"\nposition_m = 41.032\n'

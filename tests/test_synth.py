@@ -9,7 +9,7 @@ from velab.cli import main
 from velab.config import load_material, load_rig
 from velab.model import creep_scale, flow_perturbation, valve_flow, valve_head
 from velab.moc import moc_head, moc_transient
-from velab.runfile import read_run
+from velab.runfiles import read_run
 from velab.synth import SynthSettings, synth_noise, synth_time_grid, synthesise, with_valve_law
 from velab.valvelaw import commanded_position_pct, orifice_flow
 

@@ -22,25 +22,12 @@ from pathlib import Path
 from velab.configpath import config_stem, load_config
 from velab.errors import ConfigError
 from velab.friction import FACTOR_LAWS, STEADY_LAWS, UNSTEADY_LAWS
-# the rig's data classes live in velab.rig; re-exported here, where they always were
-from velab.rig import (  # noqa: F401
-    GRAVITY_M_S2,
-    FitSettings,
-    Fluid,
-    Manoeuvre,
-    Pipe,
-    Rig,
-    Section,
-    Transducer,
-    constraint_coefficient,
-    rig_from_dict,
-)
+from velab.rig import FitSettings, Fluid, Manoeuvre, Pipe, Rig, Transducer, constraint_coefficient
 # One validation machinery for every config (velab.tomlschema); the short names keep this module's schema readable.
 from velab.tomlschema import Key as _Key
 from velab.tomlschema import Reader as _Reader
 from velab.tomlschema import non_negative as _non_negative
 from velab.tomlschema import positive as _positive
-from velab.tomlschema import read_toml  # noqa: F401  (re-exported for callers of velab.config.read_toml)
 from velab.valvelaw import CHARACTERISTICS, DEFAULT_SERIES_SHARE, VALVE_LAWS, Valve, check_table
 
 log = logging.getLogger("velab.config")

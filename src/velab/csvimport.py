@@ -28,7 +28,7 @@ MIN_SAMPLES = 10
 if TYPE_CHECKING:
     import numpy as np
 
-    from velab.config import Rig
+    from velab.rig import Rig
 # A CSV is parsed into Python lists: refuse a file past this size (about 10 million rows)
 # before reading it, rather than exhaust memory on a wrong path.
 MAX_CSV_BYTES = 256 << 20
@@ -96,7 +96,7 @@ def read_csv_record(
     column, for a rig with several transducers (:func:`head_columns_for`)."""
     import numpy as np  # here, so that `velab --help` (which reads PRESSURE_UNITS) stays light
 
-    from velab.config import GRAVITY_M_S2
+    from velab.rig import GRAVITY_M_S2
 
     path = Path(path)
     wanted = head_columns_for(rig, value_column, head_columns)

@@ -1,7 +1,7 @@
 """Friction laws of a pipe: steady Darcy friction factor and unsteady-friction weighting functions.
 
 Pure functions of dimensionless numbers (Reynolds number, relative roughness,
-dimensionless time / Laplace variable); the rig (``velab.config.Rig``), the
+dimensionless time / Laplace variable); the rig (``velab.rig.Rig``), the
 frequency model (``velab.model.series_impedance``) and the method of
 characteristics (``velab.moc``) all take their friction from here.
 

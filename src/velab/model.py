@@ -23,7 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 
-from velab.config import GRAVITY_M_S2, Material, Rig
+from velab.config import Material
+from velab.rig import GRAVITY_M_S2, Rig
 from velab.friction import unsteady_resistance
 
 

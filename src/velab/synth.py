@@ -33,7 +33,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from velab.config import Material, Rig
+from velab.config import Material
+from velab.rig import Rig
 from velab.model import ValveHeadModel, creep_scale, flow_perturbation, manoeuvre_band_hz, valve_flow, valve_head
 from velab.valvelaw import commanded_position_pct, imposed_flow
 

@@ -114,8 +114,8 @@ def _plot_path(template: str, run_path: str, many: bool) -> str:
 def fit_file(path: str, opts: dict, many: bool = False, progress=None):
     """Fit one run file; returns (SweepResult, fit group name or None). Raises VelabError."""
     from velab.fitting.prepare import fit_run
-    from velab.fitting.store import save_fit
-    from velab.runfile import RunStillOpen, read_run
+    from velab.runfiles.fits import save_fit
+    from velab.runfiles import RunStillOpen, read_run
 
     run = read_run(path)
     # the one fit path (velab.fitting.prepare): window, steady head, decimation to the fit rate

@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
 
     from velab.config import load_rig
     from velab.csvimport import read_csv_record
-    from velab.runfile import write_run
+    from velab.runfiles import write_run
 
     rig = load_rig(args.rig)
     out = prepare_output(args.output, args.force)

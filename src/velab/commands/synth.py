@@ -89,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
     check_work(args.rate, args.duration, args.pretrigger)
     out = prepare_output(args.output, args.force)
 
-    from velab.config import Manoeuvre, load_material, load_rig
+    from velab.config import load_material, load_rig
+    from velab.rig import Manoeuvre
     from velab.friction import STEADY_LAWS, UNSTEADY_LAWS
     from velab.synth import (PAPER_NOISE_STD_M, PAPER_SEED, SynthSettings, flow_band_hz, head_model, synthesise,
                              with_valve_law)

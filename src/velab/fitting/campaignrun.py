@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from velab.config import Rig
+from velab.rig import Rig
 from velab.errors import DataError
 
 GEOMETRY_RTOL = 1e-6  # runs of one pipe: length, diameter, wall, alpha and density agree to this
@@ -30,7 +30,7 @@ class CampaignRun:
 
     @classmethod
     def from_run(cls, run) -> "CampaignRun":
-        """From a velab.runfile.Run (the reader's own checks of the window are the caller's)."""
+        """From a velab.runfiles.Run (the reader's own checks of the window are the caller's)."""
         return cls(str(run.path), run.time_s, run.head_m, run.trigger_time_s, run.rig, run.sample_rate_hz,
                    run.channels.get("valve_position"), head_sha256(run.time_s, run.head_m))
 

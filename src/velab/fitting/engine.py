@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from velab.config import GRAVITY_M_S2, Rig
+from velab.rig import GRAVITY_M_S2, Rig
 from velab.fitting.parallel import both
 from velab.model import ValveHeadModel, series_impedance
 

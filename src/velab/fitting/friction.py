@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
-from velab.config import GRAVITY_M_S2, Rig
+from velab.rig import GRAVITY_M_S2, Rig
 from velab.errors import DataError
 from velab.friction import STEADY_LAWS, UNSTEADY_LAWS, unsteady_resistance
 from velab.model import ValveHeadModel, creep_scale, valve_head

@@ -26,7 +26,7 @@ fitted in one step.
 
 from __future__ import annotations
 
-from velab.config import Rig
+from velab.rig import Rig
 
 LEAD_FRACTION = 0.2  # the lead fit leaves out this fraction of the window (its last part)
 MIN_LEAD_PERIODS = 5.0  # the lead's part must hold this many wave periods 4 L / a (nominal)

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from velab.config import GRAVITY_M_S2, Rig
+from velab.rig import GRAVITY_M_S2, Rig
 from scipy.signal import butter, sosfiltfilt
 
 from velab.errors import DataError

@@ -25,7 +25,7 @@ from functools import cached_property
 
 import numpy as np
 
-from velab.config import Rig
+from velab.rig import Rig
 from velab.errors import DataError
 
 # Relative creep compliance J'_k: the lower bound is far below detection (an element at it

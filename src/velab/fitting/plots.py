@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from velab.config import Rig
+from velab.rig import Rig
 from velab.fitting.adequacy import best_residuals
 from velab.fitting.creep import creep_curve, creep_of
 from velab.fitting.results import SweepResult

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from velab.config import Rig
+from velab.rig import Rig
 from velab.fitting.engine import sumsq
 from velab.fitting.params import FitBounds, bound_hits, creep_const
 from velab.fitting.results import ModelFit, model_name

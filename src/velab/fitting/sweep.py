@@ -36,7 +36,8 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from velab.config import REDUCED_RETARDATION_TIMES_S, Rig
+from velab.config import REDUCED_RETARDATION_TIMES_S
+from velab.rig import Rig
 from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate, prepare_window
 from velab.fitting.engine import HeadEvaluator, sumsq

@@ -20,15 +20,15 @@ from velab.errors import DataError
 
 @dataclass
 class LoadedRun:
-    run: object  # velab.runfile.Run
+    run: object  # velab.runfiles.Run
     summary: str
     fits: dict = field(default_factory=dict)  # fit group name -> SweepResult
     fit_errors: dict = field(default_factory=dict)
 
 
 def load_run(path) -> LoadedRun:
-    from velab.fitting.store import read_fit_group
-    from velab.runfile import open_run_file, read_run
+    from velab.runfiles.fits import read_fit_group
+    from velab.runfiles import open_run_file, read_run
 
     run = read_run(path)
     try:
@@ -76,8 +76,8 @@ class RefitOutcome:
 def refit(path, opts: RefitOptions, progress=None) -> RefitOutcome:
     """Calibrate the run at ``path`` again; save the fit group unless the run is still being written."""
     from velab.fitting import fit_run, parse_models
-    from velab.fitting.store import save_fit
-    from velab.runfile import read_run
+    from velab.runfiles.fits import save_fit
+    from velab.runfiles import read_run
 
     run = read_run(path)
     window = opts.window_s
@@ -125,7 +125,7 @@ def export_csv(run, path) -> Path:
 def export_report_figure(path_run, result, path) -> Path:
     """The 2 x 2 report figure (velab.fitting.plots) of ``result`` on the run at ``path_run``."""
     from velab.fitting.plots import report_figure
-    from velab.runfile import read_run
+    from velab.runfiles import read_run
 
     path = Path(path)
     if path.suffix.lower() not in (".png", ".pdf", ".svg"):
@@ -140,7 +140,7 @@ def export_report_figure(path_run, result, path) -> Path:
 
 def fit_window_of(path, window_s):
     """(t, h, rig) of a run's calibration window (time from the measured trigger, head perturbation)."""
-    from velab.runfile import read_run
+    from velab.runfiles import read_run
 
     run = read_run(path)
     window = min(window_s, run.duration_after_trigger_s) if window_s else None

@@ -25,7 +25,7 @@ Perturbation variables h = H - H_steady(x) and q = Q - Q0: the steady state is
 exactly h = q = 0 (no start-up transient), and friction enters as the change of
 the friction slope from its steady value, a dt (J(Q0 + q) - J(Q0)) per reach:
 
-* ``"linear"``: R q, the tangent R = :attr:`velab.config.Rig.linear_resistance`,
+* ``"linear"``: R q, the tangent R = :attr:`velab.rig.Rig.linear_resistance`,
   exactly the friction of the frequency-domain model (the paper's);
 * ``"quadratic"``: f ((Q0+q)|Q0+q| - Q0^2) / (2 g D A^2), Darcy-Weisbach with f
   frozen at the steady Reynolds number (in laminar flow Poiseuille's law, which is linear);

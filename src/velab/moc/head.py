@@ -40,7 +40,7 @@ from threading import Lock
 
 import numpy as np
 
-from velab.config import Rig
+from velab.rig import Rig
 from velab.model import ValveHeadModel, check_position, flow_perturbation
 from velab.moc import kernel
 from velab.moc.solver import check_laws, run_probes

@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from velab.config import GRAVITY_M_S2, Material, Rig
+from velab.config import Material
+from velab.rig import GRAVITY_M_S2, Rig
 from velab.friction import STEADY_LAWS, UNSTEADY_LAWS, weighting_exponentials
 from velab.model import creep_scale, flow_perturbation
 from velab.moc import kernel

@@ -20,6 +20,7 @@ import time
 from types import MappingProxyType
 from typing import Any, Callable
 
+from velab.benchrig import rig_for_bench
 from velab.rig import Rig
 from velab.drivers.bench import open_device
 from velab.drivers.valve import ValveState
@@ -44,7 +45,10 @@ class Recorder:
     each armed run is a ``Run`` (velab.recording.run). See the module docstring and docs/recording.md."""
 
     def __init__(self, bench, rig: Rig, settings: RecordSettings, *, sim=None, owns_sim: bool = False):
-        self.bench, self.rig, self.settings = bench, rig, settings
+        # MV's characteristic from the valve's device profile unless the rig file names one (velab.benchrig):
+        # the run file's rig is then the one the bench made the flow with
+        self.bench, self.settings = bench, settings
+        self.rig = rig_for_bench(rig, bench.devices, bench.recorder.get("valve"))
         self.sim, self._owns_sim = sim, owns_sim
         self.clock = getattr(sim, "clock", None)
         self.bench_armed_timeout_s = bench_armed_timeout(bench)
