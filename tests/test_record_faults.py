@@ -275,7 +275,9 @@ def test_valve_reply_corrupted_mid_stroke_is_a_position_mismatch(tmp_path, threa
     mism = [f for f in faults if f["kind"] == "position_mismatch"]
     assert len(mism) == 1 and faults == mism  # once per run (the worst), and nothing else was wrong
     f = mism[0]
-    assert f["device"] == "valve" and f["role"] == "valve" and f["deviation_pct"] > f["tolerance_pct"] == 2.0
+    # against the ADC's channel (2 % of stroke) or, mid-stroke, against the commanded stroke the channel
+    # recorded at the reply's own time since trigger (2 % plus the stroke's following lag)
+    assert f["device"] == "valve" and f["role"] == "valve" and f["deviation_pct"] > f["tolerance_pct"] >= 2.0
     assert 0.0 < f["t_s"] < 6.0 and f["polls_compared"] >= 5
     assert run.status == CWF and "position mismatch" in run.status_reason
     assert any(k == "fault" and "position mismatch" in m for _, k, m in run.events)

@@ -161,3 +161,23 @@ def test_an_over_range_reply_is_a_bound_and_still_compared():
     m.valve(status("RUNNING", 128.0, 0.16, Quality.OVER_RANGE))
     f, n = m.position_finding(0.0, True)
     assert n == 1 and f is not None and f.extras["reported_pct"] == 128.0
+
+
+def test_a_running_reply_is_compared_with_the_commanded_stroke_at_its_own_time_stamp():
+    """velab.recording.redundancy.stroke_mismatch: no host timing enters, so a mid-stroke reply the host
+    cannot place is still checked; a real actuator's following lag is allowed."""
+    from velab.recording.redundancy import stroke_mismatch
+    from velab.valvelaw import commanded_position_pct
+
+    profile = (2.0, -5.5, 0.0)  # a slow closure: the stroke moves about 50 %/s mid-way
+    for tst in (1.5, 2.75, 4.0):
+        true = float(commanded_position_pct(tst, *profile))
+        assert stroke_mismatch(true, tst, profile, 10.0) is None
+        assert stroke_mismatch(true + 1.5, tst, profile, 10.0) is None  # within the instruments' 2 %
+        lagged = float(commanded_position_pct(tst - 0.03, *profile))  # 30 ms behind its profile
+        assert stroke_mismatch(lagged, tst, profile, 10.0) is None
+        f = stroke_mismatch(true / 2, tst, profile, 10.0)  # the corrupted gateway's reply
+        assert f is not None and f.kind == "position_mismatch" and f.deviation > f.tolerance >= 2.0
+        assert f.at_s == pytest.approx(10.0 + tst) and "commanded stroke" in f.message
+    assert stroke_mismatch(50.0, 0.0, profile, 10.0) is None  # no time stamp yet: nothing to compare
+    assert stroke_mismatch(float("nan"), 1.0, profile, 10.0) is None

@@ -20,9 +20,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from velab.configpath import config_stem, load_config
-from velab.errors import ConfigError
 from velab.friction import FACTOR_LAWS, STEADY_LAWS, UNSTEADY_LAWS
-from velab.rig import FitSettings, Fluid, Manoeuvre, Pipe, Rig, Transducer, constraint_coefficient
+from velab.rig import FitSettings, Fluid, Manoeuvre, Pipe, Rig, Section, Transducer, constraint_coefficient
 # One validation machinery for every config (velab.tomlschema); the short names keep this module's schema readable.
 from velab.tomlschema import Key as _Key
 from velab.tomlschema import Reader as _Reader

@@ -140,6 +140,10 @@ def marginalise_single(rig, t, d, vi):
         return None
 
     def apply(f, stage, sol):
+        if stage.ev.n_t != np.size(t):
+            # the sweep ended on its coarse (decimated) stage (--no-polish): its Jacobian lives on another
+            # grid; the covariance stays conditional on the closure there (docs/fitting.md)
+            return f
         params = sol.pm.unpack(sol.x)
         rows = rows_at(models, stage.ev, params)
         if not rows.size:

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from velab.drivers.base import pressure_to_head_m
+from velab.valvelaw import commanded_position_pct
 
 # The position feedback (potentiometer on the ADC) and the actuator's own encoder each within 1 %
 # of stroke: two readings of one position may differ by 2 % of stroke.
@@ -39,6 +40,9 @@ POSITION_TIMING_S = 0.02
 # shut valve reported 0.15 s before the ADC saw the stroke). Replies during a stroke are compared
 # with the ADC's range over +-STROKE_TIMING_S: the still valve and slow strokes stay fully checked.
 STROKE_TIMING_S = 0.3
+# A RUNNING reply is also compared with the commanded stroke at its own time since trigger
+# (stroke_mismatch): a real actuator follows its profile within a controller's lag.
+FOLLOWING_S = 0.05
 # Before the trigger the actuator stamps nothing (time since trigger 0): the valve is still, and
 # the reply is compared with the ADC's whole baseline.
 # Electromagnetic flowmeter (SITRANS F M MAG 6000): 0.2-0.4 % of rate; 0.5 % with installation.
@@ -107,6 +111,32 @@ def position_mismatch(reported_pct: float, at_s: float, t: np.ndarray, pos: np.n
                    f"the ADC's position channel read {ref} around it: {dev:.1f} % of stroke apart, beyond "
                    f"the {accuracy_pct:g} % the two instruments allow (a corrupted reply or a failing feedback)",
                    dev, accuracy_pct, at_s, {"reported_pct": reported_pct, "adc_lo_pct": lo, "adc_hi_pct": hi})
+
+
+def stroke_mismatch(reported_pct: float, since_trigger_s: float, profile: tuple[float, float, float],
+                    trigger_s: float | None) -> Finding | None:
+    """A RUNNING reply against the commanded stroke at the reply's own time since trigger: the stroke the
+    ADC's channel recorded (the recorder measures the trigger by fitting this profile to that channel).
+    The actuator stamps its position with its own clock, so no host timing enters: a mid-stroke reply the
+    host cannot place well enough for ``position_mismatch`` (docs/recording.md) is still checked. Allowed:
+    the two instruments' accuracy plus what the stroke moves in FOLLOWING_S (a real actuator's following
+    lag)."""
+    if not (math.isfinite(reported_pct) and math.isfinite(since_trigger_s) and since_trigger_s > 0):
+        return None
+    beta, gamma, end = profile
+    expected = float(commanded_position_pct(since_trigger_s, beta, gamma, end))
+    slope = abs(expected - end) * (1.0 - (expected - end) / max(100.0 - end, 1e-9)) * beta  # dp/dt of the sigmoid
+    tol = POSITION_ACCURACY_PCT + slope * FOLLOWING_S
+    dev = abs(reported_pct - expected)
+    if dev <= tol:
+        return None
+    at = trigger_s + since_trigger_s if trigger_s is not None else None
+    return Finding(POSITION_MISMATCH, "valve",
+                   f"position mismatch: the actuator reported {reported_pct:.1f} % open {since_trigger_s:.3f} s after "
+                   f"the trigger, where the commanded stroke the ADC's position channel recorded is at {expected:.1f} % "
+                   f"open: {dev:.1f} % of stroke apart, beyond the {tol:.1f} % allowed (a corrupted reply or an "
+                   f"actuator off its stroke)", dev, tol, at,
+                   {"reported_pct": reported_pct, "expected_pct": expected, "since_trigger_s": since_trigger_s})
 
 
 def flow_mismatch(steady_flow_m3_s: float, q0_m3_s: float, rig_tolerance: float,
@@ -193,12 +223,15 @@ class RedundancyMonitor:
         with self._lock:
             self._flows.append(float(value_m3_s))
 
-    def position_finding(self, trigger_s: float | None, trigger_measured: bool) -> tuple[Finding | None, int]:
+    def position_finding(self, trigger_s: float | None, trigger_measured: bool,
+                         profile: tuple[float, float, float] | None = None) -> tuple[Finding | None, int]:
         """The worst position disagreement of the run and the number of polls compared.
 
         Polls after the trigger are placed at trigger + the actuator's time since trigger, only when
         the trigger instant was measured from the feedback (else the two axes are not tied);
-        polls before it against the baseline (the valve is still)."""
+        polls before it against the baseline (the valve is still). ``profile`` (beta, gamma, end):
+        the commanded stroke, which a RUNNING reply is also compared with at its own time since
+        trigger (``stroke_mismatch``)."""
         with self._lock:
             if not self._t:
                 return None, 0
@@ -216,6 +249,8 @@ class RedundancyMonitor:
                     # with every position the ADC saw (a reply no stroke passes through, e.g. 128 % open)
                     f = position_mismatch(reported, trigger_s if trigger_s is not None else float(t[0]), t, pos,
                                           t_span=(float(t[0]), float(t[-1])))
+                    if f is None and state == "RUNNING" and profile is not None:
+                        f = stroke_mismatch(reported, tst, profile, trigger_s)
                 else:
                     # the stroke is over: the valve stands where the ADC saw it from the placed instant on
                     at = trigger_s + tst

@@ -398,7 +398,7 @@ class Run:
             return
         try:
             c = tl.counters()
-            f, n = mon.position_finding(c.trigger_time, c.trigger_from_feedback)
+            f, n = mon.position_finding(c.trigger_time, c.trigger_from_feedback, profile=self._manoeuvre())
             if f is not None:
                 self.fault("valve", f.message, f.kind, deviation_pct=round(f.deviation, 3),
                             tolerance_pct=f.tolerance, t_s=f.at_s, polls_compared=n, **f.extras)
