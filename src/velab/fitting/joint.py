@@ -144,6 +144,17 @@ class _Model:
         return float(sum(r.n * math.log(F) for r, F in zip(runs, self.F_runs)))
 
 
+def assess_part(best: ModelFit, part, head, F: float, method: str) -> SweepResult:
+    """The single fit's adequacy (velab.fitting.adequacy.assess: noise ratio, misfit rule) on one part of a
+    stacked fit -- a run of a campaign, a section of a record -- under the shared wall: ``part`` has
+    ``n``, ``rec`` (its PreparedRecord) and ``rig``; ``head`` its model head, ``F`` its mean square."""
+    one = replace(best, n=part.n, F=F, lag1_autocorr=lag1(head - part.rec.h), at_bounds=[])
+    sr = SweepResult(n=part.n, window_s=part.rec.window_s, sample_rate_hz=part.rec.fit_rate_hz, method=method,
+                     settings={}, models=[one])
+    assess(sr, part.rec, part.rig)
+    return sr
+
+
 class _JointSweep:
     def __init__(self, runs: list[_Run], bounds, selection: str, progress=None):
         self.runs, self.bounds, self.selection, self.progress = runs, bounds, selection, progress
@@ -421,11 +432,7 @@ def _per_run(runs, sw: _JointSweep, fin: _Model, best: ModelFit, bounds):
     out, warnings = [], []
     owns = per_run(lambda i: _own_wall(sw, i, fin, best.m, bounds), list(range(len(runs))))
     for i, r in enumerate(runs):
-        res = fin.heads[i] - r.rec.h
-        one = replace(best, n=r.n, F=float(fin.F_runs[i]), lag1_autocorr=lag1(res), at_bounds=[])
-        sr = SweepResult(n=r.n, window_s=r.rec.window_s, sample_rate_hz=r.rec.fit_rate_hz, method="joint",
-                         settings={}, models=[one])
-        assess(sr, r.rec, r.rig)
+        sr = assess_part(best, r, fin.heads[i], float(fin.F_runs[i]), "joint")
         for w in sr.warnings:
             warnings.append({"code": w["code"], "message": f"{r.src.path}: {w['message']}", "run": r.src.path})
         own = owns[i]
@@ -433,7 +440,7 @@ def _per_run(runs, sw: _JointSweep, fin: _Model, best: ModelFit, bounds):
             "path": r.src.path, "head_sha256": r.src.head_sha256, "n": r.n, "window": r.rec.window_s,
             "sample_rate_hz": r.rec.fit_rate_hz, "record_rate_hz": r.rec.record_rate_hz,
             "anti_alias_filter": r.rec.filter, "steady_flow_m3_s": r.rig.steady_flow_m3_s,
-            "steady_head_m": r.rec.steady_head_m, "F": float(fin.F_runs[i]), "noise_ratio": one.noise_ratio,
+            "steady_head_m": r.rec.steady_head_m, "F": float(fin.F_runs[i]), "noise_ratio": sr.models[0].noise_ratio,
             "baseline_noise_m": r.rec.baseline_noise_m, "misfit_bound": sr.adequacy.get("misfit_bound"),
             "disagrees": any(w["code"] == "misfit" for w in sr.warnings),
             "warnings": [w["code"] for w in sr.warnings],

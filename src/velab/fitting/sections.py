@@ -14,17 +14,17 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from threading import Lock
 
 import numpy as np
 
 from velab.errors import DataError
-from velab.fitting.adequacy import assess, bound_message
+from velab.fitting.adequacy import bound_message
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator, sumsq
 from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
-from velab.fitting.joint import REFINE_PASSES, _JointSweep, _first_pass_best
+from velab.fitting.joint import REFINE_PASSES, _JointSweep, _first_pass_best, assess_part
 from velab.fitting.manoeuvre import refine_closure, valve_input
 from velab.fitting.nuisance import closure_models, marginalised, rows_at
 from velab.fitting.params import creep_const, derive_bounds
@@ -305,16 +305,12 @@ def _per_section(runs, fin, best: ModelFit):
     transducer whose position or calibration is wrong is named)."""
     out, warnings = [], []
     for i, r in enumerate(runs):
-        res = fin.heads[i] - r.rec.h
-        one = replace(best, n=r.n, F=float(fin.F_runs[i]), lag1_autocorr=lag1(res), at_bounds=[])
-        sr = SweepResult(n=r.n, window_s=r.rec.window_s, sample_rate_hz=r.rec.fit_rate_hz, method="sections",
-                         settings={}, models=[one])
-        assess(sr, r.rec, r.rig)
+        sr = assess_part(best, r, fin.heads[i], float(fin.F_runs[i]), "sections")
         for w in sr.warnings:
             warnings.append({"code": w["code"], "message": f"section {r.name} ({r.position_m:g} m): {w['message']}",
                              "section": r.name})
         out.append({"name": r.name, "position_m": r.position_m, "n": r.n, "F": float(fin.F_runs[i]),
-                    "noise_ratio": one.noise_ratio, "baseline_noise_m": r.rec.baseline_noise_m,
+                    "noise_ratio": sr.models[0].noise_ratio, "baseline_noise_m": r.rec.baseline_noise_m,
                     "steady_head_m": r.rec.steady_head_m, "misfit_bound": sr.adequacy.get("misfit_bound"),
                     "disagrees": any(w["code"] == "misfit" for w in sr.warnings)})
     return out, warnings
