@@ -3,7 +3,7 @@
 Same equations as :func:`velab.moc.kernel.march` (see :mod:`velab.moc`), written the
 obvious way: whole-array numpy operations per time step, new arrays every step, the
 two characteristics of every node solved in closed form. It is what the kernel
-replaced (about 30x slower), kept only to check the kernel (tests/test_moc.py) and to
+replaced (about 30x slower), kept only to check the kernel (tests/moc/test_moc.py) and to
 time it against (benchmarks/model_eval.py).
 """
 

@@ -10,7 +10,7 @@ A fit window of T seconds is calibrated in two steps (velab.fitting.prepare.fit_
    vanished element is that again.
 
 The window's last part is the transient's most damped stretch: the search finds the same basins
-without it (on the time-domain truths of tests/test_fit_truths.py, two rigs, EL..S4, two noise
+without it (on the time-domain truths of tests/fitting/test_fit_truths.py, two rigs, EL..S4, two noise
 seeds, the same best model in every case and F within 5e-6 of a one-step sweep). The point is
 *when* the work is done: the recorder starts the lead fit as soon as its part of the window is
 in, while the rest is still being recorded, so that only the continuation is left when the

@@ -29,7 +29,7 @@ def scan_wave_speed(stage: Stage, pm0: ParamMap, a_nom: float) -> float:
     a = float(fine[int(np.argmin(Fs))])
     # (Gauss-Newton with its budget, not the secant of Stage.lsq_1d: this only seeds EL, whose polish
     # is solved to the end, and the seed of the time-domain friction's first correction is kept as it
-    # was: the Brunone truth's S3, tests/test_fit_truths.py, lands in a worse refresh basin from a seed
+    # was: the Brunone truth's S3, tests/fitting/test_fit_truths.py, lands in a worse refresh basin from a seed
     # 1e-5 away)
     s = stage.lsq(pm0, [math.log(a)], max_nfev=30, ftol=1e-12, secant=False)
     return math.exp(s.x[0])

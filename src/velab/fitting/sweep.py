@@ -61,7 +61,7 @@ MAX_REFRESH = 8
 # the full-band polish of S4-S6 stops when 10 evaluations gain less than this in n ln F (AIC is
 # reported to 0.01): on their flat J-tau ridge it went on for tens of full-band evaluations. Not
 # below S4, and not the coarse crawl: where a smaller model ends decides the next one's nested
-# starts (stopping S2 early sent S3 of the Brunone truth, tests/test_fit_truths.py, to a worse basin).
+# starts (stopping S2 early sent S3 of the Brunone truth, tests/fitting/test_fit_truths.py, to a worse basin).
 STALL_GAIN = 0.002
 STALL_FROM_M = 4
 # S(m) is searched from S(m-1) only when S(m-1)'s element gained less than this in n ln F over

@@ -37,7 +37,7 @@ def fixed_str(size: int) -> np.dtype:
     return h5py.string_dtype("utf-8", size)
 
 
-# Units: UDUNITS-2 strings (each checked with `udunits2`, see tests/test_run_standards.py).
+# Units: UDUNITS-2 strings (each checked with `udunits2`, see tests/runfiles/test_run_standards.py).
 UNITS = {
     "length": "m", "time": "s", "pressure": "Pa", "viscosity": "Pa.s", "compliance": "Pa-1",
     "rate": "s-1", "flow": "m3/s", "density": "kg/m3", "kinematic_viscosity": "m2/s",

@@ -2,7 +2,7 @@
 
 ``python -m velab.runfiles.listing --update docs/run-format.md`` writes a synthetic
 run and a simulated recording, lists both and rewrites the doc's layout blocks;
-tests/test_run_standards.py fails when the doc and the files differ.
+tests/runfiles/test_run_standards.py fails when the doc and the files differ.
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ from velab.fitting.stacked import StackedEvaluator
 from velab.runfiles import read_run
 
 WINDOW = 8.0
-RIG = Path(__file__).resolve().parents[1] / "configs" / "rigs" / "perugia.toml"
+RIG = Path(__file__).resolve().parents[2] / "configs" / "rigs" / "perugia.toml"
 
 
 def _rig_file(tmp: Path, q0_l_s: float, length_m: float | None = None) -> Path:

@@ -1,8 +1,8 @@
 """Faults from a sim config's ``[[faults.schedule]]``, end to end through the CLI as a user runs it:
 ``velab record --simulate --sim-config FILE`` in its own process (the config is read, checked, the
 simulated rig started in-process, the faults fire at their instants of the run). A few
-representative cases here; the rest go through the API (tests/test_record_quality.py: sensor
-faults at arm and mid-record; tests/test_record_trigger.py: the trigger instant).
+representative cases here; the rest go through the API (tests/recording/test_record_quality.py: sensor
+faults at arm and mid-record; tests/recording/test_record_trigger.py: the trigger instant).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from velab.runfiles.reader import read_run
 pytestmark = pytest.mark.slow  # the integration layer: the simulated bench (tests/recording: the stages alone)
 
 CLI = [sys.executable, "-m", "velab.cli"]
-DEFAULT = Path(__file__).resolve().parents[1] / "configs" / "sim" / "default.toml"
+DEFAULT = Path(__file__).resolve().parents[2] / "configs" / "sim" / "default.toml"
 
 CASES = {
     # a lost TRIGGER reply: the actuator carried it out; read back -> the run goes on, marked

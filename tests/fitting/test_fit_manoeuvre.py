@@ -23,7 +23,7 @@ from velab.moc import moc_head
 from velab.valvelaw import Valve, commanded_position_pct
 
 SIGMA = 0.1
-# truth -> (J'_k, tau_k / T), T = 4L/a (as tests/test_fit_truths.py)
+# truth -> (J'_k, tau_k / T), T = 4L/a (as tests/fitting/test_fit_truths.py)
 TRUTHS = {
     "EL": ((), ()),
     "S1": ((0.1,), (0.43,)),

@@ -250,7 +250,7 @@ def test_two_listings_at_once_while_a_recorder_writes(archive, tmp_path):
 
 
 def test_a_file_that_makes_hdf5_loop_is_damaged_within_the_deadline(tmp_path):
-    """The fuzz's zeroed object headers make HDF5 itself loop forever (tests/test_runfile_fuzz.py)."""
+    """The fuzz's zeroed object headers make HDF5 itself loop forever (tests/runfiles/test_runfile_fuzz.py)."""
     from velab.catalogue.index import Catalogue
 
     base = tmp_path / "base.h5"

@@ -27,7 +27,7 @@ from velab.runfiles import Channel, RunWriter, read_run, recover_run
 from velab.runfiles import layout as L
 from velab.runfiles.listing import BEGIN, END, blocks, sample_files
 
-DOC = Path(__file__).resolve().parents[1] / "docs" / "run-format.md"
+DOC = Path(__file__).resolve().parents[2] / "docs" / "run-format.md"
 
 
 @pytest.fixture(scope="module")

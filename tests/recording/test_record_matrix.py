@@ -52,7 +52,7 @@ for instant in ("at_arm", "mid_record"):
     ]
 SCENARIOS.append(("streaming_adc", "streaming_adc", "silent", "at_trigger", {FAILED}))
 # sensor faults of the pressure transducer (stuck, 2 mA, 22 mA, NaN, implausible replies), both sources, before
-# and after the trigger: tests/test_record_quality.py, scheduled from a sim config
+# and after the trigger: tests/recording/test_record_quality.py, scheduled from a sim config
 SCENARIOS.append(("streaming_adc", "position_feedback", "stuck", "at_arm", {CWF}))
 SCENARIOS.append(("pressure_adc", "position_feedback", "stuck", "at_arm", {CWF}))
 # planned before arm (the simulated actuator plans its stroke when armed): it seizes 0.08 s into the stroke

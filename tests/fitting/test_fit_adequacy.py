@@ -34,7 +34,7 @@ def _rig_file(tmp_path, name="rig", bore_factor=1.0, reservoir_m=None):
     """The reference rig with the imposed-flow valve (the fitter's valve model), its bore scaled."""
     from pathlib import Path
 
-    text = (Path(__file__).resolve().parents[1] / RIG).read_text()
+    text = (Path(__file__).resolve().parents[2] / RIG).read_text()
     text = re.sub(r'(?m)^law = "orifice"', 'law = "imposed"', text)
     d = float(re.search(r"(?m)^inner_diameter_m = ([0-9.]+)", text).group(1))
     text = re.sub(r"(?m)^inner_diameter_m = [0-9.]+", f"inner_diameter_m = {d * bore_factor!r}", text)

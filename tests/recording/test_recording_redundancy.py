@@ -1,7 +1,7 @@
 """Redundant measurements compared (velab.recording.redundancy): pure functions, no sockets, milliseconds.
 
 The integration over the simulated bench (a corrupted valve reply ends the run flagged) is in
-tests/test_record_faults.py."""
+tests/recording/test_record_faults.py."""
 
 from __future__ import annotations
 
