@@ -4,9 +4,18 @@ Some damage makes the HDF5 library itself loop forever (found by the fuzz: a
 zeroed range in an object header makes an attribute read never return), or
 crash; h5py holds the GIL inside the library, so no thread or signal of ours can
 stop it. Before velab reads a file in its own process it walks every group,
-attribute and chunk index once in a child process (``python -c``, h5py only,
-~0.3 s): a child that does not finish in :data:`PROBE_TIMEOUT_S` or dies is a
-one-line DataError, and the file is never touched by the parent's HDF5.
+attribute and chunk index once in a child process (h5py only): a child that does
+not answer within :data:`PROBE_TIMEOUT_S` is killed, a child that dies is
+named by its exit status, and either is a one-line DataError; the file is then
+never touched by the parent's HDF5.
+
+The child is a small server kept for the next file (its start-up, the imports,
+costs ~0.3 s: paid once per process, not once per file, so a batch of fifty runs
+does not spend fifteen seconds starting interpreters). A child that failed on a
+file, timed out or died is not reused: the next file gets a fresh one, so a
+damaged file can never leave a library state that another file's walk would see.
+A process that forked after starting a child does not share it (the pipes are
+the parent's): it starts its own.
 
 Files this process wrote or saved itself, and files already walked, are not
 walked again while their (device, inode, size, mtime) stay the same.
@@ -14,22 +23,35 @@ walked again while their (device, inode, size, mtime) stay the same.
 
 from __future__ import annotations
 
+import atexit
+import json
 import os
+import select
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 from velab.errors import DataError
 
 PROBE_TIMEOUT_S = 10.0
 _known: set[tuple] = set()
-_lock = threading.Lock()
+_lock = threading.Lock()  # guards _known
+_walk_lock = threading.Lock()  # one file at a time through the one child
 
-_CHILD = """
-import sys
+# The child: one JSON path a line in, one JSON [exit code, last line said] a line out.
+_SERVER = """
+import contextlib, io, json, sys
 from velab.runfiles.h5open import walk
-sys.exit(walk(sys.argv[1]))
+out = sys.stdout
+for line in sys.stdin:
+    said = io.StringIO()
+    with contextlib.redirect_stdout(said):
+        code = walk(json.loads(line))
+    last = (said.getvalue().strip().splitlines() or [""])[-1]
+    out.write(json.dumps([code, last]) + "\\n")
+    out.flush()
 """
 
 
@@ -49,6 +71,90 @@ def trust(path: str | os.PathLike) -> None:
             _known.add(key)
 
 
+class _Walker:
+    """The child process that walks files, one at a time, each under the deadline."""
+
+    def __init__(self):
+        env = dict(os.environ, VELAB_PROBE_CHILD="1")
+        self.owner = os.getpid()
+        self.proc = subprocess.Popen([sys.executable, "-c", _SERVER], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=subprocess.DEVNULL, env=env, close_fds=True)
+        self._buf = b""
+
+    def walk(self, path: Path, timeout_s: float) -> tuple[int, str]:
+        """(0, "") for a sound file, (3, the reader's line) for a damaged one; raises TimeoutError when the
+        child does not answer in time, ChildProcessError (its exit status) when it dies."""
+        self.proc.stdin.write((json.dumps(str(path)) + "\n").encode())
+        self.proc.stdin.flush()
+        deadline = time.monotonic() + timeout_s
+        fd = self.proc.stdout.fileno()
+        while b"\n" not in self._buf:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError
+            ready, _, _ = select.select([fd], [], [], left)
+            if ready:
+                chunk = os.read(fd, 65536)
+                if not chunk:  # died: its exit status says how
+                    raise ChildProcessError(self.proc.wait())
+                self._buf += chunk
+        line, self._buf = self._buf.split(b"\n", 1)
+        code, said = json.loads(line)
+        return int(code), str(said)
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait()
+        for f in (self.proc.stdin, self.proc.stdout):
+            try:
+                f.close()
+            except OSError:
+                pass
+
+
+_walker: _Walker | None = None
+
+
+def _walk(path: Path) -> tuple[int, str]:
+    """Walk ``path`` in the child (started on first use, replaced after any failure)."""
+    global _walker
+    with _walk_lock:
+        if _walker is not None and (_walker.owner != os.getpid() or _walker.proc.poll() is not None):
+            _walker = None  # forked from the process that started it, or gone: not ours to use
+        if _walker is None:
+            _walker = _Walker()
+        w = _walker
+        try:
+            code, said = w.walk(path, PROBE_TIMEOUT_S)
+        except TimeoutError:
+            _walker = None
+            w.close()
+            raise DataError(f"{path}: damaged HDF5 file: reading its structure does not finish "
+                            f"(gave up after {PROBE_TIMEOUT_S:g} s)") from None
+        except (ChildProcessError, OSError) as exc:  # died on the file (or the pipe broke with it)
+            _walker = None
+            w.close()
+            status = exc.args[0] if isinstance(exc, ChildProcessError) else w.proc.returncode
+            raise DataError(f"{path}: damaged HDF5 file: the HDF5 library failed reading it (exit {status})") from None
+        if code != 0:  # a damaged file: the next one gets a fresh child
+            _walker = None
+            w.close()
+        return code, said
+
+
+@atexit.register
+def _close_walker() -> None:
+    w = _walker
+    if w is not None and w.owner == os.getpid():
+        try:
+            w.proc.stdin.close()  # the server ends at its input's end
+            w.proc.wait(timeout=2.0)
+        except (OSError, subprocess.TimeoutExpired):
+            pass
+        w.close()
+
+
 def ensure_walkable(path: Path) -> None:
     key = _key(path)
     with _lock:
@@ -56,22 +162,15 @@ def ensure_walkable(path: Path) -> None:
             return
     if os.environ.get("VELAB_PROBE_CHILD"):  # we are the child: no grandchildren
         return
-    env = dict(os.environ, VELAB_PROBE_CHILD="1")
     try:
-        out = subprocess.run([sys.executable, "-c", _CHILD, str(path)], capture_output=True, text=True,
-                             timeout=PROBE_TIMEOUT_S, env=env)
-    except subprocess.TimeoutExpired:
-        raise DataError(f"{path}: damaged HDF5 file: reading its structure does not finish "
-                        f"(gave up after {PROBE_TIMEOUT_S:g} s)") from None
-    except OSError as exc:  # cannot start a child: read in-process (no deadline)
-        del exc
+        code, said = _walk(path)
+    except OSError:  # cannot start a child: read in-process (no deadline)
         return
-    if out.returncode == 0:
+    if code == 0:
         with _lock:
             if key is not None and key == _key(path):
                 _known.add(key)
         return
-    line = (out.stdout.strip().splitlines() or [""])[-1]
-    if out.returncode == 3 and line:
-        raise DataError(line)
-    raise DataError(f"{path}: damaged HDF5 file: the HDF5 library failed reading it (exit {out.returncode})")
+    if code == 3 and said:
+        raise DataError(said)
+    raise DataError(f"{path}: damaged HDF5 file: the HDF5 library failed reading it (exit {code})")
