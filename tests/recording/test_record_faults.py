@@ -26,10 +26,16 @@ from velab.runfiles.reader import read_run
 pytestmark = pytest.mark.slow  # the integration layer: the simulated bench (tests/recording: the stages alone)
 
 
+def _default_sigint():
+    # as from a terminal: a test runner's worker (pytest-xdist) ignores SIGINT, and an ignored SIGINT is
+    # inherited, so Python would not turn Ctrl-C into KeyboardInterrupt in the child
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _spawn(out: Path, *extra):
     return subprocess.Popen(
         [sys.executable, "-m", "velab.cli", "record", "--simulate", "--fast", "--out-dir", str(out), *extra],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
 
 
 def _samples_in(out: Path, timeout=60.0, need=0) -> tuple[Path, int]:

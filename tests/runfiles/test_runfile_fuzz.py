@@ -28,7 +28,8 @@ from velab.cli import main
 from velab.runfiles import Channel, HEAD, RunWriter, read_run
 from velab.runfiles.superblock import lookup3, read_superblock
 
-CASE_DEADLINE_S = 30.0  # above the probe's own deadline (velab.runfiles.probe)
+PROBE_DEADLINE_S = 3.0  # the reader's probe (velab.runfiles.probe), in the worker
+CASE_DEADLINE_S = 30.0  # above the probe's own deadline and its start-up
 
 WORKER = textwrap.dedent(
     """
@@ -61,8 +62,10 @@ class Worker:
 
     def read(self, path) -> dict:
         if self.proc is None or self.proc.poll() is not None:
+            # the probe's deadline shortened (10 s by default): a file that makes HDF5 loop costs 3 s of CPU, not 10
             self.proc = subprocess.Popen([sys.executable, "-c", WORKER], stdin=subprocess.PIPE,
-                                         stdout=subprocess.PIPE, text=True)
+                                         stdout=subprocess.PIPE, text=True,
+                                         env=dict(os.environ, VELAB_PROBE_TIMEOUT_S=str(PROBE_DEADLINE_S)))
         self.proc.stdin.write(f"{path}\n")
         self.proc.stdin.flush()
         deadline = time.monotonic() + CASE_DEADLINE_S

@@ -5,7 +5,8 @@ zeroed range in an object header makes an attribute read never return), or
 crash; h5py holds the GIL inside the library, so no thread or signal of ours can
 stop it. Before velab reads a file in its own process it walks every group,
 attribute and chunk index once in a child process (h5py only): a child that does
-not answer within :data:`PROBE_TIMEOUT_S` is killed, a child that dies is
+not answer within :func:`probe_timeout_s` (10 s; ``VELAB_PROBE_TIMEOUT_S`` sets another, for
+archives on a slow network drive) is killed, a child that dies is
 named by its exit status, and either is a one-line DataError; the file is then
 never touched by the parent's HDF5.
 
@@ -35,7 +36,8 @@ from pathlib import Path
 
 from velab.errors import DataError
 
-PROBE_TIMEOUT_S = 10.0
+PROBE_TIMEOUT_S = 10.0  # the default deadline of one file's walk
+STARTUP_S = 60.0  # a fresh child's imports, on a loaded machine
 _known: set[tuple] = set()
 _lock = threading.Lock()  # guards _known
 _walk_lock = threading.Lock()  # one file at a time through the one child
@@ -45,6 +47,8 @@ _SERVER = """
 import contextlib, io, json, sys
 from velab.runfiles.h5open import walk
 out = sys.stdout
+out.write("ready\\n")
+out.flush()
 for line in sys.stdin:
     said = io.StringIO()
     with contextlib.redirect_stdout(said):
@@ -53,6 +57,20 @@ for line in sys.stdin:
     out.write(json.dumps([code, last]) + "\\n")
     out.flush()
 """
+
+
+def probe_timeout_s() -> float:
+    """The deadline of one file's walk: ``VELAB_PROBE_TIMEOUT_S`` seconds if set, else 10."""
+    text = os.environ.get("VELAB_PROBE_TIMEOUT_S", "").strip()
+    if not text:
+        return PROBE_TIMEOUT_S
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 < value < float("inf"):
+        raise DataError(f"VELAB_PROBE_TIMEOUT_S: expected a number of seconds > 0, got {text!r}")
+    return value
 
 
 def _key(path: Path) -> tuple | None:
@@ -80,13 +98,22 @@ class _Walker:
         self.proc = subprocess.Popen([sys.executable, "-c", _SERVER], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      stderr=subprocess.DEVNULL, env=env, close_fds=True)
         self._buf = b""
+        self.ready = False  # the server said it has imported what it needs
 
     def walk(self, path: Path, timeout_s: float) -> tuple[int, str]:
         """(0, "") for a sound file, (3, the reader's line) for a damaged one; raises TimeoutError when the
-        child does not answer in time, ChildProcessError (its exit status) when it dies."""
+        child does not answer in time, ChildProcessError (its exit status) when it dies. The deadline is the
+        walk's: a fresh child's start-up (its imports, seconds on a loaded machine) has its own."""
+        if not self.ready:
+            if self._line(time.monotonic() + STARTUP_S) != b"ready":
+                raise ChildProcessError(self.proc.wait())
+            self.ready = True
         self.proc.stdin.write((json.dumps(str(path)) + "\n").encode())
         self.proc.stdin.flush()
-        deadline = time.monotonic() + timeout_s
+        code, said = json.loads(self._line(time.monotonic() + timeout_s))
+        return int(code), str(said)
+
+    def _line(self, deadline: float) -> bytes:
         fd = self.proc.stdout.fileno()
         while b"\n" not in self._buf:
             left = deadline - time.monotonic()
@@ -99,8 +126,7 @@ class _Walker:
                     raise ChildProcessError(self.proc.wait())
                 self._buf += chunk
         line, self._buf = self._buf.split(b"\n", 1)
-        code, said = json.loads(line)
-        return int(code), str(said)
+        return line
 
     def close(self) -> None:
         if self.proc.poll() is None:
@@ -119,6 +145,7 @@ _walker: _Walker | None = None
 def _walk(path: Path) -> tuple[int, str]:
     """Walk ``path`` in the child (started on first use, replaced after any failure)."""
     global _walker
+    timeout_s = probe_timeout_s()
     with _walk_lock:
         if _walker is not None and (_walker.owner != os.getpid() or _walker.proc.poll() is not None):
             _walker = None  # forked from the process that started it, or gone: not ours to use
@@ -126,12 +153,15 @@ def _walk(path: Path) -> tuple[int, str]:
             _walker = _Walker()
         w = _walker
         try:
-            code, said = w.walk(path, PROBE_TIMEOUT_S)
+            code, said = w.walk(path, timeout_s)
         except TimeoutError:
             _walker = None
             w.close()
+            if not w.ready:
+                raise DataError(f"{path}: cannot check the file: the process that walks it did not start within "
+                                f"{STARTUP_S:g} s") from None
             raise DataError(f"{path}: damaged HDF5 file: reading its structure does not finish "
-                            f"(gave up after {PROBE_TIMEOUT_S:g} s)") from None
+                            f"(gave up after {timeout_s:g} s)") from None
         except (ChildProcessError, OSError) as exc:  # died on the file (or the pipe broke with it)
             _walker = None
             w.close()

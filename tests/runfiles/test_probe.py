@@ -1,0 +1,100 @@
+"""velab.runfiles.probe: the child that walks a file's HDF5 structure before this process reads it is kept
+for the next file, replaced after a damaged file, not shared with a forked process, and bounded by its
+deadline (VELAB_PROBE_TIMEOUT_S)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import pytest
+
+from velab.cli import main
+from velab.errors import DataError
+from velab.runfiles import probe
+
+
+@pytest.fixture(scope="module")
+def sound(tmp_path_factory):
+    p = tmp_path_factory.mktemp("probe") / "a.h5"
+    assert main(["synth", "--material", "A", "--rate", "200", "--duration", "2", "--friction", "linear",
+                 "-o", str(p), "-q"]) == 0
+    return p
+
+
+def _copy(src, d, name):
+    p = d / name
+    shutil.copy(src, p)
+    return p
+
+
+def _forget():
+    with probe._lock:
+        probe._known.clear()
+
+
+def test_one_child_walks_many_files(sound, tmp_path):
+    _forget()
+    probe.ensure_walkable(_copy(sound, tmp_path, "1.h5"))
+    first = probe._walker
+    assert first is not None and first.proc.poll() is None
+    for i in range(2, 6):
+        probe.ensure_walkable(_copy(sound, tmp_path, f"{i}.h5"))
+    assert probe._walker is first  # the same process: one start-up for the batch
+
+
+def test_a_damaged_file_is_named_and_its_child_replaced(sound, tmp_path, monkeypatch):
+    """Zeroed object headers make HDF5 loop: the walk ends at its deadline, the file is named."""
+    _forget()
+    monkeypatch.setenv("VELAB_PROBE_TIMEOUT_S", "1")
+    probe.ensure_walkable(_copy(sound, tmp_path, "ok.h5"))
+    before = probe._walker
+    bad = tmp_path / "bad.h5"
+    data = sound.read_bytes()
+    bad.write_bytes(data[:4096] + bytes(2048) + data[6144:])  # object headers zeroed
+    with pytest.raises(DataError, match="bad.h5: damaged HDF5 file"):
+        probe.ensure_walkable(bad)
+    assert before.proc.poll() is not None  # not reused after a failure
+    probe.ensure_walkable(_copy(sound, tmp_path, "ok2.h5"))  # a fresh one serves the next file
+    assert probe._walker is not before and probe._walker.proc.poll() is None
+
+
+def test_a_forked_process_starts_its_own_child(sound, tmp_path):
+    _forget()
+    probe.ensure_walkable(_copy(sound, tmp_path, "p.h5"))
+    parent_child = probe._walker.proc.pid
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the forked side
+        code = 1
+        try:
+            probe.ensure_walkable(_copy(sound, tmp_path, "c.h5"))
+            code = 0 if probe._walker.proc.pid != parent_child else 2
+        finally:
+            os.write(w, bytes([code]))
+            os._exit(0)
+    os.close(w)
+    answer = os.read(r, 1)
+    os.waitpid(pid, 0)
+    assert answer == b"\x00"
+    assert probe._walker.proc.pid == parent_child and probe._walker.proc.poll() is None  # ours untouched
+    probe.ensure_walkable(_copy(sound, tmp_path, "p2.h5"))
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "soon", "inf"])
+def test_a_bad_deadline_is_one_line_naming_the_variable(sound, tmp_path, monkeypatch, value):
+    _forget()
+    monkeypatch.setenv("VELAB_PROBE_TIMEOUT_S", value)
+    with pytest.raises(DataError, match="^VELAB_PROBE_TIMEOUT_S: expected a number of seconds > 0") as e:
+        probe.ensure_walkable(_copy(sound, tmp_path, "x.h5"))
+    assert "\n" not in str(e.value)
+
+
+def test_the_deadline_is_the_walks_not_the_start_up(sound, tmp_path, monkeypatch):
+    """A deadline far shorter than a fresh child's imports still passes a sound file: start-up is apart."""
+    _forget()
+    if probe._walker is not None:
+        probe._walker.close()
+        probe._walker = None
+    monkeypatch.setenv("VELAB_PROBE_TIMEOUT_S", "0.05")
+    probe.ensure_walkable(_copy(sound, tmp_path, "quick.h5"))
