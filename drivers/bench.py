@@ -22,6 +22,9 @@
     valve = "valve"
     flowmeter = "flowmeter"
 
+    [recorder.transducers]          # optional: the rig's other transducers -> the pressure source's channels
+    mid = "pressure_2"              # (the valve's transducer: the source's first pressure channel, unless named)
+
 ``open_device(bench.devices["flowmeter"])`` builds the bus and the driver. The built-in kinds
 (Modbus ADC, flowmeter, valve actuator, streaming ADC) are registered here; other kinds can be
 added with ``register_driver``.
@@ -45,6 +48,7 @@ from velab.drivers.valve import ValveActuator
 from velab.tomlschema import Key, Reader, above, within
 
 RECORDER_ROLES = ("pressure_source", "valve", "flowmeter")
+TRANSDUCERS = "transducers"  # [recorder.transducers]: transducer name (the rig's) -> the pressure source's channel
 
 
 @dataclass(frozen=True)
@@ -80,16 +84,15 @@ class Bench:
             t.pop("kind")
             t.pop("profile", None)
             out[name] = BenchDevice(name, kind, profile, t)
-        rec = d.get("recorder") or {}
-        if not isinstance(rec, dict):
-            raise ProfileError(f"{path}: [recorder]: must be a table")
-        # the recorder's roles name devices of this bench; armed_timeout_s disarms an armed rig left alone
-        spec = {role: Key(str, False, None, choices=tuple(out)) for role in RECORDER_ROLES}
-        spec["armed_timeout_s"] = Key(float, False, None, above(0, 86400, "s"))
-        rec = {k: v for k, v in r.read(rec, "[recorder] ", spec).items() if v is not None}
+        rec = read_recorder(r, d.get("recorder") or {}, tuple(out))
         simulate = r.get(d, "", "simulate", str, None)
         name = r.get(d, "", "name", str, config_stem(path))
         return cls(name, out, simulate, str(path), dict(rec))
+
+    @property
+    def transducer_channels(self) -> dict[str, str]:
+        """The ``[recorder.transducers]`` table: transducer name -> the pressure source's channel ({} if none)."""
+        return dict(self.recorder.get(TRANSDUCERS) or {})
 
     def to_dict(self) -> dict:
         d = {"name": self.name, "devices": {}}
@@ -106,13 +109,36 @@ class Bench:
         d = self.to_dict()
         lines = [f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict)]
         if d.get("recorder"):
-            lines += ["", "[recorder]"] + [f"{k} = {_toml_value(v)}" for k, v in d["recorder"].items()]
+            lines += _toml_table("recorder", d["recorder"])
         for name, t in d["devices"].items():
             lines += _toml_table(f"devices.{name}", t)
         return "\n".join(lines) + "\n"
 
     def of_kind(self, kind: str) -> list[BenchDevice]:
         return [d for d in self.devices.values() if d.kind == kind]
+
+
+def read_recorder(r: Reader, rec, devices: tuple[str, ...]) -> dict:
+    """A ``[recorder]`` table (a bench's, or a sim config's for the bench it serves), checked: the roles name
+    ``devices``; armed_timeout_s disarms an armed rig left alone; ``[recorder.transducers]`` the channel map."""
+    if not isinstance(rec, dict):
+        raise r.fail("[recorder]", f"must be a table, got {type(rec).__name__}")
+    spec = {role: Key(str, False, None, choices=devices) for role in RECORDER_ROLES}
+    spec["armed_timeout_s"] = Key(float, False, None, above(0, 86400, "s"))
+    spec[TRANSDUCERS] = Key(dict, False, None)
+    rec = {k: v for k, v in r.read(rec, "[recorder] ", spec).items() if v is not None}
+    if TRANSDUCERS in rec:
+        rec[TRANSDUCERS] = _channel_map(r, rec[TRANSDUCERS])
+    return rec
+
+
+def _channel_map(r: Reader, table: dict) -> dict[str, str]:
+    """``[recorder.transducers]``: every value a channel name (a string); names checked against the rig and the
+    pressure source where the recorder knows both (velab.recording.transducers)."""
+    for name, channel in table.items():
+        r.get(table, f"[recorder.{TRANSDUCERS}] ", name, str,
+              check=lambda v: None if v.strip() else "must name a channel of the pressure source")
+    return {str(k): str(v) for k, v in table.items()}
 
 
 def _toml_value(v) -> str:

@@ -3,9 +3,10 @@ the device's own verbs chosen once, when the source is made (``pressure_source(d
 
     src = pressure_source(driver, "adc", clock_scale=1.0)
     src.channels()                 # (pressure channel, valve-position channel or None), by units
+    src.pressure_channels()        # every channel in Pa (the transducers it can record: several sections)
     src.rate_range(); src.calibration(); src.identity()
-    head, quality = src.spot_head(rate_hz)       # a short look before anything is armed
-    src.configure(rate_hz)
+    looks = src.spot_heads(rate_hz, ("pressure",))  # a short look before anything is armed: {channel: (head, quality)}
+    src.configure(rate_hz, pressure=("pressure", "pressure_2"))  # the pressure channels to acquire (default: the first)
     rate = src.start()                           # the rate the device runs at
     r = src.read_blocks()          # BlockRead: blocks (each with per-sample quality), or a transient error
     src.stop()
@@ -14,6 +15,8 @@ The streaming ADC (``configure/start/get_block/stop``) pushes frames from its ow
 any error is fatal (it has reconnected already if it could). The buffered Modbus ADC
 (``configure_buffer/start_buffer/read_buffer/stop_buffer``) is polled: a failed poll is transient,
 its ring keeps the samples, the next poll reads them. ``read_blocks`` waits at most ``wait_s``.
+Every block holds the valve-position channel (if the source has one) and the pressure channels asked
+for (the buffered ADC records its inputs 0..n-1: the spares between them come along, unused).
 """
 
 from __future__ import annotations
@@ -49,12 +52,13 @@ class PressureSource(Protocol):
     name: str
 
     def channels(self) -> tuple[str, str | None]: ...
+    def pressure_channels(self) -> tuple[str, ...]: ...
     def rate_range(self) -> tuple[float, float]: ...
     def calibration(self) -> dict: ...
     def identity(self) -> dict: ...
     def describe(self) -> str: ...
-    def spot_head(self, rate_hz: float) -> tuple[float, str]: ...
-    def configure(self, rate_hz: float) -> None: ...
+    def spot_heads(self, rate_hz: float, channels: tuple[str, ...]) -> dict[str, tuple[float, str]]: ...
+    def configure(self, rate_hz: float, pressure: tuple[str, ...] | None = None) -> None: ...
     def start(self) -> float: ...
     def read_blocks(self, wait_s: float = 0.2) -> BlockRead: ...
     def stall_hint(self) -> str: ...
@@ -85,6 +89,27 @@ def _by_units(chans: list[tuple[str, str]], enabled: list[str]) -> tuple[str | N
     return p, v
 
 
+def _acquired(source, pressure: tuple[str, ...] | None) -> list[str]:
+    """The channels a run acquires: the pressure channels asked for (default: the first), then the position's."""
+    p, v = source.channels()
+    chans = list(pressure) if pressure else [p]
+    for ch in chans:
+        if ch not in source.pressure_channels():
+            raise DeviceError(f"{source.name}: {ch!r} is not a pressure channel (units Pa) "
+                              f"(have: {', '.join(source.pressure_channels())})", device=source.name)
+    return chans + ([v] if v and v not in chans else [])
+
+
+def _look(heads: dict, codes: dict) -> dict[str, tuple[float, str]]:
+    """Per channel: the mean head of the samples looked at and their worst quality."""
+    out = {}
+    for ch, vals in heads.items():
+        h = np.concatenate(vals) if vals else np.array([np.nan])
+        q = worst_quality(np.concatenate(codes[ch])).value if codes[ch] else "ok"
+        out[ch] = (float(np.nanmean(h)) if np.isfinite(h).any() else float("nan")), q
+    return out
+
+
 class StreamingSource:
     """The streaming ADC: its reader thread queues blocks; every error reaching the reader is fatal."""
 
@@ -95,6 +120,13 @@ class StreamingSource:
     def channels(self) -> tuple[str | None, str | None]:
         prof = self.adc.profile
         return _by_units([(c.name, c.calibration.units) for c in prof.channels], list(prof.enabled))
+
+    def pressure_channels(self) -> tuple[str, ...]:
+        """Every input in Pa of the profile (acquired or not by default), the default pressure channel first."""
+        first = self.channels()[0]
+        rest = [c.name for c in sorted(self.adc.profile.channels, key=lambda c: c.index)
+                if c.calibration.units == "Pa" and c.name != first]
+        return tuple(([first] if first else []) + rest)
 
     def rate_range(self) -> tuple[float, float]:
         return float(RATE_MIN_HZ), float(RATE_MAX_HZ)
@@ -108,31 +140,31 @@ class StreamingSource:
     def describe(self) -> str:
         return self.adc.identify()
 
-    def _block_samples(self, fs: float) -> int:
+    def _block_samples(self, fs: float, n_channels: int = 2) -> int:
         # frames for ~200/s of device time: a fast simulated clock gets bigger frames, not more of them
-        return int(min(MAX_BLOCK, max(auto_block(fs, 2), auto_block(fs * self.clock_scale, 2))))
+        n = max(1, n_channels)
+        return int(min(MAX_BLOCK, max(auto_block(fs, n), auto_block(fs * self.clock_scale, n))))
 
-    def spot_head(self, rate_hz: float) -> tuple[float, str]:
-        pch = self.channels()[0]
-        self.adc.configure(rate_hz, [pch], self._block_samples(rate_hz))
+    def spot_heads(self, rate_hz: float, channels: tuple[str, ...]) -> dict[str, tuple[float, str]]:
+        chans = list(channels)
+        self.adc.configure(rate_hz, chans, self._block_samples(rate_hz, len(chans)))
         self.adc.start()
-        vals, codes = [], []
+        heads, codes = {c: [] for c in chans}, {c: [] for c in chans}
         try:
             need = max(10, int(0.05 * rate_hz))
             deadline = time.monotonic() + 5.0
-            while sum(v.size for v in vals) < need and time.monotonic() < deadline:
+            while sum(v.size for v in heads[chans[0]]) < need and time.monotonic() < deadline:
                 b = self.adc.get_block(timeout=2.0)
-                vals.append(b.head_m(pch))
-                codes.append(sample_codes(b, pch))
-            q = worst_quality(np.concatenate(codes)).value if codes else "ok"
+                for c in chans:
+                    heads[c].append(b.head_m(c))
+                    codes[c].append(sample_codes(b, c))
         finally:
             self.adc.stop()
-        h = np.concatenate(vals) if vals else np.array([np.nan])
-        return (float(np.nanmean(h)) if np.isfinite(h).any() else float("nan")), q
+        return _look(heads, codes)
 
-    def configure(self, rate_hz: float) -> None:
-        chans = [c for c in self.channels() if c]
-        cfg = self.adc.configure(rate_hz, chans, self._block_samples(rate_hz))
+    def configure(self, rate_hz: float, pressure: tuple[str, ...] | None = None) -> None:
+        chans = _acquired(self, pressure)
+        cfg = self.adc.configure(rate_hz, chans, self._block_samples(rate_hz, len(chans)))
         self._rate = float(cfg.rate_hz) if abs(cfg.rate_hz - rate_hz) > 1e-6 * rate_hz else float(rate_hz)
 
     def start(self) -> float:
@@ -171,6 +203,9 @@ class BufferedSource:
         chans = [(c.name, c.calibration.units) for c in self.adc.channels]
         return _by_units(chans, [c[0] for c in chans])
 
+    def pressure_channels(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.adc.channels if c.calibration.units == "Pa")
+
     def rate_range(self) -> tuple[float, float]:
         spec = self.adc.profile.reg("sample_rate")
         return float(spec.min if spec.min is not None else 1.0), float(spec.max if spec.max is not None else 1e4)
@@ -184,13 +219,16 @@ class BufferedSource:
     def describe(self) -> str:
         return ", ".join(f"{k} {v.value:.4g} {v.units}" for k, v in self.adc.read_channels().items())
 
-    def spot_head(self, rate_hz: float) -> tuple[float, str]:
-        r = self.adc.read_pressure(self.channels()[0])
-        return float(pressure_to_head_m(r.value, self.adc.density_kg_m3)), r.quality.value
+    def spot_heads(self, rate_hz: float, channels: tuple[str, ...]) -> dict[str, tuple[float, str]]:
+        readings = self.adc.read_channels()  # one polled read: every input at one instant
+        return {c: (float(pressure_to_head_m(readings[c].value, self.adc.density_kg_m3)), readings[c].quality.value)
+                for c in channels}
 
-    def configure(self, rate_hz: float) -> None:
+    def configure(self, rate_hz: float, pressure: tuple[str, ...] | None = None) -> None:
+        # the module records its inputs 0..n-1: n reaches the highest input acquired
+        n = max(self.adc.channel(c).index for c in _acquired(self, pressure)) + 1
         self.adc.stop_buffer()
-        self.adc.configure_buffer(int(rate_hz), len([c for c in self.channels() if c]))
+        self.adc.configure_buffer(int(rate_hz), n)
         self._rate = float(rate_hz)
 
     def start(self) -> float:

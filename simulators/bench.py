@@ -25,6 +25,10 @@ Sim config (``sim/<name>.toml`` along the config search path, :mod:`velab.config
                  { transport = "rtu-socket", port = 15023 }, { transport = "tcp", port = 15022 }]
     [faults.<device name>] / [faults.rig]   # from the start: see velab.simulators.faults
     [[faults.schedule]]                     # at an instant: see velab.simulators.schedule
+    [recorder]                              # optional: the [recorder] table of the bench it serves
+    pressure_source = "pressure_adc"        # (velab.drivers.bench: roles, [recorder.transducers])
+    [recorder.transducers]                  # a rig with several transducers: each one's ADC channel
+    mid = "pressure_2"                      # (the simulated rig wires them: velab.simulators.rig.input_of)
 
 Device kinds are a registry (``register_sim_device``) of factories
 ``factory(name, rig, cfg: dict, host: str) -> handle`` where the handle has
@@ -43,7 +47,7 @@ from typing import Callable
 from velab.benchrig import rig_for_bench
 from velab.config import load_material, load_rig
 from velab.configpath import load_config
-from velab.drivers.bench import Bench, BenchDevice
+from velab.drivers.bench import Bench, BenchDevice, read_recorder
 from velab.errors import ConfigError
 from velab.simulators.clock import make_clock
 from velab.simulators.endpoint import Endpoint
@@ -199,7 +203,9 @@ def check_sim_config(config: dict, path: str = "<sim config>") -> dict:
         "material": Key(str, False, "A"), "seed": Key(int, False, 0, within(0, 2**32 - 1)),
         "clock": Key(str, False, "realtime"), "host": Key(str, False, "127.0.0.1"),
         "model": Key(dict, False, {}), "devices": Key(dict, False, {}), "faults": Key(dict, False, None),
+        "recorder": Key(dict, False, {}),
     })
+    top["recorder"] = read_recorder(r, top["recorder"], tuple(top["devices"]))
     top["model"] = {k: v for k, v in r.read(top["model"], "[model] ", _MODEL).items() if k in top["model"]}
     for name, cfg in top["devices"].items():
         where = f"[devices.{name}] "
@@ -233,6 +239,7 @@ class SimulatedBench:
         self.config = config
         self.path = path
         top = check_sim_config(config, path)
+        self.recorder = top["recorder"]  # the [recorder] table of the bench it serves (bench())
         self.host = host or top["host"]
         if not allow_remote and not is_loopback_host(self.host):
             # the simulated actuator takes valve commands from whoever can reach it
@@ -249,7 +256,10 @@ class SimulatedBench:
             raise ConfigError(f"{path}: rig/material: {exc}") from None
         # the valve body's characteristic from its device profile, as the recorder takes it (velab.benchrig)
         rig = rig_for_bench(rig, top["devices"] or {})
-        self.rig = SimulatedRig(rig, material, self.clock, seed=top["seed"], **top["model"])
+        try:
+            self.rig = SimulatedRig(rig, material, self.clock, seed=top["seed"], **top["model"])
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: rig: {exc}") from None
         self.instants = self.rig.instants
         self.schedule = FaultSchedule(self.instants)
         self.rig.schedule = self.schedule
@@ -411,10 +421,11 @@ class SimulatedBench:
             if not eps:
                 continue
             dev = getattr(h, "device", None)
-            profile = dev.profile.path if dev is not None else None
+            # a Modbus device's profile as the simulator reads it; the streaming ADC's as its table names it
+            profile = dev.profile.path if dev is not None else getattr(h, "profile", None)
             settings = eps[0].bench_settings()
             if dev is not None and getattr(dev, "profile", None) is not None:
                 settings["word_order"] = dev.profile.word_order.value
             settings.update(device_options.get(name, {}))
             devices[name] = BenchDevice(name, eps[0].kind, profile, settings)
-        return Bench(f"simulated ({self.path})", devices, path=self.path)
+        return Bench(f"simulated ({self.path})", devices, path=self.path, recorder=dict(self.recorder))

@@ -22,6 +22,11 @@ streaming ADC) samples this object; none has physics of its own.
 * Transducer: gauge pressure = head * rho * g, 4-20 mA over 0..full scale, plus
   Gaussian noise that is a deterministic function of (seed, channel, time), so any
   two devices sampling the same instant see the same value.
+* Several transducers (the rig's ``[[transducers]]``): one model run gives the head at every
+  section (``velab.synth.transient_at_sections``: the MOC's ``sections_m``), each on its own steady
+  head (``Rig.steady_head_at_m``) with its own noise. Wiring: the valve's transducer
+  (``rig.head_section``) on input 0, the valve position on input 1, the others on inputs 2 and 3 in
+  the rig file's order (``input_of``).
 
 Times are seconds on the clock's axis (``clock.now()``). Thread-safe: device
 servers run in their own threads.
@@ -36,6 +41,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from velab.config import Material
+from velab.errors import ConfigError
 from velab.rig import GRAVITY_M_S2, Manoeuvre, Rig
 # the actuator's state codes are the register contract: one definition, the driver's
 from velab.drivers.valve import ValveState  # noqa: F401 - re-exported for the simulators and tests
@@ -48,10 +54,13 @@ from velab.simulators.rig_faults import (  # noqa: F401 - RigFaults, FAULT_FOLLO
     pending_seize,
 )
 from velab.simulators.schedule import RunInstants
-from velab.synth import transient, uses_frequency_model
+from velab.synth import transient, transient_at_sections, uses_frequency_model
 from velab.valvelaw import commanded_position_pct
 
-N_ANALOG = 4  # ch0 pressure, ch1 valve position, ch2-3 spare
+N_ANALOG = 4  # ch0 pressure, ch1 valve position, ch2-3 spare (or the rig's other transducers)
+PRESSURE_INPUT, POSITION_INPUT = 0, 1
+SECTION_INPUTS = (2, 3)  # the inputs of the rig's transducers other than the valve's, in the rig file's order
+SECTION_NOISE_STREAM = 3  # hashed_normal streams: 0 pressure, 1 position, 2 flow, 3.. the other transducers
 
 
 # fault bits of the actuator (shared with the actuator simulator and driver profile)
@@ -78,11 +87,12 @@ class _Transient:
     end_pct: float
     dt: float
     position: np.ndarray  # % open on the grid
-    head: np.ndarray  # head perturbation (m) on the grid
+    head: np.ndarray  # head perturbation (m) on the grid at the valve's transducer
     flow: np.ndarray  # flow through the valve (m3/s) on the grid
     volume: np.ndarray  # integral of Q from the trigger (m3) on the grid
     freeze_tau: float | None  # hold / seizure instant (position frozen after it)
     done_tau: float  # position within 0.1 % of the end: state DONE
+    others: np.ndarray | None = None  # head perturbations (m) at the other transducers, (transducers, grid)
 
 
 def _splitmix64(x: np.ndarray) -> np.ndarray:
@@ -132,6 +142,18 @@ class SimulatedRig:
         self.flow_update_s = flow_update_s
         self.grid_dt_s = grid_dt_s
         self.transient_s = transient_s
+        valve = rig.head_section
+        # the transducers other than the valve's, each on its input (SECTION_INPUTS)
+        self.others = tuple(x for x in rig.sections if x != valve)
+        if len(self.others) > len(SECTION_INPUTS):
+            raise ConfigError(f"rig {rig.name!r}: {len(rig.sections)} transducers; the simulated ADCs have inputs "
+                              f"for {len(SECTION_INPUTS) + 1} (the valve's on input 0, the others on inputs "
+                              f"{', '.join(map(str, SECTION_INPUTS))})")
+        # every section from one model run (a rig whose only transducer is at the valve: transient's head)
+        self._sections = bool(self.others) or valve.position_m != rig.pipe.length_m
+        self._valve_index = rig.sections.index(valve)
+        self._steady_heads = (rig.steady_head_at_m(valve.position_m) if self._sections else rig.steady_head_m,
+                              *(rig.steady_head_at_m(x.position_m) for x in self.others))
         self.faults = RigFaults()
         self.schedule = None  # a velab.simulators.schedule.FaultSchedule (faults at run instants)
         self.instants = RunInstants(clock.now())  # arm / trigger instants, for the schedule
@@ -328,11 +350,18 @@ class SimulatedRig:
         standard = end == 0.0 and freeze_tau is None
         # the rig's valve law on the position, the rig's friction law (velab.synth.transient picks the model)
         moved = None if standard else (lambda x: self._position(x, beta, gamma, end, freeze_tau))
-        head, q = transient(tau, rig_c, self.material, position=moved)
+        others = None
+        if self._sections:  # every transducer's head from one run of the same model
+            heads, q = transient_at_sections(tau, rig_c, self.material, position=moved)
+            head = heads[self._valve_index]
+            others = np.array([heads[self.rig.sections.index(x)] for x in self.others]).reshape(len(self.others), -1)
+        else:
+            head, q = transient(tau, rig_c, self.material, position=moved)
         flow = self.rig.steady_flow_m3_s + q
         volume = np.concatenate([[0.0], np.cumsum(0.5 * (flow[1:] + flow[:-1]) * dt)])
         done_tau = (math.log(999.0) - gamma) / beta
-        return _Transient(trigger_time, beta, gamma, end, dt, position, head, flow, volume, freeze_tau, done_tau)
+        return _Transient(trigger_time, beta, gamma, end, dt, position, head, flow, volume, freeze_tau, done_tau,
+                          others)
 
     def _interp(self, tr: _Transient, arr: np.ndarray, tau: np.ndarray) -> np.ndarray:
         x = np.clip(tau / tr.dt, 0.0, arr.size - 1.0)
@@ -361,37 +390,52 @@ class SimulatedRig:
         tau = t - tr.trigger_time
         return np.where(tau < 0, q0, self._interp(tr, tr.flow, np.maximum(tau, 0.0)))
 
-    def head_m(self, t) -> np.ndarray:
-        """Head at the transducer (m), without noise."""
+    def head_m(self, t, transducer: int = 0) -> np.ndarray:
+        """Head at a transducer (m), without noise: 0 the valve's (``rig.head_section``), k >= 1 the k-th
+        other one (``others``)."""
         t = np.asarray(t, dtype=float)
-        h0 = self.rig.steady_head_m
+        h0 = self._steady_heads[transducer]
         tr = self._tr
         if tr is None:
             return np.full(t.shape, h0)
         tau = t - tr.trigger_time
-        return np.where(tau < 0, h0, h0 + self._interp(tr, tr.head, np.maximum(tau, 0.0)))
+        h = tr.head if transducer == 0 else tr.others[transducer - 1]
+        return np.where(tau < 0, h0, h0 + self._interp(tr, h, np.maximum(tau, 0.0)))
 
-    def pressure_pa(self, t) -> np.ndarray:
-        """Gauge pressure at the transducer (Pa), with transducer noise."""
+    def pressure_pa(self, t, transducer: int = 0) -> np.ndarray:
+        """Gauge pressure at a transducer (Pa, as :meth:`head_m`), with that transducer's own noise."""
         t = np.asarray(t, dtype=float)
-        p = self.head_m(t) * self.rho_g
+        p = self.head_m(t, transducer) * self.rho_g
         if self.pressure_noise_fs:
-            p = p + self.pressure_noise_fs * self.full_scale_pa * hashed_normal(self.seed, 0, t)
+            stream = 0 if transducer == 0 else SECTION_NOISE_STREAM + transducer - 1
+            p = p + self.pressure_noise_fs * self.full_scale_pa * hashed_normal(self.seed, stream, t)
         return p
+
+    def input_of(self, name: str) -> int:
+        """The analogue input a transducer of the rig is wired to (its name as in the rig file)."""
+        if name == self.rig.head_section.name:
+            return PRESSURE_INPUT
+        for k, x in enumerate(self.others):
+            if x.name == name:
+                return SECTION_INPUTS[k]
+        raise KeyError(f"rig {self.rig.name!r} has no transducer {name!r}")
 
     def clean_inputs(self, t: np.ndarray) -> np.ndarray:
         """Loop currents (mA), shape (n, 4), at times t (clock seconds), without sensor faults.
 
-        ch0: pressure transducer, 4-20 mA over 0..rig.transducer.full_scale_pa (gauge);
-        ch1: valve position feedback, 4-20 mA over 0..100 % open; ch2, ch3: spare, 4 mA.
+        ch0: the valve's pressure transducer, 4-20 mA over 0..rig.transducer.full_scale_pa (gauge);
+        ch1: valve position feedback, 4-20 mA over 0..100 % open; ch2, ch3: the rig's other transducers
+        (as ch0, in the rig file's order), else spare, 4 mA.
         """
         t = np.atleast_1d(np.asarray(t, dtype=float))
         out = np.full((t.size, N_ANALOG), 4.0)
-        out[:, 0] = 4.0 + 16.0 * self.pressure_pa(t) / self.full_scale_pa
+        out[:, PRESSURE_INPUT] = 4.0 + 16.0 * self.pressure_pa(t) / self.full_scale_pa
+        for k in range(len(self.others)):
+            out[:, SECTION_INPUTS[k]] = 4.0 + 16.0 * self.pressure_pa(t, k + 1) / self.full_scale_pa
         pos = self.valve_position(t)
         if self.position_noise_pct:  # feedback potentiometer noise
             pos = pos + self.position_noise_pct * hashed_normal(self.seed, 1, t)
-        out[:, 1] = 4.0 + 16.0 * pos / 100.0
+        out[:, POSITION_INPUT] = 4.0 + 16.0 * pos / 100.0
         return out
 
     def analog_inputs(self, t: np.ndarray) -> np.ndarray:

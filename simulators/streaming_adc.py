@@ -357,6 +357,7 @@ class StreamingADCSimHandle:
         if unknown:
             raise ConfigError(f"[devices.{name}] {unknown[0]}: unknown key (known: {', '.join(sorted(self.KEYS))})")
         self.name, self.rig, self.cfg, self.host = name, rig, cfg, host
+        self.profile = cfg.get("profile")  # the driver's profile for the bench it serves (its inputs' calibrations)
         self.faults = FaultPlan()
         self.simulators: list[StreamingADCSimulator] = []
 

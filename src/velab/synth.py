@@ -182,6 +182,35 @@ def section_transients(t_s, rig: Rig, material: Material) -> np.ndarray:
     return moc_head(rig, *_moc_params(rig, material), t, sections_m=xs)
 
 
+def transient_at_sections(t_s, rig: Rig, material: Material, position=None) -> tuple[np.ndarray, np.ndarray]:
+    """(heads, flow) perturbations on the grid t_s: the heads at every section of the rig (``rig.sections``,
+    shape (sections, samples)) and the flow through the valve, for the rig's valve law and friction laws on
+    ``position`` (as :func:`transient`; default the commanded full closure): one model run gives them all.
+    A section at the valve has :func:`transient`'s head."""
+    t = np.asarray(t_s, dtype=float)
+    xs = [x.position_m for x in rig.sections]
+    if position is None and rig.valve.law == "imposed":
+        return section_transients(t, rig, material), flow_perturbation(t, rig)
+    m = rig.manoeuvre
+    if position is None:
+        position = lambda x: commanded_position_pct(x, m.beta_per_s, m.gamma)  # noqa: E731
+    if rig.valve.law == "orifice":
+        from velab.moc import moc_transient  # numba: imported when needed
+
+        tr = moc_transient(rig, *_moc_params(rig, material), t, position=position, sections_m=xs)
+        return tr.section_heads_m, tr.flow_m3_s
+    q0 = rig.steady_flow_m3_s
+    flow = lambda x: imposed_flow(position(x), q0) - q0  # noqa: E731
+    q = np.where(t >= 0, flow(np.maximum(t, 0.0)), 0.0)
+    if friction_is_linear(rig):
+        heads = np.array([ValveHeadModel(rig, t, band_hz=None, flow=q, position_m=x).head(material) for x in xs])
+    else:
+        from velab.moc import moc_head  # numba: imported when needed
+
+        heads = moc_head(rig, *_moc_params(rig, material), t, flow=flow, sections_m=xs)
+    return heads, q
+
+
 def synthesise_sections(rig: Rig, material: Material, s: SynthSettings) -> dict[str, np.ndarray]:
     """The absolute heads (noise included) of the rig's transducers other than its ``head`` channel's
     (``rig.head_section``, which :func:`synthesise` gives), by name, on :func:`synth_time_grid`. Each has its

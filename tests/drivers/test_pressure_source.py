@@ -12,11 +12,21 @@ from velab.drivers.base import DeviceDisconnected, DeviceError, DeviceTimeout
 from velab.drivers.pressure_source import BufferedSource, StreamingSource, pressure_source
 
 
+def _channel(name, index, units):
+    return SimpleNamespace(name=name, index=index, calibration=SimpleNamespace(units=units))
+
+
+# an ADC wired for several sections: the valve's transducer, the valve position, two more transducers
+WIRED = (_channel("pressure", 0, "Pa"), _channel("valve_position", 1, "%"), _channel("pressure_2", 2, "Pa"),
+         _channel("pressure_3", 3, "Pa"))
+
+
 class FakeStreaming:
     """The StreamingADC's queue verbs: get_block raises what the script says, get_blocks the rest."""
 
     def __init__(self, script):
         self.script, self.error, self.calls = list(script), None, []
+        self.profile = SimpleNamespace(channels=WIRED, enabled=("pressure", "valve_position"))
 
     def get_block(self, timeout=None):
         item = self.script.pop(0)
@@ -45,7 +55,16 @@ class FakeBuffered:
     def __init__(self, script, rate=1000.0):
         self.script, self.rate, self.calls = list(script), rate, []
         self.sample_rate_hz = None
-        self.channels = [SimpleNamespace(name="pressure", calibration=SimpleNamespace(units="Pa"))]
+        self.channels = list(WIRED)
+        self.density_kg_m3 = 998.2
+
+    def channel(self, name):
+        return next(c for c in self.channels if c.name == name)
+
+    def read_channels(self):
+        self.calls.append(("read_channels",))
+        return {c.name: SimpleNamespace(value=98066.5 * (1 + c.index), quality=SimpleNamespace(value="ok"))
+                for c in self.channels}
 
     def read_buffer(self):
         item = self.script.pop(0)
@@ -91,7 +110,6 @@ def test_any_other_streaming_error_is_fatal():
 def test_the_streaming_rate_is_the_devices_only_when_it_differs():
     adc = FakeStreaming([])
     src = StreamingSource(adc, "adc")
-    src.channels = lambda: ("pressure", "valve_position")
     src.configure(1000.0)
     assert src.start() == 1000.0  # 1e-7 relative: the asked rate
     assert adc.calls[0][:3] == ("configure", 1000.0, ("pressure", "valve_position"))
@@ -119,7 +137,37 @@ def test_the_buffered_rate_is_the_modules_once_it_runs():
     src.configure(1000.0)
     assert src.start() == 999.0
     assert [c[0] for c in adc.calls] == ["stop_buffer", "configure_buffer", "start_buffer"]
-    assert adc.calls[1] == ("configure_buffer", 1000, 1)
+    assert adc.calls[1] == ("configure_buffer", 1000, 2)  # ch0 pressure, ch1 valve position
+
+
+def test_the_streaming_source_acquires_every_transducer_asked_for_and_the_position():
+    adc = FakeStreaming([])
+    src = StreamingSource(adc, "adc")
+    assert src.channels() == ("pressure", "valve_position")
+    assert src.pressure_channels() == ("pressure", "pressure_2", "pressure_3")  # not only the profile's default list
+    src.configure(1000.0, ("pressure", "pressure_3"))
+    assert adc.calls[0][2] == ("pressure", "pressure_3", "valve_position")
+    with pytest.raises(DeviceError, match="'valve_position' is not a pressure channel"):
+        src.configure(1000.0, ("pressure", "valve_position"))
+
+
+def test_the_buffered_source_records_up_to_the_highest_input_asked_for():
+    adc = FakeBuffered([], rate=1000.0)
+    src = BufferedSource(adc, "adc")
+    assert src.pressure_channels() == ("pressure", "pressure_2", "pressure_3")
+    src.configure(1000.0, ("pressure", "pressure_2"))  # the ring holds inputs 0..n-1: n = 3
+    assert adc.calls[1] == ("configure_buffer", 1000, 3)
+    adc.calls.clear()
+    src.configure(1000.0, ("pressure", "pressure_3"))
+    assert adc.calls[1] == ("configure_buffer", 1000, 4)
+
+
+def test_a_buffered_look_reads_every_transducer_at_one_instant():
+    adc = FakeBuffered([])
+    looks = BufferedSource(adc, "adc").spot_heads(1000.0, ("pressure", "pressure_2"))
+    assert adc.calls == [("read_channels",)]  # one polled read for all of them
+    assert set(looks) == {"pressure", "pressure_2"} and looks["pressure_2"][1] == "ok"
+    assert looks["pressure_2"][0] == pytest.approx(3 * looks["pressure"][0])
 
 
 def test_only_an_adc_is_a_pressure_source():

@@ -25,8 +25,8 @@ class ScriptedSource:
     def channels(self):
         return self._channels
 
-    def configure(self, rate_hz):
-        self.rate = rate_hz
+    def configure(self, rate_hz, pressure=None):
+        self.rate, self.pressure = rate_hz, pressure
 
     def start(self):
         return self.rate
@@ -45,14 +45,14 @@ class ScriptedSource:
     def stop(self):
         self.stopped = True
 
-    def spot_head(self, rate_hz):
+    def spot_heads(self, rate_hz, channels):
         raise DeviceDisconnected("adc: gone")
 
 
 def run(reads, stall_s=0.05, **kw):
     rec, got = RecordingHooks(), []
     stage = PressureStage(ScriptedSource(reads, **kw))
-    stage.start(1000.0, stall_s, lambda b, p, v: got.append((b, p, v)), rec.hooks)
+    stage.start(1000.0, stall_s, lambda b, codes: got.append((b, codes)), rec.hooks)
     assert rec.ended.wait(5.0)
     assert stage.stop() == ""
     return stage, rec, got
@@ -63,7 +63,8 @@ def test_blocks_arrive_with_their_quality_codes_then_a_stall_ends_the_run():
     codes[2, 0] = 3
     b = block(0, 4, codes=codes)
     stage, rec, got = run([BlockRead((b,))], hint=" (device silent)")
-    assert got[0][0] is b and got[0][1].tolist() == [0, 0, 3, 0] and got[0][2].tolist() == [0, 0, 0, 0]
+    assert got[0][0] is b and got[0][1]["pressure"].tolist() == [0, 0, 3, 0]
+    assert got[0][1]["valve_position"].tolist() == [0, 0, 0, 0]
     (status, reason), = rec.ends
     assert status == "failed" and "no pressure samples for 0.05 s (device silent)" in reason
     assert stage.outcome.startswith("failed: no pressure samples")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stage_helpers import RecordingHooks, block
+from stage_helpers import RecordingHooks, block, codes_of
 from velab.fitting.window import steady_head
 from velab.recording.ops import Append, Gap, Trigger
 from velab.recording.settings import RecordSettings
@@ -27,7 +27,7 @@ def make(pretrigger_s=1.0, duration_s=3.0, fit_window_s=2.0, ceiling=100.0, **kw
 
 def feed(tl, first, n, **kw):
     b = block(first, n, rate_hz=FS, **kw)
-    tl.process(b, b.sample_quality[:, 0], b.sample_quality[:, 1])
+    tl.process(b, codes_of(b))
 
 
 def test_the_axis_starts_at_minus_the_pretrigger_and_the_baseline_completes_once():
@@ -78,9 +78,9 @@ def test_the_trigger_window_and_end_from_the_sample_clock():
     assert closed == [(2.0, True)] and tl.counters().window_closed
     assert rec.ends == [("completed", "")]  # trigger + duration reached
     assert any("no stroke seen" in f[1] for f in rec.faults)
-    t, h, trigger, w, note, pos = tl.fit_window(2.0)
-    assert trigger == t_est and w == 2.0 and not note
-    assert t[-1] == pytest.approx(t_est + 2.0 - 1 / FS) and pos.size == t.size
+    r = tl.fit_window(2.0)
+    assert r.trigger_time_s == t_est and r.window_s == 2.0 and not r.note and r.section_heads == {}
+    assert r.t[-1] == pytest.approx(t_est + 2.0 - 1 / FS) and r.position.size == r.t.size == r.head.size
 
 
 def test_the_steady_head_is_the_fit_paths_baseline_mean():

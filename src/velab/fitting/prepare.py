@@ -218,14 +218,20 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
 
 
 def fit_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | None, *, record_rate_hz: float,
-               lead: bool | SweepResult = True, position_pct=None, **sweep_options) -> SweepResult:
+               lead: bool | SweepResult = True, position_pct=None, section_heads: dict | None = None,
+               **sweep_options) -> SweepResult:
     """Prepare a record (``prepare_record``) and calibrate on it: the one fit path of velab.
 
     The default sweep of a long enough window runs as a lead fit on its first part and a
     continuation on the whole (velab.fitting.lead). ``lead``: True (compute it here), a SweepResult
     (the recorder's, computed while the window's last part was being recorded: used if it is the
     lead this call would compute, else computed again), or False (one step; not the fit path's
-    result, for comparisons). ``position_pct``: the recorded valve position on ``t_s`` (or None)."""
+    result, for comparisons). ``position_pct``: the recorded valve position on ``t_s`` (or None).
+    A rig with several transducers: ``head_m`` is the valve's (``rig.head_section``), ``section_heads``
+    the others' by name, and every section is fitted at once, as ``fit_run`` does (no lead)."""
+    if len(rig.sections) > 1:
+        return _fit_record_sections(t_s, head_m, section_heads or {}, trigger_time_s, rig, window_s,
+                                    record_rate_hz=record_rate_hz, position_pct=position_pct, **sweep_options)
     rec = prepare_record(t_s, head_m, trigger_time_s, rig, window_s, record_rate_hz=record_rate_hz,
                          position_pct=position_pct)
     lw = lead_window_s(rig, rec.window_s, sweep_options) if lead is not False else None
@@ -243,6 +249,22 @@ def fit_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | N
     if computed:
         result.duration_s += lead.duration_s  # this call's time: both steps
     return result
+
+
+def _fit_record_sections(t_s, head_m, section_heads: dict, trigger_time_s: float, rig: Rig, window_s, *,
+                         record_rate_hz: float, position_pct, **options) -> SweepResult:
+    """``fit_record`` of a record with several sections: velab.fitting.sections.fit_sections, its search options
+    the joint sweep's (the single sweep's ``SWEEP_ONLY`` at their defaults, else one line), as fit_run_sections."""
+    from velab.fitting.sections import SWEEP_ONLY, fit_sections
+
+    for key, default in SWEEP_ONLY.items():
+        value = options.pop(key, default)
+        if value != default and not (key == "starts" and value is None):
+            raise DataError(f"{key} = {value!r}: not for a fit of several sections (the rig has {len(rig.sections)} "
+                            f"transducers; the search is the joint fit's)")
+    heads = {rig.head_section.name: head_m, **section_heads}
+    return fit_sections(t_s, heads, trigger_time_s, rig, window_s, record_rate_hz=record_rate_hz,
+                        position_pct=position_pct, **options)
 
 
 def fit_lead(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float, *, record_rate_hz: float,

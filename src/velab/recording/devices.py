@@ -1,8 +1,8 @@
 """The bench's devices for a run: roles, connection, identities, profile contents, readiness.
 
 Roles come from the bench's ``[recorder]`` table (``pressure_source``, ``valve``,
-``flowmeter``; ``armed_timeout_s`` is the bench's armed timeout) or, without it, the first
-device of each kind. Readiness (nothing moves): the actuator open and idle, the steady flow
+``flowmeter``; ``armed_timeout_s`` is the bench's armed timeout; ``[recorder.transducers]`` the
+channel of each transducer, velab.recording.transducers) or, without it, the first device of each kind. Readiness (nothing moves): the actuator open and idle, the steady flow
 within tolerance and not frozen, the steady head in range and plausible.
 """
 
@@ -20,7 +20,7 @@ from velab.recording.types import DeviceFailure, RunRefused
 
 log = logging.getLogger(__name__)
 ROLE_KINDS = {"pressure": ("streaming_adc", "modbus_adc"), "valve": ("valve_actuator",), "flowmeter": ("flowmeter",)}
-RECORDER_KEYS = {"pressure_source", "valve", "flowmeter", "armed_timeout_s"}
+RECORDER_KEYS = {"pressure_source", "valve", "flowmeter", "armed_timeout_s", "transducers"}
 
 
 def bench_armed_timeout(bench) -> float | None:
@@ -103,12 +103,16 @@ def check_steady_flow(read_flow, sleep, q0: float, tolerance: float, flow_name: 
     return q
 
 
-def check_steady_head(head: float, quality: str, steady_head_m: float, head_range, ceiling_m: float) -> None:
+def check_steady_head(head: float, quality: str, steady_head_m: float, head_range, ceiling_m: float,
+                      transducer: str = "") -> None:
+    """A transducer's look before arming: plausible, within ``head_range`` x its steady head and under the
+    ceiling. ``transducer``: names one other than the valve's."""
     lo, hi = (f * steady_head_m for f in head_range)
+    at = f" at the transducer {transducer}" if transducer else ""
     if quality != "ok" or not math.isfinite(head):
-        raise RunRefused(f"pressure not ready: transducer reading is {quality}")
+        raise RunRefused(f"pressure not ready: transducer{' ' + transducer if transducer else ''} reading is {quality}")
     if not lo <= head <= hi or head >= ceiling_m:
-        raise RunRefused(f"steady head {head:.2f} m is out of range ({lo:.1f}..{min(hi, ceiling_m):.1f} m)")
+        raise RunRefused(f"steady head{at} {head:.2f} m is out of range ({lo:.1f}..{min(hi, ceiling_m):.1f} m)")
 
 
 def reopen_valve(valve, sleep, settle_s: float = 1.0):

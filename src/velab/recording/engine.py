@@ -33,6 +33,7 @@ from velab.recording.events import EventQueue
 from velab.recording.run import DEFER, Run
 from velab.recording.safety import predict_surge
 from velab.recording.settings import RecordSettings
+from velab.recording.transducers import transducer_channels
 from velab.recording.slow import valve_event
 from velab.recording.types import (
     DEVICE_ERRORS, DeviceFailure, DeviceStatus, EngineSnapshot, Fault, RecorderEvent, RunSummary)
@@ -52,6 +53,9 @@ class Recorder:
         self.sim, self._owns_sim = sim, owns_sim
         self.clock = getattr(sim, "clock", None)
         self.bench_armed_timeout_s = bench_armed_timeout(bench)
+        self.bench_where = bench.path or bench.name  # (the bench's file, in its config errors)
+        # the bench's channel map names transducers of this rig, and every one of them (its channels: at arm)
+        transducer_channels(self.rig, bench.transducer_channels, self.bench_where)
         self.events = EventQueue(maxsize=1000)  # bounded: memory stays flat without a consumer
         # replaced whole (a tuple) when one is added: engine threads read it without a lock
         self._listeners: tuple[Callable[[RecorderEvent], None], ...] = ()

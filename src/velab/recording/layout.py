@@ -3,6 +3,10 @@
 The commanded manoeuvre is THE manoeuvre: the rig written into the file carries it, so
 ``/entry/manoeuvre/beta`` and ``/entry/sample@rig_json`` say the same, and an offline
 ``velab fit`` uses what the valve was told to do.
+
+Every transducer of the rig has its channels (velab.recording.transducers): the valve's are
+``FAST_CHANNELS``' ``head``, ``pressure``, ``pressure_raw``, ``pressure_quality``; each other one the
+same with ``_NAME`` (``head_mid`` in ``data``, the rest in ``instrument/pressure_transducer_mid``).
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ import datetime as _dt
 from importlib import metadata
 from pathlib import Path
 
+from velab.recording.transducers import TransducerChannel
 from velab.rig import Manoeuvre, Rig
 from velab.runfiles.writer import HEAD, Channel, RunWriter
 
@@ -29,6 +34,24 @@ FAST_CHANNELS = (
     Channel("host_time", "s", "f8", "host epoch time of the sample (from the block's arrival)", "instrument/adc"),
 )
 SLOW_CHANNELS = (Channel("flow", "m^3/s"), Channel("valve_state", "", "i4"), Channel("valve_opening", "%"))
+
+
+def transducer_channels(t: TransducerChannel) -> tuple[Channel, ...]:
+    """The fast channels of a transducer other than the valve's (``head_NAME``, ``pressure_NAME`` ...)."""
+    where = f"{t.name} ({t.position_m:g} m from the reservoir)"
+    inst = f"{INST}_{t.name}"
+    return (
+        Channel(t.channel("head"), "m", "f8", f"pressure head at the transducer {where} (absolute)"),
+        Channel(t.channel("pressure"), "Pa", "f8", f"gauge pressure at the transducer {where}", inst),
+        Channel(t.channel("pressure_raw"), "counts", "i4", f"ADC counts of the transducer {t.name}'s channel", inst),
+        Channel(t.channel("pressure_quality"), "", "u1", f"per-sample quality code of the transducer {t.name} "
+                "(velab.drivers.blocks.QUALITY_CODES; 0 = ok)", inst),
+    )
+
+
+def fast_channels(transducers: tuple[TransducerChannel, ...] = ()) -> tuple[Channel, ...]:
+    """The run file's fast channels: ``FAST_CHANNELS`` and each other transducer's (the valve's is in them)."""
+    return FAST_CHANNELS + tuple(c for t in transducers if not t.at_valve for c in transducer_channels(t))
 
 
 def versions() -> dict:
@@ -75,17 +98,21 @@ def bench_snapshot(bench, roles: dict, profiles: dict, identities: dict, sim=Non
 
 def create_run_file(path: Path, rig: Rig, settings, *, fs: float, manoeuvre: tuple[float, float, float],
                     steady_head: float, steady_flow: float, predicted_peak: float, ceiling: float,
-                    device_setup: dict, calibration: dict, source: dict, armed_timeout_s: float) -> RunWriter:
+                    device_setup: dict, calibration: dict, source: dict, armed_timeout_s: float,
+                    transducers: tuple[TransducerChannel, ...] = ()) -> RunWriter:
     beta, gamma, end = manoeuvre
     man = {"end_position": (end, "%"), "beta": (beta, "1/s"), "gamma": (gamma, ""),
            "planned_trigger_time": (0.0, "s"), "trigger_host_time": (float("nan"), "s"),
            "steady_head": (steady_head, "m"), "measured_steady_flow": (steady_flow, "m^3/s"),
            "predicted_peak_head": (predicted_peak, "m"), "ceiling_head": (ceiling, "m")}
-    snapshot = settings.to_dict() | {"rig": rig.name, "armed_timeout_in_force_s": armed_timeout_s}
+    snapshot = settings.to_dict() | {"rig": rig.name, "armed_timeout_in_force_s": armed_timeout_s,
+                                     # the bench's channel map as it was in force (velab.recording.transducers)
+                                     "transducers": [{"name": t.name, "position_m": t.position_m, "head": t.head,
+                                                      "adc_channel": t.adc_channel} for t in transducers]}
     s = settings
     return RunWriter(
         path, commanded_rig(rig, beta, gamma), sample_rate_hz=fs, title=s.title or f"water-hammer run {path.stem}",
-        channels=FAST_CHANNELS, slow_channels=SLOW_CHANNELS, material=None, trigger_time_s=0.0, manoeuvre=man,
+        channels=fast_channels(transducers), slow_channels=SLOW_CHANNELS, material=None, trigger_time_s=0.0, manoeuvre=man,
         # the bench, profiles and identities go to their own datasets; device_setup keeps the rest
         device_setup={k: v for k, v in device_setup.items() if k not in ("bench", "profiles", "identities")},
         settings=snapshot, source=source | {"versions": device_setup.get("versions")},

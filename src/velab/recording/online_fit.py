@@ -8,6 +8,11 @@ while the rest is being recorded; the final fit as soon as the window closes, co
 the lead (or computing it, if it failed or does not match); the latency from the window closing
 to the result.
 
+A rig with several transducers (velab.recording.transducers) is fitted on every section at once: the
+same ``fit_record`` call with the other transducers' heads (``section_heads``), which takes the sections
+path (velab.fitting.sections), as ``velab fit`` of the run file does; that fit has no lead and no quick
+variant, so only the final fit runs.
+
 With ``settings.fit_process`` (the default) the fits run in a worker process of their own
 (velab.fit_worker), started when the manoeuvre is commanded so that its imports are done by the
 time the window closes: the recorder's threads and the fit then do not take turns for one interpreter
@@ -44,12 +49,16 @@ class FitError(Exception):
 
 
 def fit_arguments(t_s: np.ndarray, head_m: np.ndarray, trigger_time_s: float, rig: Rig, *, models, window_s: float,
-                  method: str, sample_rate_hz: float, quick: bool = False, position_pct=None) -> dict:
+                  method: str, sample_rate_hz: float, quick: bool = False, position_pct=None,
+                  section_heads: dict | None = None) -> dict:
     """The arguments of velab.fitting.prepare.fit_record for a recorded head record (the run's axis,
     absolute head, from before the trigger): the one fit path, as ``velab fit`` of the run file takes
     it; ``quick`` = no polish, 2 starts (intermediate fits); ``position_pct`` the recorded valve position
-    on ``t_s`` (the manoeuvre's input, as ``velab fit`` takes it from the file)."""
+    on ``t_s`` (the manoeuvre's input, as ``velab fit`` takes it from the file); ``section_heads`` the
+    other transducers' absolute heads on ``t_s`` by name (a rig with several: every section is fitted)."""
     kw = {"polish": False, "starts": 2} if quick else {}
+    if section_heads:
+        kw["section_heads"] = dict(section_heads)
     return dict(t_s=t_s, head_m=head_m, trigger_time_s=trigger_time_s, rig=rig, window_s=window_s,
                 record_rate_hz=sample_rate_hz, models=list(models), method=method, position_pct=position_pct, **kw)
 
@@ -59,6 +68,7 @@ class OnlineFit:
 
     def __init__(self, rig: Rig, settings, sample_rate_hz: float, emit, message):
         self.rig = rig
+        self.sections = len(rig.sections) > 1  # every section at once: the final fit only (module docstring)
         self.s = settings
         self.fs = sample_rate_hz
         self.emit = emit
@@ -90,7 +100,7 @@ class OnlineFit:
 
     def lead_window_s(self) -> float | None:
         """The fit path's lead part of the final window (velab.fitting.lead) for this run's fit options."""
-        if not (self.s.fit and self.s.online_fit):
+        if not (self.s.fit and self.s.online_fit) or self.sections:
             return None
         return lead_window_s(self.rig, self.s.fit_window_s, {"method": self.s.fit_method})
 
@@ -103,8 +113,11 @@ class OnlineFit:
         return self._final is not None
 
     def start(self, t: np.ndarray, h: np.ndarray, trigger_time_s: float, window_s: float, *, final: bool,
-              position=None) -> None:
-        """Start a fit of (t, h) over ``window_s`` after the trigger (a quick one is skipped while another runs)."""
+              position=None, section_heads: dict | None = None) -> None:
+        """Start a fit of (t, h) over ``window_s`` after the trigger (a quick one is skipped while another
+        runs, and on a rig with several sections); ``section_heads``: the other transducers' heads on t."""
+        if not final and self.sections:
+            return
         if final:
             if self._final is not None:
                 return
@@ -114,7 +127,7 @@ class OnlineFit:
             return
         else:
             self._cancel_quick.clear()
-        self._spawn("final" if final else "quick", t, h, trigger_time_s, window_s, position)
+        self._spawn("final" if final else "quick", t, h, trigger_time_s, window_s, position, section_heads)
 
     def start_lead(self, t: np.ndarray, h: np.ndarray, trigger_time_s: float, window_s: float, position=None) -> None:
         """Start the lead fit of a ``window_s`` fit: (t, h) reach the end of the lead's part of the window."""
@@ -123,10 +136,12 @@ class OnlineFit:
         self._cancel_quick.set()  # a quick fit still running gives way
         self._lead = self._spawn("lead", t, h, trigger_time_s, window_s, position)
 
-    def _spawn(self, kind: str, t, h, trigger_time_s: float, window_s: float, position=None) -> threading.Thread:
+    def _spawn(self, kind: str, t, h, trigger_time_s: float, window_s: float, position=None,
+               section_heads=None) -> threading.Thread:
         with self._running_lock:
             self._running += 1
-        th = threading.Thread(target=self._work, args=(t, h, trigger_time_s, window_s, kind, position), daemon=True,
+        th = threading.Thread(target=self._work, args=(t, h, trigger_time_s, window_s, kind, position, section_heads),
+                              daemon=True,
                               name="velab-recorder-fit" + ("" if kind == "final" else "-" + kind))
         if kind == "final":
             self._final = th
@@ -153,12 +168,12 @@ class OnlineFit:
             th.join(0.05)
         return self._lead_result if self._lead_result is not None else True
 
-    def _fit(self, t, h, trigger_time_s, window_s, kind, position=None):
+    def _fit(self, t, h, trigger_time_s, window_s, kind, position=None, section_heads=None):
         """The fit, in the worker process if there is a live one, else here; raises _Cancelled."""
         final = kind == "final"
         kw = fit_arguments(t, h, trigger_time_s, self.rig, models=self.s.fit_models, window_s=window_s,
                            method=self.s.fit_method, sample_rate_hz=self.fs, quick=kind == "quick",
-                           position_pct=position)
+                           position_pct=position, section_heads=section_heads)
         if final:
             kw["lead"] = self._lead_for_final()
         call = "lead" if kind == "lead" else "record"
@@ -206,10 +221,10 @@ class OnlineFit:
         if proc is not None:
             fit_worker.release(proc)
 
-    def _work(self, t, h, trigger_time_s, window_s, kind, position=None) -> None:
+    def _work(self, t, h, trigger_time_s, window_s, kind, position=None, section_heads=None) -> None:
         final = kind == "final"
         try:
-            r = self._fit(t, h, trigger_time_s, window_s, kind, position)
+            r = self._fit(t, h, trigger_time_s, window_s, kind, position, section_heads)
             if final:
                 self.result = r
                 self.latency_s = time.perf_counter() - self._closed_at

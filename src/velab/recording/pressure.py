@@ -2,10 +2,12 @@
 its own acquisition thread -> SampleBlocks with per-sample quality -> the time line.
 
 ``look()`` (a short pressure reading before anything is armed), ``start(on_block)`` (the
-acquisition thread), ``stop()`` (bounded). Every block goes to ``on_block(block, pressure_codes,
-valve_codes)`` with the driver's per-sample quality codes of those channels
-(``SampleBlock.sample_quality``: the one source of per-sample quality; NE43 limits, open loop,
-NaN, stuck counts are the driver's, from its profile). Failures end the run through
+acquisition thread), ``stop()`` (bounded). The stage acquires the pressure channels it is given
+(``pressure``: every transducer's, the valve's first; default the source's first pressure channel)
+and the valve position. Every block goes to ``on_block(block, codes)`` with the driver's per-sample
+quality codes of each of its channels, by channel name (``SampleBlock.sample_quality``: the one
+source of per-sample quality; NE43 limits, open loop, NaN, stuck counts are the driver's, from its
+profile). Failures end the run through
 ``hooks.request_end``: a fatal source error at once; a transient one (a polled ADC's failed poll:
 its ring keeps the samples) is a fault, retried; a source that delivers nothing for
 ``stall_timeout_s`` (wall seconds: a silent, frozen or vanished device, a reconnection that takes
@@ -26,7 +28,7 @@ log = logging.getLogger(__name__)
 
 
 class PressureStage:
-    def __init__(self, source: PressureSource):
+    def __init__(self, source: PressureSource, pressure: tuple[str, ...] | None = None):
         self.source = source
         self.name = source.name
         self.fs: float | None = None
@@ -36,7 +38,9 @@ class PressureStage:
         p, v = source.channels()
         if p is None:
             raise DeviceFailure(f"{self.name}: no pressure channel (units Pa) is acquired")
-        self.pressure_channel, self.valve_channel = p, v
+        # the transducers' channels, the valve's first (velab.recording.transducers)
+        self.pressure = tuple(pressure) if pressure else (p,)
+        self.pressure_channel, self.valve_channel = self.pressure[0], v
 
     def rate_range(self) -> tuple[float, float]:
         """The sample rates this source accepts (Hz)."""
@@ -46,17 +50,17 @@ class PressureStage:
         return self.source.calibration()
 
     # ---------------------------------------------------------------- before arming
-    def look(self, fs: float) -> tuple[float, str]:
-        """A short look at the pressure before anything is armed: (mean head, worst quality)."""
+    def look(self, fs: float) -> dict[str, tuple[float, str]]:
+        """A short look at every pressure channel before anything is armed: {channel: (mean head, worst quality)}."""
         try:
-            return self.source.spot_head(fs)
+            return self.source.spot_heads(fs, self.pressure)
         except DEVICE_ERRORS as exc:
             raise DeviceFailure(f"{self.name}: pressure check failed: {exc}") from None
 
     # ---------------------------------------------------------------- acquisition
     def start(self, fs: float, stall_timeout_s: float, on_block, hooks) -> float:
         """Start the device and the acquisition thread; returns the device's actual rate."""
-        self.source.configure(fs)
+        self.source.configure(fs, self.pressure)
         self.fs = self.source.start()
         self._stop.clear()
         self.outcome = ""
@@ -65,9 +69,8 @@ class PressureStage:
         self._thread.start()
         return self.fs
 
-    def _codes(self, b):
-        return [None if ch is None or ch not in b.channels else sample_codes(b, ch)
-                for ch in (self.pressure_channel, self.valve_channel)]
+    def _codes(self, b) -> dict:
+        return {ch: sample_codes(b, ch) for ch in self.pressure + (self.valve_channel,) if ch and ch in b.channels}
 
     def _loop(self, on_block, hooks, stall_timeout_s: float) -> None:
         last_data = time.monotonic()
@@ -83,8 +86,7 @@ class PressureStage:
                     hooks.fault("pressure", f"answers again after: {last_error}", "no_response")
                     last_error = ""
                 for b in r.blocks:
-                    p_codes, v_codes = self._codes(b)
-                    on_block(b, p_codes, v_codes)
+                    on_block(b, self._codes(b))
                     last_data = time.monotonic()
                     if self._stop.is_set():
                         break

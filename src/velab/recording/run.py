@@ -24,9 +24,10 @@ from velab.recording.redundancy import RedundancyMonitor, head_mismatch, head_to
 from velab.recording.safety import ceiling_head, check_output_dir, predict_surge
 from velab.recording.slow import SlowChannels
 from velab.recording.timeline import Timeline
+from velab.recording.transducers import transducer_channels
 from velab.recording.trigger import TriggerFailed, make_safe, readback_note, trigger_manoeuvre
 from velab.recording.types import DEVICE_ERRORS, DeviceFailure, Hooks, RunRefused, RunSummary
-from velab.recording.writer import BYTES_PER_SAMPLE, WriterStage
+from velab.recording.writer import WriterStage, bytes_per_sample
 from velab.runfiles.fits import save_fit
 
 log = logging.getLogger(__name__)
@@ -98,8 +99,12 @@ class Run:
         """Checks (nothing moves), the run file, the stages, the stream, the actuator armed."""
         s = self.settings
         name = self.rec.roles["pressure"]
-        source = PressureStage(pressure_source(self.rec.devices[name], name, getattr(self.rec.clock, "scale", 1.0)
-                                               if self.rec.clock is not None else 1.0))
+        src = pressure_source(self.rec.devices[name], name, getattr(self.rec.clock, "scale", 1.0)
+                              if self.rec.clock is not None else 1.0)
+        # every transducer of the rig on its channel (the bench's [recorder.transducers]), the valve's first
+        transducers = transducer_channels(self.rec.rig, self.rec.bench.transducer_channels, self.rec.bench_where,
+                                          src.pressure_channels(), name)
+        source = PressureStage(src, tuple(t.adc_channel for t in transducers))
         lo, hi = source.rate_range()
         if not lo <= s.sample_rate_hz <= hi:
             raise VelabError(f"sample rate {s.sample_rate_hz:g} Hz is outside the range of {source.name} "
@@ -111,15 +116,20 @@ class Run:
             raise VelabError(f"pressure ceiling {s.ceiling_head_m:g} m is above the limiting pressure of the rig "
                              f"({ceiling:.1f} m of head): it cannot be raised past the transducer or the pipe")
         # 1. the output directory, 2. the interlock (pure), 3. readiness: nothing has moved yet
-        check_output_dir(s.out_dir, int((s.pretrigger_s + s.duration_s) * fs * BYTES_PER_SAMPLE))
+        per_sample = bytes_per_sample(len(transducers))
+        check_output_dir(s.out_dir, int((s.pretrigger_s + s.duration_s) * fs * per_sample))
         pred = predict_surge(self.rec.rig, s)
         if not pred.allowed:
             raise RunRefused(pred.message)
         self.rec._check_valve_ready()
         q = check_steady_flow(self.rec.devices[self.rec.roles["flowmeter"]].read_flow, self.rec._sleep,
                               self.rec.rig.steady_flow_m3_s, s.flow_tolerance, self.rec.roles["flowmeter"])
-        head, quality = source.look(fs)
+        looks = source.look(fs)
+        head, quality = looks[transducers[0].adc_channel]
         check_steady_head(head, quality, self.rec.rig.steady_head_m, s.head_range, ceiling)
+        for t in transducers[1:]:  # each other transducer plausible too, at its own steady head
+            check_steady_head(*looks[t.adc_channel], self.rec.rig.steady_head_at_m(t.position_m), s.head_range,
+                              ceiling, transducer=f"{t.name} ({t.adc_channel})")
         self.steady = head
         pred = predict_surge(self.rec.rig, s, head)
         if not pred.allowed:
@@ -131,15 +141,16 @@ class Run:
         self.armed_timeout_s = s.armed_timeout(self.rec.bench_armed_timeout_s)
         self.path = run_file_name(s.out_dir, s.run_number)
         setup = bench_snapshot(self.rec.bench, self.rec.roles, self.rec.profiles, self.rec.identities, self.rec.sim)
-        src = {"kind": "recording", "bench": self.rec.bench.name, "simulated": self.rec.sim is not None,
-               "material": self.rec.sim.rig.material.name if self.rec.sim is not None else None}
+        about = {"kind": "recording", "bench": self.rec.bench.name, "simulated": self.rec.sim is not None,
+                 "material": self.rec.sim.rig.material.name if self.rec.sim is not None else None}
         try:
             w = create_run_file(self.path, self.rec.rig, s, fs=fs, manoeuvre=(beta, gamma, end), steady_head=head,
                                 steady_flow=q, predicted_peak=pred.peak_head_m, ceiling=ceiling, device_setup=setup,
-                                calibration=source.calibration(), source=src, armed_timeout_s=self.armed_timeout_s)
+                                calibration=source.calibration(), source=about, armed_timeout_s=self.armed_timeout_s,
+                                transducers=transducers)
         except VelabError as exc:
             raise RunRefused(str(exc)) from None
-        self.writer = WriterStage(w, fs, s.flush_interval_s, self.hooks)
+        self.writer = WriterStage(w, fs, s.flush_interval_s, self.hooks, per_sample)
         self.source = source
         self.log("operator", f"armed by {s.operator or 'operator'}: {pred.message}")
         self.fit = OnlineFit(commanded_rig(self.rec.rig, beta, gamma), s, fs, self.rec._emit, self.message)
@@ -154,7 +165,8 @@ class Run:
         self.timeline = Timeline(s, fs, (beta, gamma, end), ceiling, source.pressure_channel, source.valve_channel,
                                   self.hooks, write, self._window_closed,
                                   on_baseline=lambda: self.rec._submit(lambda: None),
-                                  lead_window_s=self.fit.lead_window_s(), on_lead=self._lead_ready)
+                                  lead_window_s=self.fit.lead_window_s(), on_lead=self._lead_ready,
+                                  others=transducers[1:])
         valve = self.rec.devices[self.rec.roles["valve"]]
         rec = self.rec
         self.slow = SlowChannels(valve, rec.roles["valve"], rec.devices[rec.roles["flowmeter"]], self.hooks,
@@ -303,10 +315,10 @@ class Run:
         if fit is None or self.halt_ev.is_set() or self.ending() is not None or tl.lead_window_s is None:
             return
         try:
-            t, h, trigger, _, _, pos = tl.fit_window(tl.lead_window_s)
+            r = tl.fit_window(tl.lead_window_s)
         except ValueError:
             return  # (the final fit says why there is no fit)
-        fit.start_lead(t, h, trigger, self.settings.fit_window_s, position=pos)
+        fit.start_lead(r.t, r.head, r.trigger_time_s, self.settings.fit_window_s, position=r.position)
 
     def _window_closed(self, window_s: float, final: bool) -> None:
         """From the acquisition thread: the fit window (or a quick fit's part of it) is in."""
@@ -317,15 +329,16 @@ class Run:
         if final and ending in (P.ABORTED, P.FAILED):
             return  # the end decides (no fit of an aborted or failed run)
         try:
-            t, h, trigger, w, note, pos = tl.fit_window(window_s)
+            r = tl.fit_window(window_s)
         except ValueError as exc:
             if final:
                 fit.refuse(str(exc))
             return
-        if note and final:
-            self.message(note)
-        if final or (not fit.busy and w >= window_s):
-            fit.start(t, h, trigger, w, final=final, position=pos)
+        if r.note and final:
+            self.message(r.note)
+        if final or (not fit.busy and r.window_s >= window_s):
+            fit.start(r.t, r.head, r.trigger_time_s, r.window_s, final=final, position=r.position,
+                      section_heads=r.section_heads)
 
     def _safe_valve(self, ask: bool = True) -> None:
         valve = self.rec.devices.get(self.rec.roles.get("valve", ""))

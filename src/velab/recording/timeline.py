@@ -1,7 +1,10 @@
 """The run's time line: pressure blocks -> time axis, gaps, quality, baseline, trigger, fit window.
 
-Fed by the pressure source's thread (``process(block, p_codes, v_codes)``); hands writes to the
-writer stage and reports through the hooks. Every boundary is counted in samples of the
+Fed by the pressure source's thread (``process(block, codes)``: the driver's per-sample quality codes
+by channel); hands writes to the writer stage and reports through the hooks. Every transducer of the
+rig is recorded (its head, pressure, raw counts and quality: velab.recording.transducers); the
+steady head, the ceiling, the trigger and the fit window are the valve's transducer's, and a
+flagged sample of any transducer shortens the window every section is fitted on. Every boundary is counted in samples of the
 pressure source's clock, so a fast simulated clock makes a whole run fast, and one rule decides
 each boundary: a span [a, b) on the run's axis is in when the next sample's time reaches
 ``b - 0.5/fs`` (the fit window and the record's end use the same test, so a fit window equal to
@@ -13,7 +16,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -23,6 +26,7 @@ from velab.fitting.window import BASELINE_S, steady_head, window_slice
 from velab.recording.online_fit import MIN_FIT_WINDOW_S
 from velab.recording.ops import Append, Gap, Trigger
 from velab.recording.safety import OK, ceiling_crossing, describe_codes, finite_max
+from velab.recording.transducers import TransducerChannel
 
 # samples kept from before the trigger is marked: the fit path's baseline (velab.fitting.window), and
 # 1 s for the trigger's estimate being ahead of the last sample processed when it was marked
@@ -50,6 +54,22 @@ def slice_block(b, k: int):
 
 
 QUICK_FRACTIONS = (0.25, 0.5, 0.75)  # intermediate quick fits at these fractions of the fit window
+T, HEAD, POSITION = 0, 1, 2  # rows of the window's buffer; the other transducers' heads follow
+
+
+@dataclass(frozen=True)
+class FitRecord:
+    """The record the fit path takes (``Timeline.fit_window``): the run's axis from a few seconds before the
+    trigger to the end of the clean part of the window, the valve transducer's absolute head there, the
+    other transducers' by name (a rig with several sections), the valve position (or None)."""
+
+    t: np.ndarray
+    head: np.ndarray
+    trigger_time_s: float
+    window_s: float
+    note: str = ""
+    position: np.ndarray | None = None
+    section_heads: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -76,12 +96,14 @@ class Timeline:
 
     def __init__(self, settings, fs: float, manoeuvre: tuple[float, float, float], ceiling_m: float,
                  pressure_channel: str, valve_channel: str | None, hooks, write, on_window_closed,
-                 on_baseline=lambda: None, lead_window_s: float | None = None, on_lead=lambda: None):
+                 on_baseline=lambda: None, lead_window_s: float | None = None, on_lead=lambda: None,
+                 others: tuple[TransducerChannel, ...] = ()):
         self.s = settings
         self.fs = fs
         self.beta, self.gamma, self.end_pct = manoeuvre
         self.ceiling = ceiling_m
         self.pch, self.vch = pressure_channel, valve_channel
+        self.others = tuple(others)  # the rig's transducers other than the valve's (velab.recording.transducers)
         self.hooks = hooks
         self.write = write  # write(velab.recording.ops message) -> the writer stage
         self.on_window_closed = on_window_closed
@@ -109,9 +131,9 @@ class Timeline:
         self.trigger_from_feedback = False  # ... and the instant measured from it
         self._pos_t: list = []
         self._pos_v: list = []
-        self._fit_t = self._fit_h = self._fit_p = None  # the window's axis, head, valve position
+        self._fit = None  # the window's rows: axis, head, valve position, the other transducers' heads
         self._fit_n = 0
-        self._pre_blocks: deque = deque()  # (axis time, head) blocks before the trigger was marked
+        self._pre_blocks: deque = deque()  # (axis time, head, others' heads) blocks before the trigger was marked
         self.clean_until: float | None = None  # first flagged / lost instant after the trigger
         self.window_closed = False
         self.ended = False  # no more samples are taken (end requested)
@@ -157,8 +179,8 @@ class Timeline:
     def _record(self) -> tuple[np.ndarray, np.ndarray]:
         """(axis, head) kept: the baseline's blocks, then the window's samples so far (a copy)."""
         n = self._fit_n
-        ts = [b[0] for b in self._pre_blocks] + ([self._fit_t[:n]] if n else [])
-        hs = [b[1] for b in self._pre_blocks] + ([self._fit_h[:n]] if n else [])
+        ts = [b[0] for b in self._pre_blocks] + ([self._fit[T, :n]] if n else [])
+        hs = [b[1] for b in self._pre_blocks] + ([self._fit[HEAD, :n]] if n else [])
         return (np.concatenate(ts), np.concatenate(hs)) if ts else (np.empty(0), np.empty(0))
 
     # ---------------------------------------------------------------- the trigger (control thread)
@@ -172,7 +194,7 @@ class Timeline:
             if self._last_host is not None:
                 idx = max(idx, int(round(self._last_idx + (now_host - self._last_host) * self.fs * clock_scale)))
             cap = int((self.s.fit_window_s + 2.0) * self.fs + (idx - self.gidx)) + 1
-            self._fit_t, self._fit_h, self._fit_p = np.empty(cap), np.empty(cap), np.empty(cap)
+            self._fit = np.empty((3 + len(self.others), cap))
             self._fit_n = 0
             self.trigger_idx = idx
             self.trigger_time = (idx - self.n_pre) / self.fs
@@ -213,13 +235,16 @@ class Timeline:
                 self._measure_trigger()
 
     # ---------------------------------------------------------------- blocks (acquisition thread)
-    def process(self, b, p_codes: np.ndarray, v_codes: np.ndarray | None) -> None:
+    def process(self, b, codes: dict) -> None:
+        """One block and the driver's per-sample quality codes of its channels (by channel name)."""
         with self._lock:
             if not self.ended:
-                self._process(b, p_codes, v_codes)
+                self._process(b, codes)
 
-    def _process(self, b, p_codes, v_codes) -> None:
+    def _process(self, b, codes: dict) -> None:
         s, fs = self.s, self.fs
+        p_codes, v_codes = codes[self.pch], codes.get(self.vch) if self.vch else None
+        o_codes = [codes[o.adc_channel] for o in self.others]
         if b.lost_before or b.restarted:  # a restarted device is never taken as contiguous, even with 0 lost
             self._gap(int(b.lost_before), bool(b.restarted))
         n = b.n
@@ -232,6 +257,7 @@ class Timeline:
                 b, g, t = slice_block(b, n), g[:n], t[:n]
                 p_codes = p_codes[:n]
                 v_codes = None if v_codes is None else v_codes[:n]
+                o_codes = [c[:n] for c in o_codes]
         if n == 0:
             self._check_boundaries()
             return
@@ -241,11 +267,18 @@ class Timeline:
         pos = b.column(self.vch) if has_v else np.full(n, np.nan)
         pos_raw = b.raw_column(self.vch).astype(np.int32) if has_v else np.zeros(n, np.int32)
         vq = v_codes if v_codes is not None else np.zeros(n, np.uint8)
-        self.write(Append(t, {
+        channels = {
             "head": head, "valve_position": pos, "pressure": b.values[:, pi], "pressure_raw": b.raw[:, pi].astype(np.int32),
             "valve_position_raw": pos_raw, "sample_index": g, "host_time": b.host_times_s,
             "pressure_quality": p_codes, "valve_position_quality": vq,
-        }))
+        }
+        o_heads = []
+        for o, oc in zip(self.others, o_codes):
+            j = b.channels.index(o.adc_channel)
+            o_heads.append(b.head_m(o.adc_channel))
+            channels |= {o.channel("head"): o_heads[-1], o.channel("pressure"): b.values[:, j],
+                         o.channel("pressure_raw"): b.raw[:, j].astype(np.int32), o.channel("pressure_quality"): oc}
+        self.write(Append(t, channels))
         self.n_written += n
         before = self.gidx
         self.gidx += n
@@ -253,15 +286,20 @@ class Timeline:
         if before < self.n_pre <= self.gidx:
             self.on_baseline()
         ok = p_codes == OK
-        self.flagged += int(n - ok.sum())
+        every_ok = ok.copy()
+        for oc in o_codes:
+            every_ok &= oc == OK
+        self.flagged += int(n - every_ok.sum())  # samples with a flagged transducer
         self.peak = max(self.peak, finite_max(np.where(ok, head, np.nan)))
         self._quality(p_codes, "pressure", self.pch, t)
+        for o, oc in zip(self.others, o_codes):
+            self._quality(oc, "pressure", o.adc_channel, t, transducer=o.name)
         if has_v:
             self._quality(vq, "valve", self.vch, t)
         if self.trigger_idx is not None:
-            self._after_trigger(t, head, pos, p_codes)
+            self._after_trigger(t, head, pos, o_heads)
         else:
-            self._keep_pre(t, head)
+            self._keep_pre(t, head, o_heads)
         self.hooks.emit("samples", {"time_s": t, "head_m": head, "valve_position": pos, "lost": int(b.lost_before),
                                     "quality": p_codes})
         i = ceiling_crossing(head, p_codes, self.ceiling)
@@ -283,27 +321,32 @@ class Timeline:
         if self.trigger_idx is not None and not self.window_closed and self.clean_until is None:
             self.clean_until = (self.gidx - lost - self.n_pre) / self.fs
 
-    def _quality(self, codes, role: str, channel: str, t) -> None:
+    def _quality(self, codes, role: str, channel: str, t, transducer: str | None = None) -> None:
+        """Each code once per channel (a fault event, so the run is flagged); a flagged transducer sample
+        after the trigger ends the clean window; a transducer flagged before it ends the run.
+        ``transducer``: the rig's name of a transducer other than the valve's (its channel is named too)."""
         bad = codes != OK
         if not bad.any():
             return
         first = int(np.flatnonzero(bad)[0])
         if role == "pressure" and self.trigger_idx is not None and not self.window_closed and self.clean_until is None:
             self.clean_until = float(t[first])
-        fresh = [int(c) for c in np.unique(codes[bad]) if (role, int(c)) not in self._seen_quality]
+        fresh = [int(c) for c in np.unique(codes[bad]) if (role, channel, int(c)) not in self._seen_quality]
         if fresh:
             for c in fresh:
-                self._seen_quality.add((role, c))
+                self._seen_quality.add((role, channel, c))
             what = {QUALITY_CODE[Quality.STALE]: "stuck channel"}.get(fresh[0], QUALITY_CODES[fresh[0]].value)
-            self.hooks.fault(role, f"{channel} samples flagged from t = {t[first]:.3f} s: {what} "
+            label = channel if transducer is None else f"{channel} (transducer {transducer})"
+            extra = {} if transducer is None else {"transducer": transducer}
+            self.hooks.fault(role, f"{label} samples flagged from t = {t[first]:.3f} s: {what} "
                                    f"({describe_codes(codes)} in this block)", "stuck" if what == "stuck channel"
-                             else "quality", channel=channel, quality=QUALITY_CODES[fresh[0]].value)
+                             else "quality", channel=channel, quality=QUALITY_CODES[fresh[0]].value, **extra)
             if role == "pressure" and self.trigger_idx is None:
                 # blind before the trigger: never start a manoeuvre on a transducer that is not plausible
-                self.hooks.request_end("aborted", f"pressure transducer fault before the trigger ({what}): "
-                                                  "manoeuvre cancelled")
+                who = "pressure transducer" if transducer is None else f"pressure transducer {transducer!r} ({channel})"
+                self.hooks.request_end("aborted", f"{who} fault before the trigger ({what}): manoeuvre cancelled")
 
-    def _after_trigger(self, t, head, pos, p_codes) -> None:
+    def _after_trigger(self, t, head, pos, o_heads) -> None:
         s = self.s
         if not self.trigger_measured and self.vch:
             pn = (pos - self.end_pct) / (100.0 - self.end_pct) * 100.0
@@ -315,16 +358,18 @@ class Timeline:
                 self._pos_v.append(pos[sel])
             if passed and self._pos_t:
                 self._measure_trigger()
-        if self._fit_n + t.size > self._fit_t.size and not self.window_closed:
+        buf, n0 = self._fit, self._fit_n
+        if n0 + t.size > buf.shape[1] and not self.window_closed:
             # sized from the trigger's estimate at the command: a measured trigger later than that (a late
             # command at the fast clock on a loaded host: seconds of axis) needs more; the window is kept whole
-            grow = max(2 * self._fit_t.size, self._fit_n + t.size)  # (doubling: a copy now and then)
-            self._fit_t, self._fit_h, self._fit_p = (np.concatenate([a[:self._fit_n], np.empty(grow - self._fit_n)])
-                                                     for a in (self._fit_t, self._fit_h, self._fit_p))
-        k = min(t.size, self._fit_t.size - self._fit_n)
-        self._fit_t[self._fit_n:self._fit_n + k] = t[:k]
-        self._fit_h[self._fit_n:self._fit_n + k] = head[:k]
-        self._fit_p[self._fit_n:self._fit_n + k] = pos[:k] if pos is not None else np.nan
+            grow = max(2 * buf.shape[1], n0 + t.size)  # (doubling: a copy now and then)
+            buf = self._fit = np.concatenate([buf[:, :n0], np.empty((buf.shape[0], grow - n0))], axis=1)
+        k = min(t.size, buf.shape[1] - n0)
+        buf[T, n0:n0 + k] = t[:k]
+        buf[HEAD, n0:n0 + k] = head[:k]
+        buf[POSITION, n0:n0 + k] = pos[:k] if pos is not None else np.nan
+        for i, h in enumerate(o_heads):
+            buf[POSITION + 1 + i, n0:n0 + k] = h[:k]
         self._fit_n += k
         if not self.window_closed and self.trigger_measured and self.clean_until is None:
             after = float(t[-1]) - self.trigger_time
@@ -337,9 +382,9 @@ class Timeline:
                 self._lead_sent = True
                 self.on_lead()
 
-    def _keep_pre(self, t, head) -> None:
+    def _keep_pre(self, t, head, o_heads) -> None:
         pb = self._pre_blocks
-        pb.append((t.copy(), np.array(head, dtype=float)))
+        pb.append((t.copy(), np.array(head, dtype=float), tuple(np.array(h, dtype=float) for h in o_heads)))
         while len(pb) > 1 and pb[1][0][0] < float(t[-1]) - PRE_TRIGGER_KEPT_S:
             pb.popleft()
 
@@ -362,14 +407,12 @@ class Timeline:
             self.hooks.request_end("completed", "")
 
     # ---------------------------------------------------------------- the fit's data
-    def fit_window(self, window_s: float) -> tuple[np.ndarray, np.ndarray, float, float, str, np.ndarray | None]:
-        """(t on the run's axis, absolute head, trigger time, window used, note, valve position or None):
-        the record the fit
-        path (velab.fitting.prepare) takes, the same samples as in the run file, from a few seconds
-        before the trigger to the end of the clean part of the window.
+    def fit_window(self, window_s: float) -> FitRecord:
+        """The record the fit path (velab.fitting.prepare) takes (:class:`FitRecord`), the same samples as
+        in the run file, from a few seconds before the trigger to the end of the clean part of the window.
 
-        Flagged or lost samples inside the window shorten it to the clean part before them (if at
-        least 2 s); otherwise ValueError says why there is no fit.
+        Flagged (any transducer's) or lost samples inside the window shorten it to the clean part before
+        them (if at least 2 s); otherwise ValueError says why there is no fit.
         """
         with self._lock:  # (the acquisition thread may be adding samples)
             note = ""
@@ -382,12 +425,14 @@ class Timeline:
                                          f"{MIN_FIT_WINDOW_S:g} s is needed)")
                     window_s = math.floor(avail * self.fs) / self.fs
                     note = f"fit window shortened to {window_s:.2f} s: flagged or lost samples after it"
-            n = self._fit_n
-            end = window_slice(self._fit_t[:n], self.trigger_time, window_s, self.fs).stop
-            t = np.concatenate([b[0] for b in self._pre_blocks] + [self._fit_t[:end]])
-            h = np.concatenate([b[1] for b in self._pre_blocks] + [self._fit_h[:end]])
+            n, buf = self._fit_n, self._fit
+            end = window_slice(buf[T, :n], self.trigger_time, window_s, self.fs).stop
+            t = np.concatenate([b[0] for b in self._pre_blocks] + [buf[T, :end]])
+            h = np.concatenate([b[1] for b in self._pre_blocks] + [buf[HEAD, :end]])
+            others = {o.name: np.concatenate([b[2][i] for b in self._pre_blocks] + [buf[POSITION + 1 + i, :end]])
+                      for i, o in enumerate(self.others)}
             pos = None
             if self.vch:  # the manoeuvre's input (velab.fitting.manoeuvre); open before the trigger
                 pre = sum(b[0].size for b in self._pre_blocks)
-                pos = np.concatenate([np.full(pre, 100.0), self._fit_p[:end]])
-            return t, h, float(self.trigger_time), window_s, note, pos
+                pos = np.concatenate([np.full(pre, 100.0), buf[POSITION, :end]])
+            return FitRecord(t, h, float(self.trigger_time), window_s, note, pos, others)

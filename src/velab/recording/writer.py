@@ -27,6 +27,12 @@ except ImportError:  # not POSIX: no file-size limit to read
 
 log = logging.getLogger(__name__)
 BYTES_PER_SAMPLE = 62  # all fast channels of the run file, per sample, with chunk slack
+TRANSDUCER_BYTES_PER_SAMPLE = 25  # each further transducer's head, pressure, raw counts and quality
+
+
+def bytes_per_sample(transducers: int = 1) -> int:
+    """The run file's bytes per sample with ``transducers`` pressure transducers recorded."""
+    return BYTES_PER_SAMPLE + TRANSDUCER_BYTES_PER_SAMPLE * max(0, transducers - 1)
 
 
 def storage_room(path) -> int | None:
@@ -50,8 +56,9 @@ def _append(w, op: Append) -> int:
 
 
 class WriterStage:
-    def __init__(self, writer, fs: float, flush_interval_s: float, hooks):
+    def __init__(self, writer, fs: float, flush_interval_s: float, hooks, bytes_per_sample: int = BYTES_PER_SAMPLE):
         self.w = writer
+        self.bytes_per_sample = bytes_per_sample
         self.path = writer.path
         self.fs = fs
         self.interval = flush_interval_s
@@ -73,7 +80,7 @@ class WriterStage:
 
     def reserve(self) -> int:
         """Room kept free for the rest of a flush interval and closing the file (HDF5 allocates in chunks)."""
-        return (4 << 20) + 4 * int(0.5 * self.fs * BYTES_PER_SAMPLE)
+        return (4 << 20) + 4 * int(0.5 * self.fs * self.bytes_per_sample)
 
     # each operation on the RunWriter ``w``; an append returns the samples it wrote (for the flush rule)
     _APPLY = {

@@ -121,6 +121,9 @@ class RunWriter:
     (never interpolated); ``flush`` makes everything so far durable;
     ``close(status)`` writes the end time and status.
 
+    Each head channel of a transducer of the rig (``head``, ``head_NAME``: ``Rig.section_channel``) carries
+    ``@transducer`` (its name) and ``@position_m`` (its distance from the upstream reservoir).
+
     Keyword arguments added in format 2.0 (all optional): ``bench`` (the bench
     configuration's contents), ``device_profiles`` (name -> profile contents),
     ``devices`` (name -> identity read from the device), ``file_name`` (the
@@ -227,6 +230,7 @@ class RunWriter:
         self._ds["time"] = tds
         inst = e.create_group("instrument")
         inst.attrs["NX_class"] = "NXinstrument"
+        heads = {self.rig.section_channel(sec): sec for sec in self.rig.sections}  # head, head_NAME
         for c in channels:
             parent = fh.require_group(f"entry/{c.group}")
             if "NX_class" not in parent.attrs:
@@ -236,6 +240,9 @@ class RunWriter:
             if c.long_name:
                 ds.attrs["long_name"] = c.long_name
             ds.dims[0].attach_scale(tds)
+            if c.name in heads:  # a transducer's head: which one, and where along the pipe
+                ds.attrs["transducer"] = heads[c.name].name
+                ds.attrs["position_m"] = float(heads[c.name].position_m)
             self._ds[c.name] = ds
             if c.group != "data":
                 data[c.name] = ds  # hard link: the NXdata group shows every fast channel
