@@ -330,3 +330,39 @@ def test_retries_exhausted_keep_the_named_error():
         with pytest.raises(FrameError, match="after 2 attempts") as ei:
             rtu_bus(t, retries=1).read_holding(3002, 2)
     assert ei.value.reason == "short_frame" and ei.value.device == "flowmeter"
+
+
+# ---------------------------------------------------------------- several sections (a transducer on ch2)
+
+def test_a_buffered_pressure_source_of_two_sections_records_inputs_0_to_2_exact_bytes():
+    """The pressure source asked for the valve's transducer (ch0) and the one on ch2: the module is stopped,
+    then told its rate and 3 buffered channels (ch0..ch2: the position on ch1 comes along), all FC16; the
+    look before arming is one polled read of every input and its status."""
+    from velab.drivers.modbus_adc import ModbusADC
+    from velab.drivers.pressure_source import BufferedSource
+
+    def write(address, words):
+        head = struct.pack(">HH", address, len(words))
+        return (rtu(1, 0x10, head, 2 * len(words), b"".join(struct.pack(">H", w) for w in words)),
+                rtu(1, 0x10, head))
+
+    ai = [0x8000, 0xA000, 0x8800, 0x2AAA]  # raw over 0..24 mA: 12, 15, 12.75, 4 mA
+    pairs = [
+        write(1007, [0]),  # acquisition_control: stop
+        write(1002, [0, 2000]),  # sample_rate (uint32, ABCD)
+        write(1004, [3]),  # buffer_channels: ch0..ch2
+        (rtu(1, 3, struct.pack(">HH", 0, 4)), rtu(1, 3, 8, b"".join(struct.pack(">H", w) for w in ai))),
+        (rtu(1, 3, struct.pack(">HH", 100, 8)), rtu(1, 3, 16, bytes(16))),
+    ]
+    with expected_protocol(pairs) as t:
+        adc = ModbusADC(ModbusClient(t, "rtu", unit=1, timeout_s=0.05, retries=0), "modbus_adc_sections")
+        src = BufferedSource(adc, "pressure_adc")
+        assert src.pressure_channels() == ("pressure", "pressure_2", "pressure_3")
+        src.configure(2000, ("pressure", "pressure_2"))
+        looks = src.spot_heads(2000, ("pressure", "pressure_2"))
+    from velab.drivers.base import pressure_to_head_m
+
+    for ch, raw in (("pressure", ai[0]), ("pressure_2", ai[2])):
+        mA = raw * 24.0 / 65535
+        assert looks[ch][0] == pytest.approx(pressure_to_head_m((mA - 4) / 16 * 6e5), rel=1e-12)
+        assert looks[ch][1] == "ok"

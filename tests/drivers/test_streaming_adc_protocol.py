@@ -462,3 +462,44 @@ def test_profile_good_file_and_missing_file(tmp_path):
     assert p.rate_hz == 5000 and p.channel("p").calibration.open_loop_below == 3.6
     with pytest.raises(StreamingADCProfileError, match="no such file"):
         load_profile(tmp_path / "nope.toml")
+
+
+# ------------------------------------------------------------------ several sections (a transducer on input 2)
+
+
+def test_a_pressure_source_of_two_sections_acquires_input_2_byte_exact():
+    """The pressure source asked for the valve's transducer and the one on input 2 (the bench's
+    [recorder.transducers]): one CHAN and one RANGE more, and each block carries input 2 as a pressure."""
+    from dataclasses import replace
+
+    from velab.drivers.pressure_source import StreamingSource
+
+    prof = replace(load_profile("streaming_adc_sections"), command_timeout_s=0.3, data_timeout_s=0.5,
+                   reconnect=False, poll_s=0.01)
+    k = 50  # one frame of the BLOCK size below
+    i = np.arange(k)
+    raw = np.stack([13000 + i, 16000 + i, 14000 + i], axis=1)  # inputs 0, 1, 2: sample i of each
+    fake = ExpectedProtocol([
+        (b"STOP\n", b"OK STOP 0\n"),
+        (b"RATE 10000\n", b"OK RATE 10000\n"),
+        (b"CHAN 0,1,2\n", b"OK CHAN 0,1,2\n"),
+        (b"RANGE 0 25MA\n", b"OK RANGE 0 25MA\n"),
+        (b"RANGE 1 25MA\n", b"OK RANGE 1 25MA\n"),
+        (b"RANGE 2 25MA\n", b"OK RANGE 2 25MA\n"),
+        (b"BLOCK 50\n", b"OK BLOCK 50\n"),  # ~200 frames/s of 10 kHz
+        (b"START\n", b"OK START\n" + frame(0, 0, raw, mask=0b111)),
+        (b"STOP\n", b"OK STOP 50\n"),
+    ])
+    src = StreamingSource(StreamingADC(fake, prof, name="adc"), "adc")
+    assert src.pressure_channels() == ("pressure", "pressure_2", "pressure_3")
+    src.configure(10_000, ("pressure", "pressure_2"))
+    assert src.start() == 10_000
+    r = src.read_blocks(wait_s=2.0)
+    src.stop()
+    fake.assert_done()
+    (b,) = r.blocks
+    assert b.channels == ("pressure", "valve_position", "pressure_2") and b.units == ("Pa", "%", "Pa")
+    sig = raw * 25.0 / 32767
+    np.testing.assert_allclose(b.column("pressure_2"), (sig[:, 2] - 4) / 16 * 6e5)
+    np.testing.assert_allclose(b.head_m("pressure_2"), pressure_to_head_m(b.column("pressure_2")))
+    assert b.sample_quality.shape == (k, 3) and not b.sample_quality.any()

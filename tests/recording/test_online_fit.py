@@ -100,3 +100,30 @@ def test_the_first_refusal_is_the_one_said():
     fit.refuse("no fit: something else")
     assert fit.error == messages[0] == "no fit: the run ended before the trigger" and len(messages) == 1
     assert fit.wait(0.01)  # no final fit started: nothing to wait for
+
+
+def test_a_rig_with_several_sections_fits_them_all_in_the_final_fit_only(fitter):
+    f = fitter()
+    s = RecordSettings(fit=True, fit_process=False, fit_window_s=20.0, fit_models=(1, 2, 3))
+    events = []
+    fit = OnlineFit(load_rig("perugia_two_sections"), s, 1000.0, lambda k, d: events.append((k, d)), lambda m: None)
+    assert fit.lead_window_s() is None  # the sections' fit has no lead part
+    assert OnlineFit(load_rig("perugia"), s, 1000.0, None, None).lead_window_s() is not None
+    fit.start(T, H, 0.0, 0.5, final=False, section_heads={"mid": H + 1})  # no quick variant: skipped
+    assert not f.calls and not fit.busy
+    fit.start(T, H, 0.0, 2.0, final=True, section_heads={"mid": H + 1})
+    assert fit.wait(5.0) and fit.result is not None
+    (kw,) = f.calls
+    assert set(kw["section_heads"]) == {"mid"} and kw["section_heads"]["mid"] is not None
+    assert kw["rig"].name == load_rig("perugia_two_sections").name and "polish" not in kw
+    assert [(k, d["final"]) for k, d in events] == [("fit", True)]
+
+
+def test_the_fit_paths_sections_search_refuses_the_single_sweeps_options():
+    from velab.errors import DataError
+
+    with pytest.raises(DataError, match="polish = False: not for a fit of several sections"):
+        prepare.fit_record(T, H, 0.0, load_rig("perugia_two_sections"), 1.0, record_rate_hz=1000.0,
+                           section_heads={"mid": H}, polish=False)
+    with pytest.raises(DataError, match="sections: no head for mid"):  # (velab.fitting.sections says which)
+        prepare.fit_record(T, H, 0.0, load_rig("perugia_two_sections"), 1.0, record_rate_hz=1000.0)

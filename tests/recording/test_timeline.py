@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 
 from stage_helpers import RecordingHooks, block, codes_of
+from velab.drivers.base import head_to_pressure_pa
 from velab.fitting.window import steady_head
 from velab.recording.ops import Append, Gap, Trigger
 from velab.recording.settings import RecordSettings
 from velab.recording.timeline import Timeline
+from velab.recording.transducers import TransducerChannel
 
 FS = 1000.0
 
@@ -99,3 +101,60 @@ def test_the_steady_head_is_the_fit_paths_baseline_mean():
 def test_no_baseline_yet_is_the_fallback():
     tl, *_ = make()
     assert tl.steady_head(12.0) == 12.0
+
+
+# ---------------------------------------------------------------- several sections (the rig's other transducers)
+
+MID = TransducerChannel("mid", 41.032, "pressure_2", "head_mid")
+
+
+def test_every_transducer_is_recorded_in_its_own_channels():
+    tl, rec, ops, _, _ = make(others=(MID,))
+    feed(tl, 0, 100, head_m=30.0, others={"pressure_2": 31.5})
+    (a,) = [op for op in ops if isinstance(op, Append)]
+    assert {"head_mid", "pressure_mid", "pressure_raw_mid", "pressure_quality_mid"} <= set(a.channels)
+    assert a.channels["head_mid"] == pytest.approx(np.full(100, 31.5)) and a.channels["head"][0] == pytest.approx(30.0)
+    assert a.channels["pressure_mid"] == pytest.approx(head_to_pressure_pa(np.full(100, 31.5)))
+    assert not rec.faults and not rec.ends
+
+
+def test_the_steady_head_and_the_ceiling_are_the_valves_transducers():
+    tl, rec, _, _, _ = make(ceiling=50.0, others=(MID,))
+    feed(tl, 0, 100, head_m=30.0, others={"pressure_2": 60.0}, host_time_s=0.1)  # mid above the ceiling: not watched
+    assert not rec.ends and tl.steady_head(None) == pytest.approx(30.0)
+    assert tl.counters().peak == pytest.approx(30.0)
+
+
+def test_a_flagged_transducer_before_the_trigger_aborts_naming_it():
+    tl, rec, _, _, _ = make(others=(MID,))
+    codes = np.zeros((100, 3), np.uint8)
+    codes[70:, 2] = 7  # 22 mA on the mid transducer: a sensor fault
+    feed(tl, 0, 100, codes=codes, others={"pressure_2": 31.0})
+    (who, message, kind, extra), = rec.faults
+    assert who == "pressure" and kind == "quality" and extra["transducer"] == "mid" and extra["channel"] == "pressure_2"
+    assert message.startswith("pressure_2 (transducer mid) samples flagged from t = -0.930 s: sensor_fault")
+    assert tl.counters().flagged == 30
+    assert rec.ends == [("aborted", "pressure transducer 'mid' (pressure_2) fault before the trigger (sensor_fault): "
+                                    "manoeuvre cancelled")]
+
+
+def test_a_flagged_transducer_after_the_trigger_is_said_once_and_shortens_every_sections_window():
+    tl, rec, _, closed, _ = make(duration_s=4.0, fit_window_s=3.0, others=(MID,))
+    for i in range(15):
+        feed(tl, 100 * i, 100, others={"pressure_2": 31.0}, host_time_s=(100 * i + 100) / FS)
+    t0 = tl.mark_trigger(1.5, clock_scale=1.0)
+    tl.commit_trigger()
+    for i in range(15, 55):
+        codes = np.zeros((100, 3), np.uint8)
+        if i in (40, 41):  # 2.5 s after the trigger (the valve stays open: the trigger stays the estimate)
+            codes[:, 2] = 6
+        feed(tl, 100 * i, 100, codes=codes, others={"pressure_2": 31.0 + 0.001 * i})
+    stuck = [f for f in rec.faults if f[2] == "stuck"]
+    assert len(stuck) == 1 and stuck[0][3]["transducer"] == "mid"  # once per channel and code
+    assert closed == [(3.0, True)] and rec.ends[-1] == ("completed", "")
+    r = tl.fit_window(3.0)
+    assert t0 == pytest.approx(0.5) and r.window_s == pytest.approx(2.5)  # the clean part before the stuck samples
+    assert "shortened to 2.50 s" in r.note
+    assert set(r.section_heads) == {"mid"} and r.section_heads["mid"].shape == r.head.shape == r.t.shape
+    after = r.t >= t0
+    assert r.section_heads["mid"][after][0] == pytest.approx(31.015)  # the block at 1.5 s on the run's axis
