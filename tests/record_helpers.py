@@ -54,7 +54,7 @@ def short_settings(out_dir, **kw) -> RecordSettings:
 def recorder(sim, settings, source: str | None = None, prefer=None) -> Recorder:
     bench = sim.bench(prefer=prefer)
     if source:
-        bench = dataclasses.replace(bench, recorder={"pressure_source": source})
+        bench = dataclasses.replace(bench, recorder=bench.recorder | {"pressure_source": source})
     return Recorder(bench, sim.rig.rig, settings, sim=sim, owns_sim=True)
 
 

@@ -39,6 +39,17 @@ def test_synth_writes_one_head_channel_per_transducer(two):
     assert first(mid) - first(r.head_m) == pytest.approx((102.58 - 41.032) / 353.73, abs=0.01)
 
 
+def test_each_head_channel_names_its_transducer_and_position(two):
+    # the same attributes as a recording's (velab.runfiles.writer.RunWriter writes both)
+    import h5py
+
+    _, _, path = two
+    with h5py.File(path, "r") as fh:
+        data = fh["entry/data"]
+        assert [(data[c].attrs["transducer"], float(data[c].attrs["position_m"])) for c in ("head", "head_mid")] == [
+            ("valve", 102.58), ("mid", 41.032)]
+
+
 def _csv(path, r, names):
     with open(path, "w") as fh:
         fh.write(",".join(["time", *names]) + "\n")

@@ -58,7 +58,7 @@ def offline_fit(path) -> SectionsResult:
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize("source", ["streaming_adc", "pressure_adc"])
 def test_two_sections_recorded_and_fitted_online_as_velab_fit_does(tmp_path, source, thread_errors):  # noqa: F811
-    rec = recorder(fast_sim(two_sections(pressure_source=source)), settings(tmp_path))
+    rec = recorder(fast_sim(two_sections()), settings(tmp_path), source=source)  # (the map kept: record_helpers)
     out = run_bounded(rec, deadline_s=240.0)
     s = out.summary
     assert s is not None, out.error

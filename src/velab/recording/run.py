@@ -323,8 +323,8 @@ class Run:
     def _window_closed(self, window_s: float, final: bool) -> None:
         """From the acquisition thread: the fit window (or a quick fit's part of it) is in."""
         fit, tl = self.fit, self.timeline
-        if fit is None or self.halt_ev.is_set():
-            return
+        if fit is None or self.halt_ev.is_set() or (not final and fit.sections):
+            return  # (the sections' fit has no quick variant: velab.recording.online_fit)
         ending = self.ending()
         if final and ending in (P.ABORTED, P.FAILED):
             return  # the end decides (no fit of an aborted or failed run)
