@@ -167,6 +167,20 @@ def test_cli_json_campaign(tmp_path):
     assert len(names) == 2 and names[0].endswith("_run001.h5") and names[1].endswith("_run002.h5")
 
 
+def test_cli_simulate_with_another_rig_simulates_that_rig(tmp_path):
+    """`--simulate --rig NAME`: the simulated rig is that rig (its Q0, geometry), so the readiness checks pass
+    and the run file names it; it used to run the sim config's rig and refuse on the steady flow."""
+    out = subprocess.run(
+        [sys.executable, "-m", "velab.cli", "record", "--simulate", "--fast", "--rig", "imperial", "--duration", "3",
+         "--no-fit", "--json", "--quiet", "--out-dir", str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    run = read_run(json.loads(out.stdout)["runs"][0]["path"])
+    assert run.status == "completed" and "imperial" in run.rig.name.lower()
+    with h5py.File(run.path, "r") as fh:
+        measured = float(fh["entry/manoeuvre/measured_steady_flow"][()])
+    assert measured == pytest.approx(run.rig.steady_flow_m3_s, rel=0.05)  # the simulator's flow is the rig's
+
+
 def test_cli_refusal_exit_code_and_one_line_error(tmp_path):
     out = subprocess.run(
         [sys.executable, "-m", "velab.cli", "record", "--simulate", "--fast", "--duration", "3", "--no-fit",

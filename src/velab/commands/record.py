@@ -43,7 +43,8 @@ def register(subparsers) -> None:
     clk.add_argument("--fast", dest="clock", action="store_const", const="fast",
                      help="simulated clock runs 12x faster than real time")
     clk.add_argument("--clock", dest="clock", metavar="KIND", help="realtime | fast | scaled:K")
-    p.add_argument("--rig", default=None, help="rig config (default: the simulator's rig, or perugia)")
+    p.add_argument("--rig", default=None, help="rig config (with --simulate: the rig simulated; default: the "
+                                               "sim config's rig, or perugia)")
     p.add_argument("--duration", type=float_range(0, 3600, lo_open=True, units="s"), default=30.0, help="seconds recorded after the trigger (30)")
     p.add_argument("--pretrigger", type=float_range(0, 600, lo_open=True, units="s"), default=2.0, help="baseline before the trigger, s (2)")
     p.add_argument("--rate", type=float_range(0, 1e6, lo_open=True, units="Hz"), default=1000.0, help="pressure sample rate, Hz (1000; within the pressure source's range)")
@@ -260,9 +261,11 @@ def make_recorder(args, settings):
     if getattr(args, "simulate", False) or not args.config:
         if not getattr(args, "simulate", False):
             raise VelabError("give --config BENCH.toml or --simulate")
-        rig = load_rig(args.rig) if args.rig else None
+        if args.rig:
+            load_rig(args.rig)  # a bad rig file is the rig's one-line error, before any simulator starts
+        # the simulated rig is the rig named (its geometry, valve, friction): what the recorder checks against
         return Recorder.simulated(settings, sim_config=args.sim_config, material=args.material,
-                                  clock=args.clock or "realtime", rig=rig)
+                                  clock=args.clock or "realtime", rig=args.rig)
     from velab.drivers.base import ProfileError
     from velab.drivers.bench import load_bench
 

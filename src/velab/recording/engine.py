@@ -77,10 +77,12 @@ class Recorder:
 
     @classmethod
     def simulated(cls, settings: RecordSettings, sim_config: str = "default", material: str | None = None,
-                  clock="realtime", rig: Rig | None = None) -> "Recorder":
+                  clock="realtime", rig: Rig | str | None = None) -> "Recorder":
         """Start the simulated rig in-process (ephemeral endpoints) and record from it; the Recorder owns it.
 
-        ``clock``: "realtime", "fast" (12 x real time), "scaled:K", or a clock object.
+        ``clock``: "realtime", "fast" (12 x real time), "scaled:K", or a clock object. ``rig``: a rig's name or
+        path makes the simulated rig that rig (``velab record --simulate --rig NAME``); a Rig object is the rig
+        the recorder believes in while the simulator runs its config's (a wrong rig file, as a lab may have).
         """
         # not at module level: a recorder on a real bench never loads the simulators (servers, ptys)
         from velab.simulators.bench import SimulatedBench, load_sim_config
@@ -90,6 +92,8 @@ class Recorder:
         doc = dict(doc)
         if material:
             doc["material"] = material
+        if isinstance(rig, str):
+            doc["rig"], rig = rig, None
         if isinstance(clock, str):
             try:
                 clock = make_clock(clock)
