@@ -23,7 +23,8 @@ def register(sub) -> None:
     p.add_argument("--material", default=None, help="pipe material of the simulated rig, e.g. A (with --simulate)")
     p.add_argument("--clock", default=None, metavar="KIND",
                    help="simulated clock: realtime (default), fast (12x) or scaled:K (with --simulate)")
-    p.add_argument("--rig", default=None, help="rig configuration name or TOML (default: the bench's)")
+    p.add_argument("--rig", default=None, help="rig configuration name or TOML (with --simulate: the rig simulated; "
+                                               "default: the bench's)")
     p.add_argument("--open", metavar="RUN.h5", help="open this run in the archive browser")
     p.add_argument("--settings", metavar="FILE.ini", help=argparse.SUPPRESS)
     p.set_defaults(func=run)

@@ -63,8 +63,8 @@ def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "
 
         def make(**settings):
             s = rec.RecordSettings(**_coerce(settings))
-            return rec.Recorder.simulated(s, sim_config=sim_config, material=material, clock=clock,
-                                          rig=the_rig if rig else None)
+            # a rig named with --simulate is the rig simulated (as velab record --simulate --rig)
+            return rec.Recorder.simulated(s, sim_config=sim_config, material=material, clock=clock, rig=rig)
         make.make_settings = _record_settings
         return make, the_rig
     if config is None:
