@@ -15,9 +15,13 @@ import pytest
 from velab.cli import main
 from velab.config import load_rig
 from velab.errors import DataError
-from velab.fitting.manoeuvre import (ValveInput, closing_position, closure_flow, closure_opening, from_solver,
-                                     half_flow_offset, result_flow, to_solver, valve_input)
-from velab.fitting.prepare import fit_record
+from velab.fitting.manoeuvre import (ValveInput, closing_position, closure_flow, closure_opening, coupling_head,
+                                     early_window_s, from_solver, half_flow_offset, position_flow, result_flow,
+                                     to_solver, valve_input)
+from velab.fitting.params import FitBounds
+from velab.fitting.prepare import fit_record, prepare_record
+from velab.fitting.refine import refine_closure
+from velab.fitting.sweep import fit_sweep
 from velab.model import ValveHeadModel, flow_perturbation
 from velab.moc import moc_head
 from velab.valvelaw import Valve, commanded_position_pct
@@ -131,8 +135,9 @@ def test_the_manoeuvre_input_modes():
     ("imperial", "EL", "linear"),
     ("imperial", "S3", "power1.5"),
     ("imperial", "S1", "quick"),
-    # a valve that shuts abruptly and a fast element smooth the fronts alike: the lead's early-window
-    # closure took the element up (S2 named); the continuation searches again under the refined closure
+    # a valve that shuts abruptly and a fast element smooth the fronts alike: the lead's closure, refined with
+    # its S2 wall, took the element up; the continuation searches again and the closure is refined with the
+    # wall of the model it names (below, test_a_quick_valve_head_only_record_names_s3_with_margin_...)
     ("perugia", "S3", "quick"),
 ])
 def test_a_real_valve_head_only_record_names_the_truth(rig_name, truth, valve):
@@ -149,6 +154,50 @@ def test_a_real_valve_head_only_record_names_the_truth(rig_name, truth, valve):
     assert abs(b.wave_speed_m_s - a_true) <= max(4 * b.wave_speed_se_m_s, 0.05), (b.wave_speed_m_s, b.wave_speed_se_m_s)
     assert b.noise_ratio <= 1.1
     assert not [w for w in r.warnings if w["code"] == "misfit"]
+
+
+def test_the_first_parts_closure_of_a_late_closing_valve_follows_its_flow():
+    """A quick-opening valve passes its flow until late in the stroke (half of it at 0.30 s, where the rig's
+    sigmoid says 0.17 s). The first part's wave-speed scan drives an elastic pipe with the rig's sigmoid: it
+    came out at 237 m/s for 353.7, the first part's fit was boxed around it, its closure missed the flow by
+    6 % of Q0 rms (F 90 x the noise there) and every later stage started from that. The box holds the rig's
+    nominal wave speed too."""
+    rig, t, h = valve_record(load_rig("perugia"), "S3", VALVES["quick"])
+    rec = prepare_record(t, h, 0.0, rig, 20.0, record_rate_hz=1000.0)
+    vi = valve_input(rec.t, rec.h, rig, rec.window_s)
+    m = rig.manoeuvre
+    true = position_flow(rec.t, coupling_head(rec.t, rec.h, rig), commanded_position_pct(rec.t, m.beta_per_s, m.gamma),
+                         rig)
+    ne = int(np.searchsorted(rec.t, early_window_s(rig, rec.window_s)))
+    assert np.sqrt(np.mean((vi.flow[:ne] - true[:ne]) ** 2)) < 0.03 * rig.steady_flow_m3_s
+
+
+def test_a_quick_valve_head_only_record_names_s3_with_margin_and_its_own_closure():
+    """The knife edge (tests above: S2 named on one machine, S3 on another): a fast element (17 ms) smooths the
+    fronts as an abrupt closure does, and the closure had been refined with the lead's S2 wall, which it then
+    made up for. Now the record, and the same record changed far below its noise (1e-9 m: any change of its
+    last bits sends the solvers down other paths, as another CPU's rounding does), both name S3 with S2 more
+    than 20 AIC units behind (about 220 on seeds 11-14) and wave speeds within two standard errors of each
+    other (the closure family has more than one local optimum on this record, 31 apart in n ln F: which one
+    a fit ends in still depends on its path, docs/fitting.md); and the closure is the named model's: refined
+    again with its wall and every model continued, S3 gains less than 2 in n ln F and its wave speed moves by
+    less than a quarter of its standard error (before: 34-290 on seeds 12 and 14, and up to half of it)."""
+    rig, t, h = valve_record(load_rig("perugia"), "S3", VALVES["quick"])
+    fits = [fit_record(t, x, 0.0, rig, 20.0, record_rate_hz=1000.0)
+            for x in (h, h + 1e-9 * np.random.default_rng(5).normal(size=h.size))]
+    for r in fits:
+        assert r.best.name == "S3", r.report(elements=False)
+        assert r["S2"].delta_aic > 20
+        assert r.settings["manoeuvre"]["refined_with"] == "S3"
+    a = [r.best.wave_speed_m_s for r in fits]
+    assert abs(a[0] - a[1]) <= 2 * max(r.best.wave_speed_se_m_s for r in fits)
+    r = fits[0]
+    rec = prepare_record(t, h, 0.0, rig, 20.0, record_rate_hz=1000.0)
+    vi = valve_input(rec.t, rec.h, rig, rec.window_s, closure=r.settings["manoeuvre"])
+    again = refine_closure(rec.t, rec.h, rig, vi, r.best, FitBounds.from_dict(r.settings["bounds"]))
+    r2 = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=again.flow, lead=r, trust_lead=False)
+    assert r.n * math.log(r.best.F / r2["S3"].F) < 2.0
+    assert abs(r2["S3"].wave_speed_m_s - r.best.wave_speed_m_s) < 0.25 * r.best.wave_speed_se_m_s
 
 
 def test_the_rigs_sigmoid_as_the_flow_misfits_a_real_valve():

@@ -37,12 +37,13 @@ from velab.fitting.creep import creep_curve
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator, sumsq
 from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
-from velab.fitting.manoeuvre import refine_closure, valve_input
+from velab.fitting.manoeuvre import valve_input
 from velab.fitting.nuisance import closure_rows, marginalised
 from velab.fitting.parallel import map_pair
 from velab.fitting.jointresult import JointResult
 from velab.fitting.params import ParamMap, creep_const, derive_bounds
 from velab.fitting.prepare import PreparedRecord, prepare_record
+from velab.fitting.refine import refine_closure
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
 from velab.fitting.solvers import Sol, Stage
 from velab.fitting.starts import nested_starts, race_starts, reduced_then_full, scan_wave_speed, tau_grids
@@ -106,7 +107,7 @@ class _Run:
 
     def refine(self, fin: "_Model", bounds) -> None:
         """The fitted closure refined on the whole window with the joint wall ``fin`` as the start
-        (velab.fitting.manoeuvre.refine_closure: this run's wall is free there, only the closure is kept)."""
+        (velab.fitting.refine.refine_closure: this run's wall is free there, only the closure is kept)."""
         if self.vi.source != "fitted":
             return
         pm = fin.sol.pm
@@ -115,7 +116,7 @@ class _Run:
         wall = ModelFit(name=model_name(pm.m), m=pm.m, k=pm.size, reduced=False, n=self.n, F=math.nan,
                         wave_speed_m_s=a, E_pa=tuple(c * a * a / np.asarray(J)), eta_pa_s=tuple(c * a * a / np.asarray(J) * tau),
                         lag1_autocorr=0.0)
-        self.set_flow(refine_closure(self.rec.t, self.rec.h, self.rig, self.vi, wall))
+        self.set_flow(refine_closure(self.rec.t, self.rec.h, self.rig, self.vi, wall, bounds))
 
     def set_friction(self, params) -> None:
         """The linear friction closest to this run's time-domain head at ``params`` (only how fast the

@@ -43,12 +43,10 @@ from velab.rig import GRAVITY_M_S2, Rig
 from scipy.signal import butter, sosfiltfilt
 
 from velab.errors import DataError
-from velab.fitting.data import lowpass_decimate
-from velab.fitting.engine import HeadEvaluator, gram, sumsq
-from velab.fitting.solvers import LMSolution, levenberg_marquardt
-from velab.fitting.stats import lag1
-from velab.fitting.friction import TimeDomainModel, equivalent_friction
-from velab.model import ValveHeadModel, creep_scale, flow_perturbation, manoeuvre_band_hz, series_impedance
+from velab.fitting.engine import gram, sumsq
+from velab.fitting.solvers import levenberg_marquardt
+from velab.fitting.friction import TimeDomainModel
+from velab.model import ValveHeadModel, flow_perturbation, manoeuvre_band_hz
 from velab.valvelaw import commanded_position_pct, orifice_coupling
 
 # the closure is fitted before the first reflection returns to the valve (2L/a), or over 1.5 x its
@@ -67,9 +65,6 @@ STARTS = ((2.0, 0.05, 1.0), (1.0, 1.0, 0.0))
 # the grid of characteristic powers and loss shares the Joukowsky starts are taken from
 START_POWERS = (0.75, 1.5, 3.0)
 START_SHARES = (0.02, 0.2, 1.0)
-REFINE_ITERATIONS = 15
-REFINE_BROYDEN = True  # Broyden's update between Jacobians (velab.fitting.solvers); the SEs take a fresh one
-REFINE_RATE_PER_BAND = 8.0  # the whole-window refinement runs at this multiple of the manoeuvre's band
 T50_MAX_FACTOR = 4.0  # the flow's half-closure instant is sought up to this multiple of the commanded one (+ 1 s)
 
 
@@ -87,10 +82,14 @@ class ValveInput:
     # other closures of the first part, with the coupling on the other side (its strength trades against
     # the characteristic there): the whole-window refinement also starts from them
     alternatives: tuple = ()
+    refined_with: str = ""  # the model whose wall the closure was refined with (velab.fitting.refine), if it was
 
     def describe(self) -> dict:
-        return {"source": self.source, "params": dict(self.params), "se": dict(self.se), "text": self.text,
-                "nuisance_parameters": self.k}
+        out = {"source": self.source, "params": dict(self.params), "se": dict(self.se), "text": self.text,
+               "nuisance_parameters": self.k}
+        if self.refined_with:
+            out["refined_with"] = self.refined_with
+        return out
 
 
 def sigmoid(u) -> np.ndarray:
@@ -310,9 +309,15 @@ def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None)
     prob = _ClosureProblem(t[:ne], d[:ne], hc[:ne], rig, tm)
     m = rig.manoeuvre
     a0 = _scan_wave_speed(prob, rig)
-    lo = np.array([math.log(a0 * 0.8), math.log(1e-6), math.log(1e-3),
+    # the wave speed's box holds the scan's and the rig's nominal one: the scan drives an elastic pipe with the
+    # rig's commanded sigmoid as the flow, and a valve whose flow falls later than that (a quick-opening one
+    # on the reference rig: half the flow at 0.30 s, not 0.17 s) pulled it to 237 m/s for 353.7; the box
+    # around it alone then held no closure that fits (F 90 x the noise on the first part), and the
+    # whole-window refinement started from nothing (tests/fitting/test_fit_manoeuvre.py, quick-opening valve)
+    a_lo, a_hi = min(a0, rig.nominal_wave_speed_m_s), max(a0, rig.nominal_wave_speed_m_s)
+    lo = np.array([math.log(a_lo * 0.8), math.log(1e-6), math.log(1e-3),
                    *closure_bounds(rig)[0]])
-    hi = np.array([math.log(a0 * 1.25), math.log(5.0), math.log(10.0),
+    hi = np.array([math.log(a_hi * 1.25), math.log(5.0), math.log(10.0),
                    *closure_bounds(rig)[1]])
     # both starts are taken a few steps (the friction correction at the rig's sigmoid), the better one
     # is solved to the end with the correction refreshed at its optimum
@@ -421,114 +426,6 @@ def _scan_wave_speed(prob: _ClosureProblem, rig: Rig) -> float:
     return float(fine[int(np.argmin([F(a) for a in fine]))])
 
 
-def refine_closure(t, d, rig: Rig, vi: ValveInput, fit) -> ValveInput:
-    """The fitted closure refined on the whole window (t, d) jointly with a calibrated wall (``fit``, a
-    ModelFit: the best model of a sweep driven by ``vi``, its starting point). Every wave front of the
-    window carries the closure's shape, so the whole record pins it far better than its first part;
-    and a fast creep element smooths the fronts as a slower closure would, so the two are solved
-    together (an alternation crawls along that ridge). The frequency model carries the linear
-    friction closest to the time-domain model (``equivalent_friction``) and the remaining difference
-    as a correction refreshed once. The standard errors come from the whole window, inflated for the
-    residuals' lag-1 correlation. Only the closure is kept: the sweep's continuation then calibrates
-    every model under it."""
-    if vi.source != "fitted":
-        return vi
-    t_full = np.asarray(t, dtype=float)
-    hc_full = _coupling(t_full, np.asarray(d, dtype=float), rig)
-    # on the record low-passed and decimated to REFINE_RATE_PER_BAND x the manoeuvre's band: the model
-    # has nothing above it (a closure's spectrum falls exponentially) and the solve is q x cheaper
-    q = max(1, int((1.0 / float(t_full[1] - t_full[0])) // (REFINE_RATE_PER_BAND * manoeuvre_band_hz(rig))))
-    t, d, hc = t_full[::q], lowpass_decimate(np.asarray(d, dtype=float), q), hc_full[::q]
-    m = rig.manoeuvre
-    a = fit.wave_speed_m_s
-    J0 = creep_scale(rig, a) / np.asarray(fit.E_pa, dtype=float)
-    tau0 = np.asarray(fit.tau_s, dtype=float)
-    k = J0.size
-    tm = TimeDomainModel(rig, t)
-    flow0 = vi.flow[::q]
-    vm = ValveHeadModel(rig, t, band_hz=None, flow=flow0)
-    W = series_impedance(vm.s_band, rig)
-    if tm.active:
-        ev = HeadEvaluator(rig, t, band_hz=None, flow=flow0)
-        W = W + equivalent_friction(ev, (a, J0, tau0), tm.head(a, J0, tau0, flow=tm_flow(t, flow0)))(vm.s_band, rig)
-
-    def split(x):
-        return math.exp(x[0]), np.exp(x[1 : 1 + k]), np.exp(x[1 + k : 1 + 2 * k]), \
-            from_solver(x[-NV:])
-
-    def head_fd(x):
-        a_, J_, tau_, v = split(x)
-        return vm.head_of(vm.impedance(a_, J_, tau_, W), vm.flow_sums(closure_flow(t, hc, rig, v)))
-
-    corr = np.zeros_like(d)
-
-    def residual(x):
-        return head_fd(x) + corr - d
-
-    def jacobian(x):
-        a_, J_, tau_, v = split(x)
-        h0 = head_fd(x)
-        rows_z, rows_s = [], []
-        for i in range(x.size):
-            xp = np.array(x, dtype=float)
-            xp[i] += _ClosureProblem.STEP
-            ap, Jp, taup, vp = split(xp)
-            if i < 1 + 2 * k:
-                rows_z.append(vm.impedance(ap, Jp, taup, W))
-            else:
-                rows_s.append(vm.flow_sums(closure_flow(t, hc, rig, vp)))
-        sums0 = vm.flow_sums(closure_flow(t, hc, rig, v))
-        hz = vm.head_of(np.array(rows_z), sums0)
-        hs = vm.head_of(vm.impedance(a_, J_, tau_, W), np.array(rows_s))
-        return ((np.vstack([hz, hs]) - h0) / _ClosureProblem.STEP).T
-
-    lo = np.concatenate([[math.log(a * 0.9)], np.full(k, math.log(1e-8)), np.full(k, math.log(1e-4)),
-                         closure_bounds(rig)[0]])
-    hi = np.concatenate([[math.log(a * 1.1)], np.full(k, math.log(10.0)), np.full(k, math.log(1e4)),
-                         closure_bounds(rig)[1]])
-    # starts: the first part's closure (and its alternatives), and the prototypes of a butterfly
-    # discharging to air and of an imposed sigmoid at the same flow half-closure instant: the first part
-    # does not tell the shapes apart, the whole window does (from the wrong basin, a slow element took the
-    # difference: J(5 s) 20-60 % off on material A). Each is taken a few steps; the best goes on.
-    v0 = to_solver([vi.params.get(name, 0.0) for name in PARAM_NAMES])
-    starts = [v0] + [to_solver([p.get(name, 0.0) for name in PARAM_NAMES]) for p in vi.alternatives]
-    starts += [[math.log(m.beta_per_s), v0[1], math.log(power), math.log(share), kappa, 0.0]
-               for power, share, kappa in STARTS]
-    wall = np.concatenate([[math.log(a)], np.log(J0), np.log(tau0)])
-    if tm.active:  # the correction at the first closure, for the comparison of the starts
-        a_, J_, tau_, v = split(np.concatenate([wall, v0]))
-        corr = tm.head(a_, J_, tau_, flow=tm_flow(t, closure_flow(t, hc, rig, v))) - head_fd(np.concatenate([wall, v0]))
-    F0 = sumsq(residual(np.clip(np.concatenate([wall, v0]), lo, hi))) / d.size
-    tries = [levenberg_marquardt(residual, jacobian, np.clip(np.concatenate([wall, v]), lo, hi), lo, hi,
-                                 max_iter=START_ITERATIONS, broyden=REFINE_BROYDEN) for v in starts]
-    best = min(tries, key=lambda sol: sumsq(sol.fun))
-    x = best.x
-    for _ in range(2 if tm.active else 1):
-        if tm.active:
-            a_, J_, tau_, v = split(x)
-            corr = tm.head(a_, J_, tau_, flow=tm_flow(t, closure_flow(t, hc, rig, v))) - head_fd(x)
-        best = levenberg_marquardt(residual, jacobian, x, lo, hi, max_iter=REFINE_ITERATIONS, broyden=REFINE_BROYDEN)
-        x = best.x
-    sol = best if not REFINE_BROYDEN else LMSolution(best.x, best.fun, jacobian(best.x), best.iterations)
-    x = sol.x
-    res = sol.fun
-    F = sumsq(res) / res.size
-    rho = max(0.0, min(lag1(res), 0.99))
-    se = _standard_errors(sol, F, res.size)[-NV:] * math.sqrt((1 + rho) / (1 - rho))
-    valve = split(x)[3]
-    params = dict(zip(PARAM_NAMES, (float(v) for v in valve)))
-    ses = {name: float(se[i] * params[name]) if name in ("beta_per_s", "power", "loss_share") else float(se[i])
-           for i, name in enumerate(PARAM_NAMES)}
-    text = (f"flow at the valve from a fitted closure (no valve position in the record): effective opening "
-            f"T(sigmoid(beta (t - t_half))) with beta = {params['beta_per_s']:.4g} +- {ses['beta_per_s']:.2g} 1/s, "
-            f"t_half = {params['t_half_s'] * 1e3:.4g} +- {ses['t_half_s'] * 1e3:.2g} ms, characteristic power "
-            f"{params['power']:.3g}, valve loss share {params['loss_share']:.3g}, orifice coupling "
-            f"{params['coupling']:.3g} (1: discharge to air, 0: imposed flow); fitted over {t[-1] + t[1] - t[0]:.4g} s "
-            f"with the wall")
-    return ValveInput("fitted", closure_flow(t_full, hc_full, rig, valve), params, ses, text, k=len(PARAM_NAMES),
-                      gain=t_full.size * math.log(F0 / F) if F > 0 else math.inf)
-
-
 def tm_flow(t, q):
     """The flow on the grid as the time-domain model takes it (t -> q, linear between samples)."""
     return lambda s: np.interp(s, t, q)
@@ -569,7 +466,8 @@ def valve_input(t, d, rig: Rig, window_s: float, *, position_pct=None, mode: str
     if old and old.get("source") == "fitted":
         params = {k: float(old["params"].get(k, 0.0)) for k in PARAM_NAMES}
         return ValveInput("fitted", closure_flow(t, hc, rig, [params[k] for k in PARAM_NAMES]), params,
-                          dict(old.get("se", {})), old.get("text", ""), k=len(PARAM_NAMES))
+                          dict(old.get("se", {})), old.get("text", ""), k=len(PARAM_NAMES),
+                          refined_with=old.get("refined_with", ""))
     return fit_closure(t, d, rig, window_s, TimeDomainModel(rig, t), coupling=hc)
 
 

@@ -76,6 +76,12 @@ class FitBounds:
             "J_rel_min": self.J_rel_min, "J_rel_max": self.J_rel_max, "sources": dict(self.sources),
         }
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "FitBounds":
+        """The bounds of :meth:`to_dict` (a result's ``settings["bounds"]``)."""
+        return cls(**{k: d[k] for k in ("tau_min_s", "tau_max_s", "wave_speed_min_m_s", "wave_speed_max_m_s",
+                                         "J_rel_min", "J_rel_max", "tau_floor_s")}, sources=dict(d.get("sources", {})))
+
 
 def _check_tau(value, name: str, where: str) -> float | None:
     if value is None:

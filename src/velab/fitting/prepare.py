@@ -33,8 +33,10 @@ from velab.errors import DataError
 from velab.fitting.adequacy import assess, baseline_noise
 from velab.fitting.friction import fit_rig
 from velab.fitting.lead import lead_window_s, matches, options_key
-from velab.fitting.manoeuvre import refine_closure, valve_input
+from velab.fitting.manoeuvre import valve_input
 from velab.fitting.nuisance import marginalise_single
+from velab.fitting.params import FitBounds
+from velab.fitting.refine import refine_closure
 from velab.fitting.window import MIN_WINDOW_SAMPLES, baseline_slice, steady_head, window_slice
 from velab.fitting.results import SweepResult
 from velab.fitting.sweep import fit_sweep
@@ -44,6 +46,11 @@ from velab.model import manoeuvre_band_hz
 # sigmoid's flow spectrum is below 1e-8 of its DC value): 930 Hz at the reference rig
 FIT_RATE_PER_BAND = 30.0
 FIR_TAPS_PER_Q = 20
+# a fitted closure refined with one model's wall, and the continuation naming another: the closure refined
+# again with that one's and every model continued, at most this many times (velab.fitting.refine: a closure
+# refined with a smaller model's wall had taken up the larger one's fast element, and the larger model,
+# named under it all the same, was left 20-120 in n ln F short of its own optimum)
+CLOSURE_ROUNDS = 2
 
 
 @dataclass(frozen=True)
@@ -175,10 +182,12 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
     the result.
 
     A fitted closure is refined on the whole window with the best model's wall
-    (``manoeuvre.refine_closure``). ``refine``: "continue" -- then every model is calibrated again
+    (velab.fitting.refine). ``refine``: "continue" -- then every model is calibrated again
     from its optimum under the refined closure (a continuation); "only" -- the refined closure is
     stored for the continuation of this lead fit (``settings["manoeuvre_refined"]``). A continuation
-    (``lead`` given) takes the closure its lead refined."""
+    (``lead`` given) takes the closure its lead refined. When the continuation names another model
+    than the one the closure was refined with, the closure is refined again with that model's wall and
+    every model continued once more (``CLOSURE_ROUNDS``): the closure is the named model's."""
     lead = sweep_options.get("lead")
     closure = None
     if isinstance(lead, SweepResult):
@@ -194,17 +203,21 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
                        marginalise=None if refining else marginalise_single(frig, rec.t, rec.h, vi),
                        trust_lead=vi.source != "fitted", **sweep_options)
     if refining and result.models:
-        refined = refine_closure(rec.t, rec.h, frig, vi, result.best)
+        refined = refine_closure(rec.t, rec.h, frig, vi, result.best, _bounds(result))
         if refine == "only":
             result.settings["manoeuvre_refined"] = refined.describe()
         else:
-            again = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=refined.flow,
-                              marginalise=marginalise_single(frig, rec.t, rec.h, refined), trust_lead=False,
-                              **(sweep_options | {"lead": result}))
-            again.settings["lead"] = None  # (a continuation of this fit's own first pass, not of a lead fit)
-            again.duration_s += result.duration_s
-            again.evaluations += result.evaluations
-            result, vi = again, refined
+            result, vi = _continue(rec, rig, frig, refined, result, None, sweep_options), refined
+    if refine != "only":
+        for _ in range(CLOSURE_ROUNDS):
+            if not (vi.source == "fitted" and vi.refined_with and result.models and result.best.name != vi.refined_with):
+                break
+            refined = refine_closure(rec.t, rec.h, frig, vi, result.best, _bounds(result))
+            if refined.params == vi.params:  # (the refinement found no better closure for that model)
+                vi = refined
+                break
+            result, vi = _continue(rec, rig, frig, refined, result, result.settings["lead"],
+                                   sweep_options | {"progress": None}), refined
     result.settings["manoeuvre"] = vi.describe()
     result.notes.append(vi.text)
     # the rates as the record states them (fit_sweep measures its step from the time axis)
@@ -215,6 +228,25 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
     result.notes.extend(rec.notes)
     assess(result, rec, rig)  # noise ratios and warnings (misfit, cavitation, bound)
     return result
+
+
+def _continue(rec: PreparedRecord, rig: Rig, frig: Rig, vi, result: SweepResult, lead_settings,
+              sweep_options: dict) -> SweepResult:
+    """Every model of ``result`` calibrated again from its optimum under the refined closure ``vi``; the
+    result says ``lead_settings`` (None: this fit had no lead) and counts both sweeps' time and work."""
+    again = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=vi.flow,
+                      marginalise=marginalise_single(frig, rec.t, rec.h, vi), trust_lead=False,
+                      **(sweep_options | {"lead": result}))
+    again.settings["lead"] = lead_settings
+    again.duration_s += result.duration_s
+    again.evaluations += result.evaluations
+    return again
+
+
+def _bounds(result: SweepResult) -> FitBounds | None:
+    """The sweep's box for the wall (its ``settings["bounds"]``)."""
+    b = result.settings.get("bounds")
+    return FitBounds.from_dict(b) if b else None
 
 
 def fit_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | None, *, record_rate_hz: float,

@@ -25,10 +25,11 @@ from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator, sumsq
 from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
 from velab.fitting.joint import REFINE_PASSES, _JointSweep, _first_pass_best, assess_part
-from velab.fitting.manoeuvre import refine_closure, valve_input
+from velab.fitting.manoeuvre import valve_input
 from velab.fitting.nuisance import closure_models, marginalised, rows_at
 from velab.fitting.params import creep_const, derive_bounds
 from velab.fitting.prepare import prepare_record
+from velab.fitting.refine import refine_closure
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
 from velab.fitting.stats import lag1
 from velab.fitting.sweep import MAX_M, parse_models
@@ -198,7 +199,7 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
         E = creep_const(frig) * a * a / np.asarray(J)
         wall = ModelFit(name=model_name(pm.m), m=pm.m, k=pm.size, reduced=False, n=valve_run.n, F=math.nan,
                         wave_speed_m_s=a, E_pa=tuple(E), eta_pa_s=tuple(E * tau), lag1_autocorr=0.0)
-        vi = refine_closure(t, valve_rec.h, frig, vi, wall)
+        vi = refine_closure(t, valve_rec.h, frig, vi, wall, bounds)
         shared.set_flow(vi.flow)
         for r in runs:
             r.set_flow(vi)

@@ -347,7 +347,13 @@ class _Sweep:
             # a continuation: the lead fit searched this record's first part, this one starts at its optimum
             old = self.lead.get(name)
             if old is not None and old.m == m and old.reduced == red:
-                return [pm.clip(_pack_fit(pm, old, self.rig))]
+                cands = [pm.clip(_pack_fit(pm, old, self.rig))]
+                if not self.trust_lead and old.equivalent_to and base.pm.m == m - 1 and not red:
+                    # it vanished in the lead, under another flow: searched again from this sweep's S(m-1)
+                    # with an element split or added below, between and above (a polish of the vanished
+                    # element alone found it or not by the last bits of the closure)
+                    cands.extend(nested_starts(base, pm, self.bounds, self.tau_lo, self.tau_hi)[:-1])
+                return cands
         if self.initial is not None:
             old = self.initial.get(name)
             if old is not None and old.m == m and old.reduced == red:

@@ -1,0 +1,263 @@
+"""The fitted closure refined on a record's whole window with a calibrated wall (velab.fitting.manoeuvre, step 3).
+
+Every wave front of the window carries the closure's shape, so the whole record pins it far better than its
+first part; and a fast creep element smooths the fronts as a slower closure would, so the two are solved
+together. On the record low-passed and decimated to REFINE_RATE_PER_BAND x the manoeuvre's band, with the
+linear friction closest to the time-domain model (``equivalent_friction``) and the remaining difference as a
+correction refreshed between the stages:
+
+1. *Basins.* The first part's closure (and its alternative, the coupling on the other side), and the
+   prototypes of a butterfly discharging to air and of an imposed sigmoid at the same flow half-closure
+   instant, each taken START_ITERATIONS steps of a joint Levenberg-Marquardt over the wall and the closure
+   (the first part does not tell these shapes apart, the whole window does); the best goes on.
+2. *Variable projection* (Golub & Pereyra): the closure stepped by Levenberg-Marquardt on the profile
+   residual -- under every closure tried, the wall solved again by the sweep's own solver
+   (``Stage.lsq``, analytic Jacobian, from the best wall so far) -- with the closure's Jacobian taken
+   orthogonal to the wall's columns. The closure and the slow elements trade along a narrow, curved valley
+   (a closure that moves by a fraction of its standard error moves the slowest element's tau by 20 %):
+   a joint step along it fails (on material A head-only with a quick-opening valve, a quarter of the
+   Gauss-Newton step that predicted a gain of 35 in n ln F lost 700), the joint solver stops where it
+   stands, and alternating the closure with the sweep's continuation crawls (each round gained half of
+   what was left: 25, 13, 8, ...). Solving the wall inside the step follows the valley; the correction
+   is refreshed at the end of the first pass and the projection taken again.
+
+Only the closure is kept (the sweep's continuation then calibrates every model under it). Its standard
+errors are those of the projected Jacobian (the closure's block of the joint covariance, the wall
+marginalised), inflated for the residuals' lag-1.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from velab.fitting.data import lowpass_decimate
+from velab.fitting.engine import HeadEvaluator, gram, sumsq
+from velab.fitting.friction import TimeDomainModel, equivalent_friction
+from velab.fitting.manoeuvre import (NV, PARAM_NAMES, STARTS, ValveInput, _coupling, _standard_errors,
+                                     closure_bounds, closure_flow, from_solver, tm_flow, to_solver)
+from velab.fitting.params import FitBounds, ParamMap, derive_bounds
+from velab.fitting.solvers import LMSolution, Stage, levenberg_marquardt
+from velab.fitting.stats import lag1
+from velab.model import ValveHeadModel, creep_scale, manoeuvre_band_hz, series_impedance
+from velab.rig import Rig
+
+REFINE_RATE_PER_BAND = 8.0  # the refinement runs at this multiple of the manoeuvre's band
+START_ITERATIONS = 8  # each start is taken this many joint steps before the best goes on
+BROYDEN = True  # the joint steps carry their Jacobian by Broyden's update (velab.fitting.solvers)
+STEP = 1e-6  # finite-difference step in the solver's variables
+PROJECTION_ITERATIONS = 4  # closure steps of each projection pass
+PROJECTION_PASSES = 2  # with a time-domain friction: the correction refreshed between them
+PROJECTION_GAIN = 0.5  # a pass stops at a step that gains less than this in n ln F (on the refinement's grid)
+INNER_NFEV = 20  # the wall's solve under one closure (warm-started from the best wall so far)
+JOINT_ITERATIONS = 15  # then the best start's joint steps
+JOINT_PASSES = 2  # ... with the correction refreshed before each (time-domain laws)
+
+
+def refine_closure(t, d, rig: Rig, vi: ValveInput, fit, bounds: FitBounds | None = None) -> ValveInput:
+    """The fitted closure ``vi`` refined on the whole window (t from the trigger, d the head perturbation)
+    jointly with a calibrated wall: ``fit`` (a ModelFit: the best model of a sweep driven by ``vi``) is the
+    start; ``bounds`` the sweep's box for the wall (None: derived from the rig and the window). A flow not
+    fitted (recorded position, the rig's sigmoid) is returned as it is."""
+    if vi.source != "fitted":
+        return vi
+    prob = _Refinement(t, d, rig, vi, fit, bounds)
+    x = prob.basins()
+    v, sol, wall = prob.project(x)
+    if not prob.model_F(wall, v) < prob.model_F(prob.start_wall(), prob.v0):
+        # the refinement's model (the frequency model, its linear friction stand-in and a correction refreshed
+        # between the stages) is not the time-domain model: a closure that fits it better but the record no
+        # better is not taken
+        name = getattr(fit, "name", "") or f"S{prob.k}"
+        return replace(vi, refined_with=name, text=f"{vi.text} (refined over the whole window with the {name} wall: it "
+                                                   f"fitted the record no better, so this closure was kept)")
+    res = sol.fun
+    F = sumsq(res) / res.size
+    rho = max(0.0, min(lag1(res), 0.99))
+    se = _standard_errors(sol, F, res.size) * math.sqrt((1 + rho) / (1 - rho))
+    valve = from_solver(v)
+    params = dict(zip(PARAM_NAMES, (float(p) for p in valve)))
+    ses = {name: float(se[i] * params[name]) if name in ("beta_per_s", "power", "loss_share") else float(se[i])
+           for i, name in enumerate(PARAM_NAMES)}
+    tw = prob.t
+    text = (f"flow at the valve from a fitted closure (no valve position in the record): effective opening "
+            f"T(sigmoid(beta (t - t_half))) with beta = {params['beta_per_s']:.4g} +- {ses['beta_per_s']:.2g} 1/s, "
+            f"t_half = {params['t_half_s'] * 1e3:.4g} +- {ses['t_half_s'] * 1e3:.2g} ms, characteristic power "
+            f"{params['power']:.3g}, valve loss share {params['loss_share']:.3g}, orifice coupling "
+            f"{params['coupling']:.3g} (1: discharge to air, 0: imposed flow); fitted over {tw[-1] + tw[1] - tw[0]:.4g} s "
+            f"with the wall ({getattr(fit, 'name', '') or 'S' + str(prob.k)})")
+    return ValveInput("fitted", closure_flow(prob.t_full, prob.hc_full, rig, valve), params, ses, text,
+                      k=len(PARAM_NAMES), gain=prob.t_full.size * math.log(prob.F0 / F) if F > 0 else math.inf,
+                      refined_with=getattr(fit, "name", ""))
+
+
+class _Refinement:
+    """The refinement's grid, models and friction correction (see the module docstring)."""
+
+    def __init__(self, t, d, rig: Rig, vi: ValveInput, fit, bounds: FitBounds | None):
+        self.rig, self.vi = rig, vi
+        self.t_full = t_full = np.asarray(t, dtype=float)
+        self.hc_full = _coupling(t_full, np.asarray(d, dtype=float), rig)
+        dt = float(t_full[1] - t_full[0])
+        # on the record low-passed and decimated to REFINE_RATE_PER_BAND x the manoeuvre's band: the model
+        # has nothing above it (a closure's spectrum falls exponentially) and the solve is q x cheaper
+        q = max(1, int((1.0 / dt) // (REFINE_RATE_PER_BAND * manoeuvre_band_hz(rig))))
+        self.t, self.d, self.hc = t_full[::q], lowpass_decimate(np.asarray(d, dtype=float), q), self.hc_full[::q]
+        a = fit.wave_speed_m_s
+        self.J0 = creep_scale(rig, a) / np.asarray(fit.E_pa, dtype=float)
+        self.tau0 = np.asarray(fit.tau_s, dtype=float)
+        self.a0 = a
+        self.k = self.J0.size
+        self.bounds = bounds if bounds is not None else derive_bounds(rig, dt, t_full.size * dt)
+        self.tm = TimeDomainModel(rig, self.t)
+        flow0 = vi.flow[::q]
+        self.vm = ValveHeadModel(rig, self.t, band_hz=None, flow=flow0)
+        self.eq = None
+        if self.tm.active:
+            ev = HeadEvaluator(rig, self.t, band_hz=None, flow=flow0)
+            self.eq = equivalent_friction(ev, (a, self.J0, self.tau0),
+                                          self.tm.head(a, self.J0, self.tau0, flow=tm_flow(self.t, flow0)))
+        self.W = series_impedance(self.vm.s_band, rig) + (0.0 if self.eq is None else self.eq(self.vm.s_band, rig))
+        self.corr = np.zeros_like(self.d)
+        self.clo, self.chi = closure_bounds(rig)
+        self._evs: dict = {}
+        self.F0 = math.nan
+
+    # ------------------------------------------------------------ the joint problem (wall, closure)
+    def split(self, x):
+        k = self.k
+        return math.exp(x[0]), np.exp(x[1 : 1 + k]), np.exp(x[1 + k : 1 + 2 * k]), from_solver(x[-NV:])
+
+    def flow(self, v) -> np.ndarray:
+        return closure_flow(self.t, self.hc, self.rig, v)
+
+    def head_fd(self, x) -> np.ndarray:
+        a, J, tau, v = self.split(x)
+        return self.vm.head_of(self.vm.impedance(a, J, tau, self.W), self.vm.flow_sums(self.flow(v)))
+
+    def residual(self, x) -> np.ndarray:
+        return self.head_fd(x) + self.corr - self.d
+
+    def jacobian(self, x) -> np.ndarray:
+        """Finite differences of the impedance (wall) or of the flow's spectrum (closure), one batched
+        inverse FFT each."""
+        a, J, tau, v = self.split(x)
+        h0 = self.head_fd(x)
+        rows_z, rows_s = [], []
+        for i in range(x.size):
+            xp = np.array(x, dtype=float)
+            xp[i] += STEP
+            ap, Jp, taup, vp = self.split(xp)
+            if i < 1 + 2 * self.k:
+                rows_z.append(self.vm.impedance(ap, Jp, taup, self.W))
+            else:
+                rows_s.append(self.vm.flow_sums(self.flow(vp)))
+        hz = self.vm.head_of(np.array(rows_z), self.vm.flow_sums(self.flow(v)))
+        hs = self.vm.head_of(self.vm.impedance(a, J, tau, self.W), np.array(rows_s))
+        return ((np.vstack([hz, hs]) - h0) / STEP).T
+
+    def refresh(self, a, J, tau, v) -> None:
+        """The correction h_MOC - h_FD at this wall and closure (time-domain laws only)."""
+        if self.tm.active:
+            x = np.concatenate([[math.log(a)], np.log(J), np.log(tau), to_solver(v)])
+            self.corr = self.tm.head(a, J, tau, flow=tm_flow(self.t, self.flow(v))) - self.head_fd(x)
+
+    def basins(self) -> np.ndarray:
+        """Stage 1: the starts, each taken a few joint steps; the best goes on, with the correction refreshed
+        at its optimum (x = wall and closure)."""
+        k, m = self.k, self.rig.manoeuvre
+        lo = np.concatenate([[math.log(self.a0 * 0.9)], np.full(k, math.log(1e-8)), np.full(k, math.log(1e-4)), self.clo])
+        hi = np.concatenate([[math.log(self.a0 * 1.1)], np.full(k, math.log(10.0)), np.full(k, math.log(1e4)), self.chi])
+        v0 = to_solver([self.vi.params.get(name, 0.0) for name in PARAM_NAMES])
+        starts = [v0] + [to_solver([p.get(name, 0.0) for name in PARAM_NAMES]) for p in self.vi.alternatives]
+        starts += [[math.log(m.beta_per_s), v0[1], math.log(power), math.log(share), kappa, 0.0]
+                   for power, share, kappa in STARTS]
+        wall = np.concatenate([[math.log(self.a0)], np.log(self.J0), np.log(self.tau0)])
+        # the correction at the first closure, for the comparison of the starts
+        self.refresh(self.a0, self.J0, self.tau0, from_solver(np.clip(v0, self.clo, self.chi)))
+        self.F0 = sumsq(self.residual(np.clip(np.concatenate([wall, v0]), lo, hi))) / self.d.size
+        tries = [levenberg_marquardt(self.residual, self.jacobian, np.clip(np.concatenate([wall, v]), lo, hi), lo, hi,
+                                     max_iter=START_ITERATIONS, broyden=BROYDEN) for v in starts]
+        x = min(tries, key=lambda sol: sumsq(sol.fun)).x
+        for _ in range(JOINT_PASSES if self.tm.active else 1):
+            self.refresh(*self.split(x))
+            x = levenberg_marquardt(self.residual, self.jacobian, x, lo, hi, max_iter=JOINT_ITERATIONS, broyden=BROYDEN).x
+        return x
+
+    # ------------------------------------------------------------ variable projection
+    def evaluator(self, v) -> HeadEvaluator:
+        """The frequency model driven by closure v (its linear friction stand-in), kept for the steps."""
+        key = np.asarray(v, dtype=float).tobytes()
+        ev = self._evs.get(key)
+        if ev is None:
+            if len(self._evs) > 32:
+                self._evs.clear()
+            ev = self._evs[key] = HeadEvaluator(self.rig, self.t, band_hz=None, flow=self.flow(from_solver(v)),
+                                                extra_impedance=self.eq)
+        return ev
+
+    def project(self, x) -> tuple[np.ndarray, LMSolution]:
+        """Stage 2 from the joint point x: the closure v and the projected problem's last solution (its
+        residual and projected Jacobian, for the standard errors)."""
+        pm = ParamMap(self.k, self.bounds)
+        a, J, tau, valve = self.split(x)
+        v = np.clip(np.asarray(x[-NV:], dtype=float), self.clo, self.chi)
+        walls: dict = {}
+        best = {"xw": pm.project(pm.pack(a, J, tau)), "F": math.inf}
+
+        def wall_of(v):
+            """The wall solved under closure v, from the best wall so far (cached per closure)."""
+            key = np.asarray(v, dtype=float).tobytes()
+            if key not in walls:
+                sol = Stage(self.evaluator(v), self.d - self.corr).lsq(pm, best["xw"], max_nfev=INNER_NFEV, ftol=1e-12)
+                walls[key] = sol.x
+                if sol.F < best["F"]:
+                    best.update(xw=sol.x, F=sol.F)
+            return walls[key]
+
+        def residual(v):
+            return self.evaluator(v).head(*pm.unpack(wall_of(v))) + self.corr - self.d
+
+        def jacobian(v):
+            xw = wall_of(v)
+            h0, Jw = self.evaluator(v).head_jac_x(*pm.unpack(xw))
+            cols = []
+            for i in range(NV):
+                vp = np.array(v, dtype=float)
+                step = STEP if vp[i] + STEP <= self.chi[i] else -STEP
+                vp[i] += step
+                cols.append((self.evaluator(vp).head(*pm.unpack(xw)) - h0) / step)
+            Jc = np.array(cols)
+            # the closure's columns orthogonal to the wall's: what the wall cannot take up when the closure moves
+            coef = np.linalg.lstsq(gram(np.ascontiguousarray(Jw)), Jw @ Jc.T, rcond=1e-12)[0]
+            return (Jc - coef.T @ Jw).T
+
+        sol = None
+        for it in range(PROJECTION_PASSES if self.tm.active else 1):
+            if self.tm.active:
+                self.refresh(*pm.unpack(best["xw"] if it else pm.project(pm.pack(a, J, tau))), from_solver(v))
+                walls.clear()
+                best["F"] = math.inf
+            sol = levenberg_marquardt(residual, jacobian, v, self.clo, self.chi, max_iter=PROJECTION_ITERATIONS,
+                                      ftol=PROJECTION_GAIN / self.d.size)
+            v = sol.x
+        return v, LMSolution(sol.x, sol.fun, jacobian(sol.x), sol.iterations), pm.unpack(wall_of(v))
+
+    # ------------------------------------------------------------ the check
+    @property
+    def v0(self) -> np.ndarray:
+        return np.clip(to_solver([self.vi.params.get(name, 0.0) for name in PARAM_NAMES]), self.clo, self.chi)
+
+    def start_wall(self):
+        return self.a0, self.J0, self.tau0
+
+    def model_F(self, wall, v) -> float:
+        """F of the record's model (the time-domain model with a nonlinear friction) at ``wall`` = (a, J', tau)
+        under closure v, on the refinement's grid."""
+        if self.tm.active:
+            h = self.tm.head(*wall, flow=tm_flow(self.t, self.flow(from_solver(v))))
+        else:
+            h = self.evaluator(v).head(*wall)
+        return sumsq(h - self.d) / self.d.size
