@@ -20,10 +20,14 @@ W = 6.0
 FS = 1000.0
 
 
-@pytest.fixture(scope="module")
-def record():
+def two_section_record(q0_l_s: float | None = None, seed: int = 7):
+    """(rig, t, heads) of material A's pipe with a transducer at the valve and one at 0.4 L (the rig at
+    ``q0_l_s``, its own Q0 if None): the time-domain model, the real valve on its sigmoid in position,
+    quadratic friction, sigma 0.1 m on each head (tests/fitting/test_joint_sections.py takes it too)."""
     A = load_material("A")
     base = load_rig("perugia")
+    if q0_l_s is not None:
+        base = base.with_changes(steady_flow_m3_s=q0_l_s / 1e3)
     L = base.pipe.length_m
     rig = base.with_changes(transducers=(Section("valve", L), Section("mid", 0.4 * L)))
     a = A.wave_speed_m_s
@@ -33,10 +37,15 @@ def record():
     m = rig.manoeuvre
     hs = moc_head(rig, a, J, tau, t, position=lambda x: commanded_position_pct(x, m.beta_per_s, m.gamma),
                   sections_m=(L, 0.4 * L))
-    rng = np.random.default_rng(7)
+    rng = np.random.default_rng(seed)
     heads = {"valve": rig.steady_head_m + hs[0] + rng.normal(0, 0.1, t.size),
-             "mid": 30.0 + hs[1] + rng.normal(0, 0.1, t.size)}
+             "mid": rig.steady_head_at_m(0.4 * L) + hs[1] + rng.normal(0, 0.1, t.size)}
     return rig, t, heads
+
+
+@pytest.fixture(scope="module")
+def record():
+    return two_section_record()
 
 
 @pytest.fixture(scope="module")

@@ -45,8 +45,6 @@ def run(args: argparse.Namespace) -> int:
 def sections_lines(path) -> list[str]:
     """The fits of a run with several transducers (velab.fitting.sections): each section's position and
     how the fitted wall describes it."""
-    import math
-
     from velab.runfiles.summary import read_fits
 
     out = []
@@ -55,15 +53,7 @@ def sections_lines(path) -> list[str]:
         if not isinstance(sections, list) or not sections:
             continue
         out.append(f"  fit {name}: {len(sections)} sections, best {d.get('best', '?')}")
-        for s in sections:
-            if not isinstance(s, dict):
-                continue
-            ratio = s.get("noise_ratio")
-            ratio = f"F/noise {ratio:.3g}" if isinstance(ratio, (int, float)) and math.isfinite(ratio) else "F/noise -"
-            x = s.get("position_m")
-            x = f"{x:g} m" if isinstance(x, (int, float)) else "? m"
-            out.append(f"    section {s.get('name', '?')} at {x}: n {s.get('n', '?')}, {ratio}"
-                       + (", DISAGREES with the fitted wall" if s.get("disagrees") else ""))
+        out.extend(_section_lines(sections, "the fitted wall"))
     return out
 
 
@@ -93,4 +83,23 @@ def joint_lines(path) -> list[str]:
             out.append(f"    {who}: {r.get('path', '?')} (head sha256 {str(r.get('head_sha256', ''))[:16]}...), "
                        f"Q0 {1e3 * float(r.get('steady_flow_m3_s') or math.nan):.3g} l/s, {ratio}"
                        + (", DISAGREES with the joint wall" if r.get("disagrees") else ""))
+            out.extend("  " + line for line in _section_lines(r.get("sections"), "the joint wall"))
+    return out
+
+
+def _section_lines(sections, wall: str) -> list[str]:
+    """One line per section of a stored fit (a fit of several transducers, a joint fit's run): its position,
+    n and F/noise, and whether it disagrees with ``wall``."""
+    import math
+
+    out = []
+    for s in sections if isinstance(sections, list) else ():
+        if not isinstance(s, dict):
+            continue
+        ratio = s.get("noise_ratio")
+        ratio = f"F/noise {ratio:.3g}" if isinstance(ratio, (int, float)) and math.isfinite(ratio) else "F/noise -"
+        x = s.get("position_m")
+        x = f"{x:g} m" if isinstance(x, (int, float)) else "? m"
+        out.append(f"    section {s.get('name', '?')} at {x}: n {s.get('n', '?')}, {ratio}"
+                   + (f", DISAGREES with {wall}" if s.get("disagrees") else ""))
     return out

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -27,12 +27,37 @@ class CampaignRun:
     record_rate_hz: float
     position_pct: np.ndarray | None = None
     head_sha256: str = ""
+    # the heads of the rig's other transducers by name (``rig.sections``; ``head_m`` is the valve's)
+    section_heads: dict = field(default_factory=dict)
 
     @classmethod
     def from_run(cls, run) -> "CampaignRun":
-        """From a velab.runfiles.Run (the reader's own checks of the window are the caller's)."""
+        """From a velab.runfiles.Run (the reader's own checks of the window are the caller's), every head it
+        holds for its rig's transducers (``run_heads``)."""
+        valve = run.rig.head_section.name
+        others = {k: v for k, v in run_heads(run).items() if k != valve}
         return cls(str(run.path), run.time_s, run.head_m, run.trigger_time_s, run.rig, run.sample_rate_hz,
-                   run.channels.get("valve_position"), head_sha256(run.time_s, run.head_m))
+                   run.channels.get("valve_position"), head_sha256(run.time_s, run.head_m), others)
+
+    def heads(self) -> dict:
+        """Each transducer's absolute head by name: the valve's (``head_m``) and the others'."""
+        return {self.rig.head_section.name: self.head_m, **self.section_heads}
+
+
+def run_heads(run) -> dict:
+    """Each transducer's absolute head of a run read back from its file (velab.runfiles.reader.Run), by name:
+    the channel ``rig.section_channel`` names (``head`` for the valve's, ``head_NAME`` for the others).
+    DataError (one line, naming the file and the channel) for a transducer the file has no channel of."""
+    rig = run.rig
+    out = {}
+    for sec in rig.sections:
+        ch = rig.section_channel(sec)
+        h = run.head_m if ch == "head" else run.channels.get(ch)
+        if h is None:
+            raise DataError(f"{run.path}: no channel {ch!r} for the transducer {sec.name!r} of its rig "
+                            f"(channels: head, {', '.join(sorted(run.channels))})")
+        out[sec.name] = h
+    return out
 
 
 def head_sha256(time_s, head_m) -> str:

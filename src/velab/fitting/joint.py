@@ -1,12 +1,14 @@
-"""Joint calibration of one pipe over several runs (a campaign; physics.md section 12, issue 25 part 1).
+"""Joint calibration of one pipe over several runs (a campaign; physics.md section 12, issue 25 parts 1 and 2).
 
 One wall -- the wave speed a and the Kelvin-Voigt elements (J'_k, tau_k) -- is shared by every run;
 each run keeps what is its own: steady state and friction at its Q0 (its rig), the flow at the valve
-(its recorded position, or its closure fitted as nuisance parameters), noise level, sample rate.
+(its recorded position, or its closure fitted as nuisance parameters), noise level, sample rate. A run
+whose rig has several transducers brings every section (velab.fitting.parts): each section is a part of
+the stacked fit with its own noise and weight, the run's closure drives all of them and is counted once.
 
-Likelihood. Each run r is Gaussian with its own unknown variance sigma_r^2; profiled out
-(sigma_r^2 = F_r = RSS_r / n_r), -2 ln L = sum_r n_r ln F_r + const: a single fit's n ln F summed
-over runs. Its stationary point is the weighted least squares with weights 1/F_r, so the wall is
+Likelihood. Each part r (a run's section) is Gaussian with its own unknown variance sigma_r^2; profiled
+out (sigma_r^2 = F_r = RSS_r / n_r), -2 ln L = sum_r n_r ln F_r + const: a single fit's n ln F summed
+over the parts. Its stationary point is the weighted least squares with weights 1/F_r, so the wall is
 solved as weighted least squares over the stacked runs, weights 1 / (the run's baseline noise
 variance) first (what a correct model leaves), then 1/F_r (the profile's fixed point): a run the
 wall does not describe weighs by its own large residual and cannot drag the others. AIC =
@@ -35,15 +37,12 @@ from velab.fitting.adequacy import assess, bound_message
 from velab.fitting.campaignrun import CampaignRun, check_same_pipe
 from velab.fitting.creep import creep_curve
 from velab.fitting.data import lowpass_decimate
-from velab.fitting.engine import HeadEvaluator, sumsq
-from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
-from velab.fitting.manoeuvre import valve_input
-from velab.fitting.nuisance import closure_rows, marginalised
+from velab.fitting.engine import sumsq
+from velab.fitting.nuisance import marginalised
 from velab.fitting.parallel import map_pair
 from velab.fitting.jointresult import JointResult
-from velab.fitting.params import ParamMap, creep_const, derive_bounds
-from velab.fitting.prepare import PreparedRecord, prepare_record
-from velab.fitting.refine import refine_closure
+from velab.fitting.params import ParamMap, derive_bounds
+from velab.fitting.parts import Part, Record
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
 from velab.fitting.solvers import Sol, Stage
 from velab.fitting.starts import nested_starts, race_starts, reduced_then_full, scan_wave_speed, tau_grids
@@ -51,9 +50,7 @@ from velab.fitting.stacked import StackedEvaluator
 from velab.fitting.stats import ar1_innovation_var, lag1
 from velab.fitting.summary import summarise
 from velab.fitting.sweep import MAX_M, SATURATED_GAIN, parse_models
-from velab.model import manoeuvre_band_hz
 
-POLISH_RATE_PER_BAND = 8.0  # the polish runs on each run's record decimated to this multiple of its band
 REFRESHES = 3  # time-domain (friction) refreshes of each model's optimum, at most
 REFRESH_GAIN = 0.05
 # closure refinements (each run's, with the joint wall) followed by a continuation of every model; a
@@ -66,70 +63,6 @@ def per_run(fn, items: list) -> list:
     run's own work (closure fits, time-domain heads) touches only that run's objects, and the results do
     not depend on which thread ran which (velab.fitting.parallel.map_pair)."""
     return map_pair(lambda _, item: fn(item), items, lambda: None, parallel=(os.cpu_count() or 1) > 1)
-
-
-class _Run:
-    """One run's own part of a joint fit: its prepared record, flow at the valve, models on three
-    grids (coarse search, polish, fit rate), time-domain model and weight."""
-
-    def __init__(self, src: CampaignRun, window_s: float | None, manoeuvre: str, friction, friction_unsteady):
-        self.src = src
-        self.rig = fit_rig(src.rig, friction, friction_unsteady)
-        self.rec: PreparedRecord = prepare_record(src.time_s, src.head_m, src.trigger_time_s, self.rig, window_s,
-                                                  record_rate_hz=src.record_rate_hz, position_pct=src.position_pct)
-        t, d = self.rec.t, self.rec.h
-        # the run's nuisance parameters: its closure, fitted on the early window (wall-insensitive)
-        self.vi = valve_input(t, d, self.rig, self.rec.window_s, position_pct=self.rec.position, mode=manoeuvre)
-        flow = self.vi.flow
-        fs = 1.0 / float(t[1] - t[0])
-        band = manoeuvre_band_hz(self.rig)
-        self.qc = max(1, int(fs // (3.0 * band)))  # as the single sweep's coarse stage
-        self.qm = max(1, int(fs // (POLISH_RATE_PER_BAND * band)))
-        self.ev_c = HeadEvaluator(self.rig, t[:: self.qc], band_hz="auto", flow=flow[:: self.qc])
-        self.ev_m = HeadEvaluator(self.rig, t[:: self.qm], band_hz=None, flow=flow[:: self.qm])
-        self.ev_f = HeadEvaluator(self.rig, t, band_hz=None, flow=flow)
-        self.tm = TimeDomainModel(self.rig, t, flow=flow)
-        self.noise_var = self.rec.baseline_noise_m ** 2 if self.rec.baseline_noise_m else None
-        self.var = self.noise_var  # the weight's variance: the baseline's, then the run's own F
-
-    @property
-    def n(self) -> int:
-        return int(self.rec.h.size)
-
-    def set_flow(self, vi) -> None:
-        """The run's models driven by another flow at the valve (a refined closure)."""
-        self.vi = vi
-        t, flow = self.rec.t, vi.flow
-        self.ev_c = HeadEvaluator(self.rig, t[:: self.qc], band_hz="auto", flow=flow[:: self.qc])
-        self.ev_m = HeadEvaluator(self.rig, t[:: self.qm], band_hz=None, flow=flow[:: self.qm])
-        self.ev_f = HeadEvaluator(self.rig, t, band_hz=None, flow=flow)
-        self.tm = TimeDomainModel(self.rig, t, flow=flow)
-
-    def refine(self, fin: "_Model", bounds) -> None:
-        """The fitted closure refined on the whole window with the joint wall ``fin`` as the start
-        (velab.fitting.refine.refine_closure: this run's wall is free there, only the closure is kept)."""
-        if self.vi.source != "fitted":
-            return
-        pm = fin.sol.pm
-        a, J, tau = pm.unpack(fin.sol.x)
-        c = creep_const(self.rig)
-        wall = ModelFit(name=model_name(pm.m), m=pm.m, k=pm.size, reduced=False, n=self.n, F=math.nan,
-                        wave_speed_m_s=a, E_pa=tuple(c * a * a / np.asarray(J)), eta_pa_s=tuple(c * a * a / np.asarray(J) * tau),
-                        lag1_autocorr=0.0)
-        self.set_flow(refine_closure(self.rec.t, self.rec.h, self.rig, self.vi, wall, bounds))
-
-    def set_friction(self, params) -> None:
-        """The linear friction closest to this run's time-domain head at ``params`` (only how fast the
-        defect correction converges, not where: the fitted head is the time-domain model's)."""
-        if not self.tm.active:
-            return
-        h_time = self.tm.head(*params)
-        eq = equivalent_friction(self.ev_c, params, lowpass_decimate(h_time, self.qc))
-        self.ev_c, self.ev_m, self.ev_f = self.ev_c.fork(eq), self.ev_m.fork(eq), self.ev_f.fork(eq)
-
-    def model_head(self, params) -> np.ndarray:
-        """The head of the run's model at the fit rate: the time-domain model's with a nonlinear friction."""
-        return self.tm.head(*params) if self.tm.active else self.ev_f.head(*params)
 
 
 @dataclass
@@ -157,7 +90,10 @@ def assess_part(best: ModelFit, part, head, F: float, method: str) -> SweepResul
 
 
 class _JointSweep:
-    def __init__(self, runs: list[_Run], bounds, selection: str, progress=None):
+    """The sweep over stacked parts (velab.fitting.parts.Part: a run's section; named ``runs`` here, as a joint
+    fit of single-section runs has one part per run)."""
+
+    def __init__(self, runs: list[Part], bounds, selection: str, progress=None):
         self.runs, self.bounds, self.selection, self.progress = runs, bounds, selection, progress
         self.final: dict[int, _Model] = {}
         self.not_searched: list[int] = []
@@ -293,8 +229,10 @@ class _JointSweep:
     # ------------------------------------------------------------ summary
     def summarise(self, m: int, fin: _Model, k_nuisance: int, nuisance=None) -> ModelFit:
         """The ModelFit of the joint wall: standard errors from the stacked weighted Jacobian at the fit
-        rate (weights 1/F_r; inflated for the residuals' lag-1 as for one run), marginalised over the runs'
-        fitted closures (``nuisance``: each run's closure rows, velab.fitting.nuisance); F, AIC over the runs."""
+        rate (weights 1/F_r; inflated for the residuals' lag-1 as for one run), marginalised over the records'
+        fitted closures (``nuisance``: per record, its parts' indices -- consecutive -- and each part's closure
+        rows, velab.fitting.parts.Part.closure_rows: one closure drives every section of its record, so its
+        columns run over all of them, one block per record); F, AIC over the parts."""
         saved = [r.var for r in self.runs]
         for r, F in zip(self.runs, fin.F_runs):
             r.var = float(F)
@@ -302,10 +240,16 @@ class _JointSweep:
         f = summarise(st, fin.sol, model_name(m), self.runs[0].rig, self.bounds,
                       evaluations=st.ev.evaluations, jacobians=st.ev.jacobians)
         n_tot = sum(r.n for r in self.runs)
-        if nuisance is not None and any(b.size for b in nuisance):
+        blocks, slices = [], []
+        for idx, rows in nuisance or ():
+            if any(b.size for b in rows):
+                sl = st.ev.slices()
+                blocks.append(np.concatenate([st.ev.weights[i] * b for i, b in zip(idx, rows)], axis=1))
+                slices.append(slice(sl[idx[0]].start, sl[idx[-1]].stop))
+        if blocks:
             h, jac = st.ev.head_jac_x(*fin.sol.pm.unpack(fin.sol.x), fin.sol.pm.tau_free)
             res = h - st.d
-            f = marginalised(f, fin.sol.pm, fin.sol.x, jac, nuisance, st.ev.slices(), st.ev.weights,
+            f = marginalised(f, fin.sol.pm, fin.sol.x, jac, blocks, slices, [1.0] * len(blocks),
                              sumsq(res) / res.size, lag1(res), self.runs[0].rig)
         for r, v in zip(self.runs, saved):
             r.var = v
@@ -330,9 +274,10 @@ class _JointSweep:
 def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, models=range(MAX_M + 1),
               selection: str = "ar1", manoeuvre: str = "auto", tau_min_s=None, tau_max_s=None, friction=None,
               friction_unsteady=None, progress=None) -> JointResult:
-    """Calibrate one wall on several runs of one pipe (see the module docstring). ``sources``: the runs
-    (``CampaignRun``), two or more; the other options as ``fit_record``. Raises DataError (one line,
-    naming the run) for runs of different pipes, a window a run does not hold, bad options."""
+    """Calibrate one wall on several runs of one pipe (see the module docstring), every section of each.
+    ``sources``: the runs (``CampaignRun``), two or more; the other options as ``fit_record``. Raises
+    DataError (one line, naming the run) for runs of different pipes, a window a run does not hold, bad
+    options, a run whose heads do not match its rig's transducers."""
     if len(sources) < 2:
         raise DataError("a joint fit needs two or more runs")
     if selection not in SELECTIONS:
@@ -342,63 +287,47 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     ms = parse_models(list(models) if isinstance(models, range) else models)
 
     def make(s):
-        try:
-            return _Run(s, window_s, manoeuvre, friction, friction_unsteady)
-        except DataError as exc:
-            raise DataError(f"{s.path}: {exc}") from None
+        return Record(s.path, s.time_s, s.heads(), s.trigger_time_s, s.rig, window_s, record_rate_hz=s.record_rate_hz,
+                      position_pct=s.position_pct, manoeuvre=manoeuvre, friction=friction,
+                      friction_unsteady=friction_unsteady)
 
-    runs = per_run(make, sources)
-    dt = min(float(r.rec.t[1] - r.rec.t[0]) for r in runs)
-    bounds = derive_bounds(runs[0].rig, dt, max(r.rec.window_s for r in runs), tau_min_s=tau_min_s,
+    records = per_run(make, sources)
+    parts = [p for r in records for p in r.parts]  # record after record: each record's parts consecutive
+    dt = min(float(p.rec.t[1] - p.rec.t[0]) for p in parts)
+    bounds = derive_bounds(parts[0].rig, dt, max(p.rec.window_s for p in parts), tau_min_s=tau_min_s,
                            tau_max_s=tau_max_s)
-    sw = _JointSweep(runs, bounds, selection, progress)
+    sw = _JointSweep(parts, bounds, selection, progress)
     sw.sweep(ms, progress)
-    # the fitted closures refined on each run's whole window with the best wall (every wave front carries
-    # the closure's shape; from its early window alone a slow element takes up a wrong shape), then every
-    # model continued from its optimum under them
-    for _ in range(REFINE_PASSES if any(r.vi.source == "fitted" for r in runs) else 0):
-        first = _first_pass_best(sw, ms)
-        p = first.sol.pm.unpack(first.sol.x)
-
-        def refine(r, first=first, p=p):
-            r.refine(first, sw.bounds)
-            r.set_friction(p)
-
-        per_run(refine, runs)
-        for m in range(0, max(ms) + 1):
-            sw.final[m] = sw.continue_model(m, sw.final[m])
-    top = min(sw.final.values(), key=lambda f: f.loglik(runs))
+    refine_closures(sw, records, ms)
+    top = min(sw.final.values(), key=lambda f: f.loglik(parts))
     sw.reweight(top)
-    k_nuis = sum(r.vi.k for r in runs)
-    # the closures' columns at the best-fitting wall, for the wall's covariance marginalised over them
-    p_top = top.sol.pm.unpack(top.sol.x)
-    nuisance = per_run(lambda r: closure_rows(r.rig, r.rec.t, r.rec.h, r.ev_f, r.vi, p_top), runs)
-    fits = [sw.summarise(m, sw.final[m], k_nuis, nuisance) for m in ms]
+    k_nuis = sum(r.vi.k for r in records)
+    fits = [sw.summarise(m, sw.final[m], k_nuis, closure_groups(parts, records, top)) for m in ms]
     apply_criteria(fits, selection)
-    result = JointResult(n=fits[0].n, window_s=max(r.rec.window_s for r in runs),
-                         sample_rate_hz=min(r.rec.fit_rate_hz for r in runs), method="joint", settings={},
+    result = JointResult(n=fits[0].n, window_s=max(p.rec.window_s for p in parts),
+                         sample_rate_hz=min(p.rec.fit_rate_hz for p in parts), method="joint", settings={},
                          models=fits, selection=selection)
     best = result.best
-    result.settings = _settings(runs, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s)
-    result.runs, result.warnings = _per_run(runs, sw, sw.final[best.m], best, bounds)
+    result.settings = _settings(records, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s)
+    result.runs, result.warnings = _per_run(records, sources, sw, sw.final[best.m], best, bounds)
     if all(r["disagrees"] for r in result.runs):
         # every run beyond its noise: the model (or the rig files), not one run, does not describe them
         result.warnings.insert(0, {"code": "misfit", "message": f"the best model {best.name} leaves residuals above "
                                    f"the noise in every run: its wall is not the pipe's; check the rig files, the "
                                    f"valve, air, friction, and the models fitted"})
-    result.record_rate_hz = max(r.rec.record_rate_hz for r in runs)
+    result.record_rate_hz = max(p.rec.record_rate_hz for p in parts)
     result.anti_alias_filter = "per run (runs[].anti_alias_filter)"
-    if all(r.noise_var for r in runs):
-        # pooled as F is (n-weighted geometric mean), so that a model's noise_ratio is F / noise^2
-        result.baseline_noise_m = math.exp(sum(r.n * math.log(r.noise_var) for r in runs) / (2 * result.n))
-        result.baseline_lag1 = float(np.average([r.rec.baseline_lag1 for r in runs], weights=[r.n for r in runs]))
-    result.adequacy = {"baseline_samples": int(sum(r.rec.baseline_samples for r in runs)), "misfit_bound": None,
-                       "per_run": "the misfit rule is applied to each run (runs[].misfit_bound, runs[].disagrees)"}
+    pool_baseline(result, parts)
+    result.adequacy["per_run"] = "the misfit rule is applied to each run (runs[].misfit_bound, runs[].disagrees)"
     if best.at_bounds:
         result.warnings.append({"code": "bound", "message": bound_message(best)})
-    result.notes.append(f"joint fit of {len(runs)} runs: one wall (a, J_k, tau_k) shared; per run its own steady state, "
-                        f"friction at its Q0, flow at the valve ({k_nuis} nuisance parameters in all, counted in k) "
-                        f"and noise; -2 ln L = sum over runs of n_r ln F_r (each run's variance its own)")
+    n_sec = len(parts)
+    result.notes.append(f"joint fit of {len(records)} runs" + (f" ({n_sec} sections)" if n_sec > len(records) else "")
+                        + f": one wall (a, J_k, tau_k) shared; per run its own steady state, friction at its Q0, flow "
+                          f"at the valve ({k_nuis} nuisance parameters in all, counted in k) and noise"
+                        + (", each section its own noise" if n_sec > len(records) else "")
+                        + "; -2 ln L = sum over runs" + (" and sections" if n_sec > len(records) else "")
+                        + " of n_r ln F_r (each one's variance its own)")
     if sw.not_searched:
         result.notes.append(", ".join(model_name(m) for m in sw.not_searched)
                             + ": not searched, the model below plus vanished elements (its element did not pay "
@@ -408,65 +337,152 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
     return result
 
 
+def refine_closures(sw: _JointSweep, records: list[Record], ms) -> None:
+    """The fitted closures refined on each record's whole window with the first pass's best wall (every wave
+    front carries the closure's shape; from its early window alone a slow element takes up a wrong shape),
+    then every model continued from its optimum under them."""
+    for _ in range(REFINE_PASSES if any(r.vi.source == "fitted" for r in records) else 0):
+        first = _first_pass_best(sw, ms)
+        p = first.sol.pm.unpack(first.sol.x)
+        per_run(lambda r: r.refine(p, sw.bounds), records)
+        for m in range(0, max(ms) + 1):
+            sw.final[m] = sw.continue_model(m, sw.final[m])
+
+
+def closure_groups(parts, records: list[Record], top: _Model) -> list:
+    """Per record: its parts' indices and each part's closure rows at the best-fitting wall (for the wall's
+    covariance marginalised over the records' closures, ``_JointSweep.summarise``)."""
+    p_top = top.sol.pm.unpack(top.sol.x)
+    rows = per_run(lambda p: p.closure_rows(p_top), parts)
+    out, i = [], 0
+    for r in records:
+        idx = list(range(i, i + len(r.parts)))
+        out.append((idx, [rows[j] for j in idx]))
+        i += len(r.parts)
+    return out
+
+
+def pool_baseline(result: SweepResult, parts) -> None:
+    """The parts' baseline noise pooled as F is (n-weighted geometric mean, so that a model's noise_ratio is
+    F / noise^2), its lag-1 averaged, and the adequacy's sample count."""
+    if all(p.noise_var for p in parts):
+        result.baseline_noise_m = math.exp(sum(p.n * math.log(p.noise_var) for p in parts) / (2 * result.n))
+        result.baseline_lag1 = float(np.average([p.rec.baseline_lag1 for p in parts], weights=[p.n for p in parts]))
+    result.adequacy = {"baseline_samples": int(sum(p.rec.baseline_samples for p in parts)), "misfit_bound": None}
+
+
 def _first_pass_best(sw: _JointSweep, ms) -> _Model:
     """The model of the first pass with the least white AIC (sum n_r ln F_r + 2 (2m + 1))."""
     return min((sw.final[m] for m in ms), key=lambda f: f.loglik(sw.runs) + 2 * f.sol.pm.size)
 
 
-def _settings(runs, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s) -> dict:
+def _settings(records, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s) -> dict:
+    tm = records[0].parts[0].tm
     return {"models": ms, "reduced": False, "polish": True, "selection": selection, "joint": True,
             "bounds": bounds.to_dict(), "tau_min_s": tau_min_s, "tau_max_s": tau_max_s,
             "tau_start_range_s": [sw.tau_lo, sw.tau_hi], "not_searched": [model_name(m) for m in sw.not_searched],
-            "k_shared": "2m + 1", "k_nuisance": k_nuis,
-            "likelihood": "sum over runs of n_r ln F_r (Gaussian, each run's own variance profiled out)",
-            "friction": {"steady": runs[0].tm.steady, "unsteady": runs[0].tm.unsteady,
-                         "time_domain": runs[0].tm.active,
+            "k_shared": "2m + 1", "k_nuisance": k_nuis, "sections": sum(len(r.parts) for r in records),
+            "likelihood": "sum over runs (and their sections) of n_r ln F_r (Gaussian, each one's own variance "
+                          "profiled out)",
+            "friction": {"steady": tm.steady, "unsteady": tm.unsteady, "time_domain": tm.active,
                          "text": "each run's head is its time-domain model (its own Q0) at the wall, fitted through "
                                  "its frequency model plus a correction refreshed at the optimum"
-                                 if runs[0].tm.active else runs[0].tm.describe()}}
+                                 if tm.active else tm.describe()}}
 
 
-def _per_run(runs, sw: _JointSweep, fin: _Model, best: ModelFit, bounds):
-    """Per run: its F and noise ratio under the joint wall, whether it disagrees (the single fit's misfit
-    rule on that run: velab.fitting.adequacy.assess), and its own wall under the best model (a polish
-    from the joint wall on that run alone) for the campaign figure."""
+def assess_parts(best: ModelFit, parts, fin: _Model, first: int, method: str):
+    """The single fit's misfit rule on each part (``assess_part``) under the stacked fit's wall ``fin``;
+    ``first``: the index of ``parts[0]`` in the sweep. Per part a dict (name, position_m, n, F, noise_ratio,
+    baseline_noise_m, steady_head_m, misfit_bound, disagrees) and its warnings."""
+    out = []
+    for j, part in enumerate(parts):
+        i = first + j
+        sr = assess_part(best, part, fin.heads[i], float(fin.F_runs[i]), method)
+        out.append(({"name": part.name, "position_m": part.position_m, "n": part.n, "F": float(fin.F_runs[i]),
+                     "noise_ratio": sr.models[0].noise_ratio, "baseline_noise_m": part.rec.baseline_noise_m,
+                     "steady_head_m": part.rec.steady_head_m, "misfit_bound": sr.adequacy.get("misfit_bound"),
+                     "disagrees": any(w["code"] == "misfit" for w in sr.warnings)}, sr.warnings))
+    return out
+
+
+def _per_run(records, sources, sw: _JointSweep, fin: _Model, best: ModelFit, bounds):
+    """Per run: its F and noise ratio under the joint wall (pooled over its sections as F is), whether it
+    disagrees (the single fit's misfit rule on each of its sections: velab.fitting.adequacy.assess), its
+    sections' own ratios when it has several, and its own wall under the best model (a polish from the joint
+    wall on that run alone, every section of it) for the campaign figure."""
     out, warnings = [], []
-    owns = per_run(lambda i: _own_wall(sw, i, fin, best.m, bounds), list(range(len(runs))))
-    for i, r in enumerate(runs):
-        sr = assess_part(best, r, fin.heads[i], float(fin.F_runs[i]), "joint")
-        for w in sr.warnings:
-            warnings.append({"code": w["code"], "message": f"{r.src.path}: {w['message']}", "run": r.src.path})
-        own = owns[i]
-        out.append({
-            "path": r.src.path, "head_sha256": r.src.head_sha256, "n": r.n, "window": r.rec.window_s,
-            "sample_rate_hz": r.rec.fit_rate_hz, "record_rate_hz": r.rec.record_rate_hz,
-            "anti_alias_filter": r.rec.filter, "steady_flow_m3_s": r.rig.steady_flow_m3_s,
-            "steady_head_m": r.rec.steady_head_m, "F": float(fin.F_runs[i]), "noise_ratio": sr.models[0].noise_ratio,
-            "baseline_noise_m": r.rec.baseline_noise_m, "misfit_bound": sr.adequacy.get("misfit_bound"),
-            "disagrees": any(w["code"] == "misfit" for w in sr.warnings),
-            "warnings": [w["code"] for w in sr.warnings],
-            "manoeuvre": r.vi.describe(),
+    first = [0]
+    for r in records[:-1]:
+        first.append(first[-1] + len(r.parts))
+    owns = per_run(lambda k: _own_wall(sw, list(range(first[k], first[k] + len(records[k].parts))), fin, best.m,
+                                       bounds), list(range(len(records))))
+    for k, rec in enumerate(records):
+        secs = assess_parts(best, rec.parts, fin, first[k], "joint")
+        for (sec, ws), part in zip(secs, rec.parts):
+            where = "" if len(rec.parts) == 1 else f"section {part.name} ({part.position_m:g} m): "
+            for w in ws:
+                warnings.append({"code": w["code"], "message": f"{rec.label}: {where}{w['message']}", "run": rec.label}
+                                | ({"section": part.name} if len(rec.parts) > 1 else {}))
+        n = sum(p.n for p in rec.parts)
+        valve = rec.valve.rec
+        own = owns[k]
+        row = {
+            "path": rec.label, "head_sha256": sources[k].head_sha256, "n": n, "window": valve.window_s,
+            "sample_rate_hz": valve.fit_rate_hz, "record_rate_hz": valve.record_rate_hz,
+            "anti_alias_filter": valve.filter, "steady_flow_m3_s": rec.rig.steady_flow_m3_s,
+            "steady_head_m": valve.steady_head_m,
+            "F": math.exp(sum(s["n"] * math.log(s["F"]) for s, _ in secs) / n),
+            "noise_ratio": _pooled_ratio([s for s, _ in secs]),
+            "baseline_noise_m": valve.baseline_noise_m,
+            "misfit_bound": secs[0][0]["misfit_bound"] if len(secs) == 1 else None,
+            "disagrees": any(s["disagrees"] for s, _ in secs),
+            "warnings": sorted({w["code"] for _, ws in secs for w in ws}),
+            "manoeuvre": rec.vi.describe(),
             "own": {"model": best.name, "wave_speed": own.wave_speed_m_s, "wave_speed_se": own.wave_speed_se_m_s,
                     "F": own.F, "elements": own.elements(), "cov_x": own.cov_x,
-                    "creep": creep_curve(own, t_min_s=bounds.tau_min_s, t_max_s=r.rec.window_s).to_dict()},
-        })
+                    "creep": creep_curve(own, t_min_s=bounds.tau_min_s, t_max_s=valve.window_s).to_dict()},
+        }
+        if len(rec.parts) > 1:
+            row["sections"] = [s for s, _ in secs]
+        out.append(row)
     return out, warnings
 
 
-def _own_wall(sw: _JointSweep, i: int, fin: _Model, m: int, bounds) -> ModelFit:
-    """The best model's wall fitted on run i alone, from the joint wall (polish grid, time-domain correction
-    at the joint wall, one refresh), summarised at the fit rate."""
-    r = sw.runs[i]
+def _pooled_ratio(secs: list[dict]):
+    """The sections' noise ratios pooled as F is (n-weighted geometric mean), None if one has none."""
+    if any(s["noise_ratio"] is None for s in secs):
+        return None
+    return math.exp(sum(s["n"] * math.log(s["noise_ratio"]) for s in secs) / sum(s["n"] for s in secs))
+
+
+def _own_wall(sw: _JointSweep, idx: list[int], fin: _Model, m: int, bounds) -> ModelFit:
+    """The best model's wall fitted on one run alone -- its parts ``idx``, every section of it -- from the
+    joint wall (polish grids, the time-domain correction at the joint wall, one refresh, each section weighted
+    by its joint F), summarised at the fit rate; its F pooled over the sections as the joint F is."""
+    parts = [sw.runs[i] for i in idx]
+    weights = [1.0] if len(parts) == 1 else [1.0 / math.sqrt(float(fin.F_runs[i])) for i in idx]
     pm = fin.sol.pm
     x = fin.sol.x
-    heads = fin.heads[i]
+    heads = [fin.heads[i] for i in idx]
+
+    def data(grid, heads, x):
+        out = []
+        for r, h in zip(parts, heads):
+            ev, q = (r.ev_m, r.qm) if grid == "m" else (r.ev_f, 1)
+            if not r.tm.active:
+                out.append(lowpass_decimate(r.rec.h, q) if q > 1 else r.rec.h)
+            else:
+                dcorr = r.rec.h - h
+                out.append((lowpass_decimate(dcorr, q) if q > 1 else dcorr) + ev.head(*pm.unpack(x)))
+        return out
+
     for _ in range(2):
-        p = pm.unpack(x)
-        dcorr = r.rec.h - heads
-        data = (lowpass_decimate(dcorr, r.qm) if r.qm > 1 else dcorr) + r.ev_m.head(*p) if r.tm.active else \
-            (lowpass_decimate(r.rec.h, r.qm) if r.qm > 1 else r.rec.h)
-        x = Stage(r.ev_m, data).lsq(pm, x, max_nfev=30, ftol=1e-10).x
-        heads = r.model_head(pm.unpack(x))
-    p = pm.unpack(x)
-    data = r.rec.h - heads + r.ev_f.head(*p) if r.tm.active else r.rec.h
-    return summarise(Stage(r.ev_f, data), Sol(x, math.nan, pm), model_name(m), r.rig, bounds)
+        st = StackedEvaluator([r.ev_m for r in parts], weights)
+        x = Stage(st, st.stack(data("m", heads, x))).lsq(pm, x, max_nfev=30, ftol=1e-10).x
+        heads = [r.model_head(pm.unpack(x)) for r in parts]
+    st = StackedEvaluator([r.ev_f for r in parts], weights)
+    f = summarise(Stage(st, st.stack(data("f", heads, x))), Sol(x, math.nan, pm), model_name(m), parts[0].rig, bounds)
+    if len(parts) == 1:
+        return f
+    n = sum(r.n for r in parts)
+    return replace(f, n=n, F=math.exp(sum(r.n * math.log(sumsq(h - r.rec.h) / r.n) for r, h in zip(parts, heads)) / n))
