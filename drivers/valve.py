@@ -229,7 +229,8 @@ class ValveActuator(ModbusDevice):
         return tuple(spec.bit_names(int(self.read_value("faults"))))
 
     def read_status(self) -> ValveStatus:
-        """State, faults, position, time since trigger and trigger count in two block reads.
+        """State, faults, position, time since trigger and trigger count in two block reads (the state
+        once more when a trigger fell between them: a still state with a time since trigger).
 
         Checked: an unknown state code or an impossible time since trigger is an
         ImplausibleReply (after one re-read); unknown fault bits are reported as
@@ -252,6 +253,14 @@ class ValveActuator(ModbusDevice):
         tst = float(self.profile.reg("time_since_trigger").to_value(body[2:4]))
         if not (tst >= 0.0 and math.isfinite(tst)):
             raise self._implausible(f"time since trigger {tst} s")
+        if state in (ValveState.IDLE, ValveState.ARMED) and tst > 0.0:
+            # a TRIGGER (from another connection) fell between the two reads: the state is older than the
+            # position ("ARMED" at 37 % open, 0.19 s into the stroke). The state read again is not older
+            # than the position, so the reply is one instant of the actuator's, or later
+            again = self._bus_read("holding", st.address, 2)
+            state, faults = self._state(again[0]), tuple(self.profile.reg("faults").bit_names(again[1]))
+            if state is ValveState.FAULT and position.quality is Quality.OK:
+                position = replace(position, quality=Quality.FAULT)
         status = ValveStatus(state, position, faults, tst, int(body[4]))
         self._last_trigger_count = status.trigger_count
         return status

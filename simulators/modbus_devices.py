@@ -121,13 +121,13 @@ class SimValveActuator(SimModbusDevice):
         return [(0, 3), (10, 6), (20, 5), (30, 1)]
 
     def refresh(self, now: float) -> None:
-        rig = self.rig
-        rig.apply_due_seizures(now)  # a seizure scheduled at this instant shows in this very reply
-        self.put("state", int(rig.state(now)))
-        self.put("faults", rig.fault_bits(now))
-        self.put("position", float(rig.valve_position(np.array([now]))[0]))
-        self.put("time_since_trigger", rig.time_since_trigger(now))
-        self.put("trigger_count", rig.trigger_count & 0xFFFF)
+        # the whole status block at one instant of the actuator (SimulatedRig.valve_status)
+        state, faults, position, since, count = self.rig.valve_status()
+        self.put("state", int(state))
+        self.put("faults", faults)
+        self.put("position", position)
+        self.put("time_since_trigger", since)
+        self.put("trigger_count", count & 0xFFFF)
 
     def write(self, address, values):
         p = self.profile

@@ -326,6 +326,17 @@ class SimulatedRig:
     def fault_bits(self, t: float | None = None) -> int:
         return self.faults.valve_fault_bits if self.state(t) is ValveState.FAULT else 0
 
+    def valve_status(self) -> tuple[ValveState, int, float, float, int]:
+        """(state, fault bits, position %, time since trigger s, trigger count) at one instant, read under
+        the rig's lock: a real actuator's controller fills its status block in one cycle, so a TRIGGER
+        arriving from another connection can never fall between the state and the position of one reply
+        (it did: an "ARMED" reply at 98.6 % open, 40 ms into the stroke)."""
+        with self._lock:
+            now = self.clock.now()
+            self.apply_due_seizures(now)  # a seizure scheduled at this instant shows in this very reply
+            return (self.state(now), self.fault_bits(now), float(self.valve_position(np.array([now]))[0]),
+                    self.time_since_trigger(now), self.trigger_count)
+
     def time_since_trigger(self, t: float | None = None) -> float:
         tr = self._tr
         if tr is None:

@@ -148,6 +148,17 @@ def test_position_quality(position, state, quality):
     assert s.position.quality is quality and not s.position.quality.is_measurement or quality.is_measurement
 
 
+def test_a_trigger_between_the_two_reads_reads_the_state_again():
+    """ARMED, then a position 0.19 s into the stroke (another connection triggered in between): the state is
+    read once more, so a reply never says still while its position is moving."""
+    pairs = [(READ_HEAD, head(int(ValveState.ARMED))), (READ_BODY, body(36.9, 0.189, 5)),
+             (READ_HEAD, head(int(ValveState.RUNNING)))]
+    with expected_protocol(pairs) as t:
+        s = valve(t).read_status()
+    assert s.state is ValveState.RUNNING and s.position.value == pytest.approx(36.9, abs=1e-4)
+    assert s.time_since_trigger_s == pytest.approx(0.189, abs=1e-6) and s.trigger_count == 5
+
+
 def test_negative_time_since_trigger_is_implausible():
     with expected_protocol(status(ValveState.RUNNING, 50.0, -3.0) * 2) as t:
         with pytest.raises(ImplausibleReply, match="time since trigger"):

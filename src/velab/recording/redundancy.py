@@ -34,15 +34,16 @@ POSITION_ACCURACY_PCT = 2.0
 # the feedback to a sample or two. The ADC range over +-this much around that instant is allowed:
 # during a fast closure the valve moves that far between the two instruments' sample instants.
 POSITION_TIMING_S = 0.02
-# ... but a recording places a reply mid-stroke less well than that: the trigger is fitted to the
-# feedback and, on a loaded host at the fast clock, 20 ms raised false alarms in 1 run of 4 of `velab
-# record --simulate --fast` (a reply 17 ms into the stroke placed before it) and 0.1 s in 1 of 6 (a
-# shut valve reported 0.15 s before the ADC saw the stroke). Replies during a stroke are compared
-# with the ADC's range over +-STROKE_TIMING_S: the still valve and slow strokes stay fully checked.
-STROKE_TIMING_S = 0.3
 # A RUNNING reply is also compared with the commanded stroke at its own time since trigger
-# (stroke_mismatch): a real actuator follows its profile within a controller's lag.
+# (stroke_mismatch): a real actuator follows its profile within a controller's lag. Placed replies
+# measured on the simulated bench, loaded host, fast clock: within 0.5 ms of where the ADC saw their
+# position (the 0.3 s once seen was a reply whose state was read before a trigger and its position
+# after: the valve driver now reads the state again then, velab.drivers.valve.read_status).
 FOLLOWING_S = 0.05
+# States before this run's trigger: the valve is still whatever the time since trigger says (an actuator
+# may keep its last run's until the next trigger; the driver reads the state again when a trigger falls
+# between its two block reads, so a still state is never older than the position beside it)
+STILL = ("IDLE", "ARMED")
 # Before the trigger the actuator stamps nothing (time since trigger 0): the valve is still, and
 # the reply is compared with the ADC's whole baseline.
 # Electromagnetic flowmeter (SITRANS F M MAG 6000): 0.2-0.4 % of rate; 0.5 % with installation.
@@ -184,8 +185,6 @@ class RedundancyMonitor:
     """What one run saw of the redundant channels, fed from the acquisition and slow threads
     (append-only, under a lock), compared once at the end (``position_finding``, ``flow_finding``)."""
 
-    MOVING = ("RUNNING", "DONE", "HOLDING", "ABORTED", "FAULT")  # states that follow a trigger
-
     def __init__(self):
         self._lock = threading.Lock()
         self._t: list = []
@@ -227,39 +226,34 @@ class RedundancyMonitor:
                          profile: tuple[float, float, float] | None = None) -> tuple[Finding | None, int]:
         """The worst position disagreement of the run and the number of polls compared.
 
-        Polls after the trigger are placed at trigger + the actuator's time since trigger, only when
-        the trigger instant was measured from the feedback (else the two axes are not tied);
-        polls before it against the baseline (the valve is still). ``profile`` (beta, gamma, end):
-        the commanded stroke, which a RUNNING reply is also compared with at its own time since
-        trigger (``stroke_mismatch``)."""
+        A reply with no time since trigger or a still state (IDLE, ARMED) is compared with the baseline the ADC saw
+        (before the trigger). A reply after the trigger stands at trigger + the actuator's time since
+        trigger on the ADC's axis, only when the trigger instant was measured from the feedback (else the
+        two axes are not tied: not compared); mid-stroke against the ADC's range over +-POSITION_TIMING_S
+        around that instant and against the commanded stroke (``profile`` (beta, gamma, end),
+        ``stroke_mismatch``); after the stroke against what the ADC saw from that instant on."""
         with self._lock:
             if not self._t:
                 return None, 0
             t, pos, polls = np.concatenate(self._t), np.concatenate(self._pos), list(self._polls)
         base_end = trigger_s if trigger_s is not None else float(t[-1])
+        placed = trigger_s is not None and trigger_measured
         out, n = [], 0
         for state, reported, ok, tst in polls:
             if not ok:
                 continue  # NaN, or the actuator in FAULT: no position to compare
-            if state in self.MOVING:
-                if state != "DONE" or trigger_s is None or not trigger_measured:
-                    # a mid-stroke reply is placed on the ADC's axis (the fitted trigger + the actuator's
-                    # time since trigger) less well than a stroke moves: measured off by more than 0.3 s
-                    # on a loaded host at the fast clock, a false alarm on a sound run. It is compared
-                    # with every position the ADC saw (a reply no stroke passes through, e.g. 128 % open)
-                    f = position_mismatch(reported, trigger_s if trigger_s is not None else float(t[0]), t, pos,
-                                          t_span=(float(t[0]), float(t[-1])))
-                    if f is None and state == "RUNNING" and profile is not None:
-                        f = stroke_mismatch(reported, tst, profile, trigger_s)
-                else:
-                    # the stroke is over: the valve stands where the ADC saw it from the placed instant on
-                    at = trigger_s + tst
-                    f = position_mismatch(reported, at, t, pos, t_span=(at - STROKE_TIMING_S, float(t[-1])))
-            else:
-                # a reply whose state still says still may carry a stroke already begun (the state and the
-                # position of one poll straddle the trigger: 90.6 % "ARMED" seen at the fast clock): compared
-                # with every position the ADC saw as well
-                f = position_mismatch(reported, base_end, t, pos, t_span=(float(t[0]), float(t[-1])))
+            if tst <= 0.0 or state in STILL:  # no stroke yet: the valve stands where the baseline shows it
+                f = position_mismatch(reported, base_end, t, pos, t_span=(float(t[0]), base_end))
+            elif not placed:
+                continue
+            elif state == "RUNNING":
+                at = trigger_s + tst
+                f = position_mismatch(reported, at, t, pos)
+                if f is None and profile is not None:
+                    f = stroke_mismatch(reported, tst, profile, trigger_s)
+            else:  # the stroke is over (or stopped): the valve stands where the ADC saw it from then on
+                at = trigger_s + tst
+                f = position_mismatch(reported, at, t, pos, t_span=(at - POSITION_TIMING_S, float(t[-1])))
             n += 1
             out.append(f)
         return worst(out), n
