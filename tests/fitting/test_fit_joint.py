@@ -110,8 +110,8 @@ def test_three_runs_of_one_pipe_give_its_wall(joint):
         assert {"path", "n", "noise_ratio", "disagrees", "head_sha256", "steady_flow_m3_s"} <= set(r)
         assert r["disagrees"] is False and 0.8 < r["noise_ratio"] < 1.2 and r["n"] == 8000, r
     assert sorted(round(r["steady_flow_m3_s"] * 1e3, 2) for r in doc["runs"]) == [2.5, 3.64, 4.5]
-    # k counts the shared wall and every run's closure (six each)
-    assert best["k"] == 7 + 3 * 6 and doc["settings"]["k_nuisance"] == 18
+    # k counts the shared wall and every run's closure (five each: the coupling is the rig's valve law's)
+    assert best["k"] == 7 + 3 * 5 and doc["settings"]["k_nuisance"] == 15
     # the likelihood is the runs' n_r ln F_r summed: N ln F of the pooled F
     assert best["n"] == 24000
 
@@ -131,19 +131,45 @@ def test_the_joint_wave_speed_is_more_precise_than_any_single_run(joint, campaig
     assert best["wave_speed_se"] < min(single), (best["wave_speed_se"], single)
 
 
-@pytest.mark.parametrize("t_s", [0.5, 5.0, pytest.param(0.05, marks=pytest.mark.xfail(
-    strict=True, reason="head-only: the refined closures (coupling 0.07-0.27 for 1, power 1.87-2.06 for 2) leave "
-                        "J(0.05 s) 1.0 % high against a band of +-0.55 % here; docs/fitting.md, 'Joint fits'"))])
-def test_the_true_creep_lies_in_the_joint_band(joint, t_s):
-    doc, _, _ = joint
+@pytest.fixture(scope="module")
+def second(campaign):
+    """A second campaign of the same pipe (three runs at the same flows, other noise), fitted jointly."""
+    from velab.fitting.campaignrun import CampaignRun
+    from velab.fitting.joint import fit_joint
+
+    tmp, _, _ = campaign
+    runs = [_csv_run(tmp, f"s{i + 1}", q, "A", seed) for i, (q, seed) in enumerate(((2.5, 41), (3.64, 42), (4.5, 43)))]
+    return fit_joint([CampaignRun.from_run(read_run(p)) for p in runs], WINDOW).to_dict()
+
+
+@pytest.mark.parametrize("which", ["module", "second"])
+@pytest.mark.parametrize("t_s", [0.05, 0.5, 5.0])
+def test_the_true_creep_lies_in_the_joint_band(joint, second, which, t_s):
+    """Head only (every run's closure fitted): the true J(t) - J0 of material A within 2.58 of the band's
+    standard errors (its 99 % band) on two campaigns, and the wave speed within 2.58 of its own.
+
+    The closure's orifice-coupling exponent used to be fitted: it came out 0.07-0.27 for a true 1 (it trades
+    with the characteristic and the fast element, and its regressor, the measured head, carries the record's
+    noise), the fast element took the difference and J(0.05 s) lay 3.4 standard errors above the truth here
+    (0.74-0.94 % high; over eight campaigns z = +1.69 on average, three outside the 95 % band, a 1.45 of its
+    standard errors high). Now the exponent is the rig's valve law's and the coupling takes the calibrated
+    model's head (docs/fitting.md, "The manoeuvre"): over the same eight campaigns z = +0.04, +0.23, +0.38 on
+    average at 0.05, 0.5 and 5 s (standard deviations about 1), the wave speed +0.06; one point of 24 outside
+    the 95 % band -- this campaign's J(0.05 s), z = 2.09, as chance puts the largest of 24 -- hence the 99 % band
+    here, which the fitted coupling failed (z = 3.4 and 2.7 on these two campaigns)."""
+    doc = joint[0] if which == "module" else second
     best = next(m for m in doc["models"] if m["name"] == doc["best"])
+    assert doc["best"] == "S3"
     c = best["creep"]
     t = np.array(c["t_s"])
     truth = load_material("A").creep_compliance(np.array([t_s]))[0]
     lo, hi = (float(np.exp(np.interp(np.log(t_s), np.log(t), np.log(np.array(c[k], dtype=float))))) for k in
               ("lower", "upper"))
-    assert lo <= truth <= hi, (t_s, truth, lo, hi)
+    fit = float(np.exp(np.interp(np.log(t_s), np.log(t), np.log(np.array(c["J_per_pa"], dtype=float)))))
+    z = np.log(fit / truth) / (np.log(hi / lo) / (2 * 1.96))
+    assert abs(z) <= 2.58, (which, t_s, truth, fit, lo, hi, z)
     assert hi / lo < 1.5  # a band, not a blanket
+    assert abs(best["wave_speed"] - 353.73) <= 2.58 * best["wave_speed_se"], (best["wave_speed"], best["wave_speed_se"])
 
 
 def test_the_joint_fit_is_saved_into_every_run_naming_the_others(joint, campaign, capsys):
@@ -261,5 +287,5 @@ def test_runs_may_differ_in_rate_manoeuvre_and_valve_input():
     assert [x["record_rate_hz"] for x in r.runs] == [2000.0, 1000.0]
     assert [x["sample_rate_hz"] for x in r.runs] == [1000.0, 1000.0]  # 2 kHz fitted at 1 kHz (prepare_record)
     assert [x["manoeuvre"]["source"] for x in r.runs] == ["position", "fitted"]
-    assert r.settings["k_nuisance"] == 6 and r.best.k == 7 + 6
+    assert r.settings["k_nuisance"] == 5 and r.best.k == 7 + 5
     assert not r.warnings and not any(x["disagrees"] for x in r.runs), r.warnings

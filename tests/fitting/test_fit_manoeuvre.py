@@ -146,7 +146,9 @@ def test_a_real_valve_head_only_record_names_the_truth(rig_name, truth, valve):
     rig, t, h = valve_record(load_rig(rig_name), truth, VALVES[valve])
     r = fit_record(t, h, 0.0, rig, 20.0, record_rate_hz=1000.0)
     b = r.best
-    assert r.settings["manoeuvre"]["source"] == "fitted" and r.settings["manoeuvre"]["nuisance_parameters"] == 6
+    # five: the coupling exponent is the rig's valve law's (the orifice law: 1), not fitted
+    assert r.settings["manoeuvre"]["source"] == "fitted" and r.settings["manoeuvre"]["nuisance_parameters"] == 5
+    assert r.settings["manoeuvre"]["params"]["coupling"] == 1.0
     assert b.name == truth, r.report(elements=False)
     a_true = rig.nominal_wave_speed_m_s
     assert abs(b.wave_speed_m_s - a_true) <= 1.0

@@ -91,6 +91,7 @@ def test_fast_element_bound_is_flagged_and_lifted(tmp_path, capsys):
     """A true 5 ms element (below the default tau_min = closure / 10 = 13.7 ms): the report flags
     the bound and names --tau-min; with the option the true S2 is chosen, a within 1 m/s."""
     from velab.runfiles import write_run
+    from velab.valvelaw import Valve
 
     rig = load_rig("perugia")
     a = rig.nominal_wave_speed_m_s
@@ -100,7 +101,10 @@ def test_fast_element_bound_is_flagged_and_lifted(tmp_path, capsys):
     post = rng.normal(0.0, SIGMA, 20000)  # the window's noise first, as velab synth draws it
     h = h + np.concatenate([rng.normal(0.0, SIGMA, 500), post])
     run = tmp_path / "fast.h5"
-    write_run(run, rig, t, rig.steady_head_m + h, status="imported", sample_rate_hz=1000.0)
+    # the record's flow is the rig's sigmoid imposed (moc_head without a position): its rig file says so (a head-only
+    # fit takes the closure's coupling from the rig's valve law)
+    write_run(run, rig.with_changes(valve=Valve(law="imposed")), t, rig.steady_head_m + h, status="imported",
+              sample_rate_hz=1000.0)
     capsys.readouterr()
     assert main(["fit", str(run), "--models", "0-3", "--no-save"]) == 0
     text = capsys.readouterr().out

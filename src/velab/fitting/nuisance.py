@@ -22,7 +22,7 @@ from dataclasses import replace
 import numpy as np
 
 from velab.fitting.engine import HeadEvaluator, gram, sumsq
-from velab.fitting.manoeuvre import PARAM_NAMES, _coupling, closure_bounds, closure_flow, from_solver, to_solver
+from velab.fitting.manoeuvre import PARAM_NAMES, closure_bounds, closure_coupling, closure_flow, from_solver, to_solver
 from velab.fitting.params import ParamMap, creep_const
 from velab.model import ValveHeadModel
 from velab.fitting.stats import covariance, lag1, standard_errors
@@ -42,7 +42,7 @@ def closure_models(rig, t, d, vi, position_m: float | None = None) -> list[tuple
     lo, hi = closure_bounds(rig)
     span = hi - lo
     t = np.asarray(t, dtype=float)
-    hc = _coupling(t, np.asarray(d, dtype=float), rig)
+    hc = closure_coupling(t, d, rig, vi.coupling)
     out = []
     for i in range(v0.size):
         if not (lo[i] + 1e-6 * span[i] < v0[i] < hi[i] - 1e-6 * span[i]):

@@ -36,8 +36,9 @@ import numpy as np
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator, gram, sumsq
 from velab.fitting.friction import TimeDomainModel, equivalent_friction
-from velab.fitting.manoeuvre import (NV, PARAM_NAMES, STARTS, ValveInput, _coupling, _standard_errors,
-                                     closure_bounds, closure_flow, from_solver, tm_flow, to_solver)
+from velab.fitting.manoeuvre import (FITTED, NV, PARAM_NAMES, STARTS, ValveInput, _standard_errors, closure_bounds,
+                                     closure_coupling, closure_flow, coupling_exponent, coupling_model, from_solver,
+                                     tm_flow, to_solver)
 from velab.fitting.params import FitBounds, ParamMap, derive_bounds
 from velab.fitting.solvers import LMSolution, Stage, levenberg_marquardt
 from velab.fitting.stats import lag1
@@ -64,9 +65,15 @@ def refine_closure(t, d, rig: Rig, vi: ValveInput, fit, bounds: FitBounds | None
     if vi.source != "fitted":
         return vi
     prob = _Refinement(t, d, rig, vi, fit, bounds)
+    F_start = prob.model_F(prob.start_wall(), prob.v0)
     x = prob.basins()
     v, sol, wall = prob.project(x)
-    if not prob.model_F(wall, v) < prob.model_F(prob.start_wall(), prob.v0):
+    # the orifice coupling then takes the calibrated model's head instead of the measured one, whose noise entered
+    # the flow (manoeuvre.closure_coupling), and the closure is stepped again under it
+    coupling = coupling_model(*wall, from_solver(v))
+    prob.set_coupling(coupling)
+    v, sol, wall = prob.project(np.concatenate([[math.log(wall[0])], np.log(wall[1]), np.log(wall[2]), v]))
+    if not prob.model_F(wall, v) < F_start:
         # the refinement's model (the frequency model, its linear friction stand-in and a correction refreshed
         # between the stages) is not the time-domain model: a closure that fits it better but the record no
         # better is not taken
@@ -86,11 +93,11 @@ def refine_closure(t, d, rig: Rig, vi: ValveInput, fit, bounds: FitBounds | None
             f"T(sigmoid(beta (t - t_half))) with beta = {params['beta_per_s']:.4g} +- {ses['beta_per_s']:.2g} 1/s, "
             f"t_half = {params['t_half_s'] * 1e3:.4g} +- {ses['t_half_s'] * 1e3:.2g} ms, characteristic power "
             f"{params['power']:.3g}, valve loss share {params['loss_share']:.3g}, orifice coupling "
-            f"{params['coupling']:.3g} (1: discharge to air, 0: imposed flow); fitted over {tw[-1] + tw[1] - tw[0]:.4g} s "
+            f"{params['coupling']:.3g} (the rig's valve law); fitted over {tw[-1] + tw[1] - tw[0]:.4g} s "
             f"with the wall ({getattr(fit, 'name', '') or 'S' + str(prob.k)})")
     return ValveInput("fitted", closure_flow(prob.t_full, prob.hc_full, rig, valve), params, ses, text,
-                      k=len(PARAM_NAMES), gain=prob.t_full.size * math.log(prob.F0 / F) if F > 0 else math.inf,
-                      refined_with=getattr(fit, "name", ""))
+                      k=FITTED, gain=prob.t_full.size * math.log(prob.F0 / F) if F > 0 else math.inf,
+                      refined_with=getattr(fit, "name", ""), coupling=coupling)
 
 
 class _Refinement:
@@ -99,11 +106,13 @@ class _Refinement:
     def __init__(self, t, d, rig: Rig, vi: ValveInput, fit, bounds: FitBounds | None):
         self.rig, self.vi = rig, vi
         self.t_full = t_full = np.asarray(t, dtype=float)
-        self.hc_full = _coupling(t_full, np.asarray(d, dtype=float), rig)
+        self.d_full = np.asarray(d, dtype=float)
+        self.hc_full = closure_coupling(t_full, d, rig, vi.coupling)
         dt = float(t_full[1] - t_full[0])
         # on the record low-passed and decimated to REFINE_RATE_PER_BAND x the manoeuvre's band: the model
         # has nothing above it (a closure's spectrum falls exponentially) and the solve is q x cheaper
         q = max(1, int((1.0 / dt) // (REFINE_RATE_PER_BAND * manoeuvre_band_hz(rig))))
+        self.q = q
         self.t, self.d, self.hc = t_full[::q], lowpass_decimate(np.asarray(d, dtype=float), q), self.hc_full[::q]
         a = fit.wave_speed_m_s
         self.J0 = creep_scale(rig, a) / np.asarray(fit.E_pa, dtype=float)
@@ -124,6 +133,12 @@ class _Refinement:
         self.clo, self.chi = closure_bounds(rig)
         self._evs: dict = {}
         self.F0 = math.nan
+
+    def set_coupling(self, model: dict) -> None:
+        """The orifice coupling taken from ``model``'s head (manoeuvre.closure_coupling) from now on."""
+        self.hc_full = closure_coupling(self.t_full, self.d_full, self.rig, model)
+        self.hc = self.hc_full[:: self.q]
+        self._evs.clear()
 
     # ------------------------------------------------------------ the joint problem (wall, closure)
     def split(self, x):
@@ -172,8 +187,8 @@ class _Refinement:
         hi = np.concatenate([[math.log(self.a0 * 1.1)], np.full(k, math.log(10.0)), np.full(k, math.log(1e4)), self.chi])
         v0 = to_solver([self.vi.params.get(name, 0.0) for name in PARAM_NAMES])
         starts = [v0] + [to_solver([p.get(name, 0.0) for name in PARAM_NAMES]) for p in self.vi.alternatives]
-        starts += [[math.log(m.beta_per_s), v0[1], math.log(power), math.log(share), kappa, 0.0]
-                   for power, share, kappa in STARTS]
+        starts += [[math.log(m.beta_per_s), v0[1], math.log(power), math.log(share), coupling_exponent(self.rig), 0.0]
+                   for power, share, _ in STARTS]
         wall = np.concatenate([[math.log(self.a0)], np.log(self.J0), np.log(self.tau0)])
         # the correction at the first closure, for the comparison of the starts
         self.refresh(self.a0, self.J0, self.tau0, from_solver(np.clip(v0, self.clo, self.chi)))
@@ -230,6 +245,7 @@ class _Refinement:
                 vp[i] += step
                 cols.append((self.evaluator(vp).head(*pm.unpack(xw)) - h0) / step)
             Jc = np.array(cols)
+            Jc[self.clo >= self.chi] = 0.0  # (the coupling, which the rig's valve law states, is held)
             # the closure's columns orthogonal to the wall's: what the wall cannot take up when the closure moves
             coef = np.linalg.lstsq(gram(np.ascontiguousarray(Jw)), Jw @ Jc.T, rcond=1e-12)[0]
             return (Jc - coef.T @ Jw).T

@@ -260,8 +260,14 @@ def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, f
     ``broyden``: the Jacobian is computed once, at the start, and then carried by Broyden's rank-one
     update along each accepted step (computed again only where a step it predicts fails): for a
     residual whose Jacobian costs one expensive model run per parameter (the time-domain model),
-    started near its optimum. The returned ``jac`` is then that updated estimate."""
+    started near its optimum. The returned ``jac`` is then that updated estimate.
+
+    A variable whose bounds coincide is held: its Jacobian column is taken as zero (it neither moves nor
+    shares the step with the others, and adds no variance to theirs)."""
     x = np.clip(np.asarray(x0, dtype=float), lo, hi)
+    held = np.asarray(lo, dtype=float) >= np.asarray(hi, dtype=float)
+    if held.any():
+        jacobian = _holding(jacobian, held)
     r = residual(x)
     F = sumsq(r)
     lam = 1e-3
@@ -314,3 +320,12 @@ def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, f
         if not broyden:
             J = jacobian(x)
     return LMSolution(x, r, J, it)
+
+
+def _holding(jacobian, held: np.ndarray):
+    """``jacobian`` with the columns of the held variables zero."""
+    def jac(x):
+        J = np.array(jacobian(x), dtype=float)
+        J[:, held] = 0.0
+        return J
+    return jac
