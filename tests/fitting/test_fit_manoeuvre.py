@@ -16,8 +16,8 @@ from velab.cli import main
 from velab.config import load_rig
 from velab.errors import DataError
 from velab.fitting.manoeuvre import (ValveInput, closing_position, closure_flow, closure_opening, coupling_head,
-                                     early_window_s, from_solver, half_flow_offset, position_flow, result_flow,
-                                     to_solver, valve_input)
+                                     early_window_s, from_solver, half_flow_offset, own_valve_starts, position_flow,
+                                     result_flow, rig_prototype, tail_shape, to_solver, valve_input)
 from velab.fitting.params import FitBounds
 from velab.fitting.prepare import fit_record, prepare_record
 from velab.fitting.refine import refine_closure
@@ -126,12 +126,31 @@ def test_the_manoeuvre_input_modes():
                        closure_flow(t, d, rig, (32.0, 0.17, 2.0, 0.05, 1.0, 0.0)))
 
 
+def test_a_rigs_table_is_the_closure_familys_blended_shape():
+    """A rig whose valve has a characteristic table: the family phi = (1 - w) x^n + w g(x) takes the table as g,
+    so at w = 1 it is the rig's valve on its sigmoid exactly (and the fit starts there); other rigs blend a line."""
+    rig = load_rig("perugia").with_changes(valve=TABLE)
+    m = rig.manoeuvre
+    t = np.linspace(0.0, 0.6, 601)
+    shape = tail_shape(rig)
+    assert shape is not None and tail_shape(load_rig("perugia")) is None
+    power, share, tail = rig_prototype(rig)
+    assert (share, tail) == (TABLE.series_loss_share, 1.0)
+    assert np.allclose(closure_opening(t, m.beta_per_s, m.half_closure_s, power, share, tail, shape),
+                       TABLE.opening(commanded_position_pct(t, m.beta_per_s, m.gamma)), atol=1e-12)
+    (start,) = own_valve_starts(rig)
+    assert start[:2] == (m.beta_per_s, m.half_closure_s) and own_valve_starts(load_rig("perugia")) == []
+
+
 # ------------------------------------------------------------------ science
 
 @pytest.mark.parametrize("rig_name,truth,valve", [
     ("perugia", "S3", "butterfly"),
     ("perugia", "S1", "power1.5"),
     ("imperial", "S2", "table"),
+    # the table in the rig file is the closure family's blended shape: the valve is described exactly (before:
+    # a power law with a linear tail, S1 named at F/noise 1.08)
+    ("perugia", "EL", "table"),
     ("imperial", "EL", "linear"),
     ("imperial", "S3", "power1.5"),
     ("imperial", "S1", "quick"),

@@ -38,7 +38,7 @@ from velab.fitting.engine import HeadEvaluator, gram, sumsq
 from velab.fitting.friction import TimeDomainModel, equivalent_friction
 from velab.fitting.manoeuvre import (FITTED, NV, PARAM_NAMES, STARTS, ValveInput, _standard_errors, closure_bounds,
                                      closure_coupling, closure_flow, coupling_exponent, coupling_model, from_solver,
-                                     tm_flow, to_solver)
+                                     own_valve_starts, tm_flow, to_solver)
 from velab.fitting.params import FitBounds, ParamMap, derive_bounds
 from velab.fitting.solvers import LMSolution, Stage, levenberg_marquardt
 from velab.fitting.stats import lag1
@@ -160,16 +160,21 @@ class _Refinement:
         inverse FFT each."""
         a, J, tau, v = self.split(x)
         h0 = self.head_fd(x)
+        sums0 = self.vm.flow_sums(self.flow(v))
         rows_z, rows_s = [], []
+        wall = 1 + 2 * self.k
         for i in range(x.size):
+            if i >= wall and self.clo[i - wall] >= self.chi[i - wall]:  # held (the coupling): a zero column
+                rows_s.append(sums0)
+                continue
             xp = np.array(x, dtype=float)
             xp[i] += STEP
             ap, Jp, taup, vp = self.split(xp)
-            if i < 1 + 2 * self.k:
+            if i < wall:
                 rows_z.append(self.vm.impedance(ap, Jp, taup, self.W))
             else:
                 rows_s.append(self.vm.flow_sums(self.flow(vp)))
-        hz = self.vm.head_of(np.array(rows_z), self.vm.flow_sums(self.flow(v)))
+        hz = self.vm.head_of(np.array(rows_z), sums0)
         hs = self.vm.head_of(self.vm.impedance(a, J, tau, self.W), np.array(rows_s))
         return ((np.vstack([hz, hs]) - h0) / STEP).T
 
@@ -189,6 +194,7 @@ class _Refinement:
         starts = [v0] + [to_solver([p.get(name, 0.0) for name in PARAM_NAMES]) for p in self.vi.alternatives]
         starts += [[math.log(m.beta_per_s), v0[1], math.log(power), math.log(share), coupling_exponent(self.rig), 0.0]
                    for power, share, _ in STARTS]
+        starts += [to_solver(v) for v in own_valve_starts(self.rig)]  # the valve its rig file describes (a table)
         wall = np.concatenate([[math.log(self.a0)], np.log(self.J0), np.log(self.tau0)])
         # the correction at the first closure, for the comparison of the starts
         self.refresh(self.a0, self.J0, self.tau0, from_solver(np.clip(v0, self.clo, self.chi)))
@@ -240,12 +246,14 @@ class _Refinement:
             h0, Jw = self.evaluator(v).head_jac_x(*pm.unpack(xw))
             cols = []
             for i in range(NV):
+                if self.clo[i] >= self.chi[i]:  # held (the coupling: the rig's valve law): a zero column
+                    cols.append(np.zeros_like(h0))
+                    continue
                 vp = np.array(v, dtype=float)
                 step = STEP if vp[i] + STEP <= self.chi[i] else -STEP
                 vp[i] += step
                 cols.append((self.evaluator(vp).head(*pm.unpack(xw)) - h0) / step)
             Jc = np.array(cols)
-            Jc[self.clo >= self.chi] = 0.0  # (the coupling, which the rig's valve law states, is held)
             # the closure's columns orthogonal to the wall's: what the wall cannot take up when the closure moves
             coef = np.linalg.lstsq(gram(np.ascontiguousarray(Jw)), Jw @ Jc.T, rcond=1e-12)[0]
             return (Jc - coef.T @ Jw).T
