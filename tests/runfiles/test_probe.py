@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 
 import pytest
 
@@ -91,10 +92,20 @@ def test_a_bad_deadline_is_one_line_naming_the_variable(sound, tmp_path, monkeyp
 
 
 def test_the_deadline_is_the_walks_not_the_start_up(sound, tmp_path, monkeypatch):
-    """A deadline far shorter than a fresh child's imports still passes a sound file: start-up is apart."""
+    """A deadline shorter than a fresh child's start-up still passes a sound file: start-up is apart. The
+    child's start-up is made 3 s long (a sitecustomize that sleeps, as a cold disk or a loaded host would),
+    the deadline 1 s (a small file's walk: milliseconds, even with another suite running beside)."""
     _forget()
     if probe._walker is not None:
         probe._walker.close()
         probe._walker = None
-    monkeypatch.setenv("VELAB_PROBE_TIMEOUT_S", "0.05")
+    slow = tmp_path / "slow_start"
+    slow.mkdir()
+    (slow / "sitecustomize.py").write_text("import time\ntime.sleep(3.0)\n")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(slow), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+    monkeypatch.setenv("VELAB_PROBE_TIMEOUT_S", "1.0")
+    t0 = time.monotonic()
     probe.ensure_walkable(_copy(sound, tmp_path, "quick.h5"))
+    assert time.monotonic() - t0 >= 3.0  # (the start-up did take longer than the deadline)
+    probe._walker.close()  # (not kept for the other tests: it starts slowly)
+    probe._walker = None
