@@ -30,6 +30,7 @@ def _one_run(qtbot, tmp_path, clock: str) -> dict:
         op.press_when_enabled("arm", 60)
         trigger_phase = op.press_when_enabled("trigger", 60)
         summary = op.wait_done(120)
+        op._axis()  # the label as the run ends (on a loaded host the measured instant can follow the last block)
         # the final fit, read back from the run file, is in the Fit page (drawn when the page is opened)
         qtbot.waitUntil(lambda: win.fit_panel.result is summary.fit and "final fit" in win.fit_panel.title,
                         timeout=60000)
