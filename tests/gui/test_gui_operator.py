@@ -16,13 +16,16 @@ pytestmark = [pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]
 # runs per clock: the acceptance's 10 of 10 on the fast clock (the same engine, presses and window, 12 x
 # quicker); 4 in real time, where each run costs ~7 s of wall and a final fit
 REPEATS = {"fast": 10, "realtime": 4}
+# the run's length in device time: at the fast clock (12 x) a 2 s window is 0.17 s of host time, and a loaded host
+# (two suites at once) delayed the TRIGGER past it: the stroke came after the window, "no stroke seen"
+LENGTHS = {"fast": dict(duration=6.0, fit_window=5.0), "realtime": {}}
 
 
 def _one_run(qtbot, tmp_path, clock: str) -> dict:
     """Connect, Arm, Trigger: each pressed once, as soon as it is enabled. Returns what happened."""
     from velab.gui.live_plot import AXIS_MEASURED, AXIS_PLANNED
 
-    win = make_window(qtbot, tmp_path, clock=clock)
+    win = make_window(qtbot, tmp_path, clock=clock, **LENGTHS[clock])
     op = Operator(qtbot, win)
     probe = StallProbe(where=lambda: win.controller.phase).start()
     try:
