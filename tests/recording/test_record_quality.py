@@ -66,8 +66,10 @@ def test_sensor_quality_path(tmp_path, thread_errors, source, fault, at):
     sim = fast_sim(sim_config(entry, at, IMPLAUSIBLE_ENDPOINTS if fault == "implausible" else None))
     # at arm: a long baseline, so that the fault (0.2 s after ARM) is in it before the trigger goes out; 3 s after
     # the trigger (0.25 s of host time at the fast clock): on a loaded host the TRIGGER reaches the actuator up
-    # to ~0.1 s of host time after the recorder's estimate, and a 1.5 s record could end before the stroke
-    s = short_settings(tmp_path, duration_s=3.0, pretrigger_s=1.0 if at == "arm" else 0.5)
+    # to ~0.1 s of host time after the recorder's estimate, and a 1.5 s record could end before the stroke. The
+    # baseline at arm: 3 s (a stuck channel is named after a run of equal samples; with 1 s, two suites at once
+    # let the trigger go out first: 0.8 s of device time is 67 ms of host time)
+    s = short_settings(tmp_path, duration_s=3.0, pretrigger_s=3.0 if at == "arm" else 0.5)
     faults: list = []
     out = run_bounded(recorder(sim, s, source=source), faults)
     assert not thread_errors, thread_errors
