@@ -17,7 +17,7 @@ from velab.config import load_rig
 from velab.errors import DataError
 from velab.fitting.manoeuvre import (ValveInput, closing_position, closure_flow, closure_opening, coupling_head,
                                      early_window_s, from_solver, half_flow_offset, own_valve_starts, position_flow,
-                                     result_flow, rig_prototype, tail_shape, to_solver, valve_input)
+                                     result_flow, tail_shape, to_solver, valve_input)
 from velab.fitting.params import FitBounds
 from velab.fitting.prepare import fit_record, prepare_record
 from velab.fitting.refine import refine_closure
@@ -134,12 +134,12 @@ def test_a_rigs_table_is_the_closure_familys_blended_shape():
     t = np.linspace(0.0, 0.6, 601)
     shape = tail_shape(rig)
     assert shape is not None and tail_shape(load_rig("perugia")) is None
-    power, share, tail = rig_prototype(rig)
-    assert (share, tail) == (TABLE.series_loss_share, 1.0)
-    assert np.allclose(closure_opening(t, m.beta_per_s, m.half_closure_s, power, share, tail, shape),
-                       TABLE.opening(commanded_position_pct(t, m.beta_per_s, m.gamma)), atol=1e-12)
     (start,) = own_valve_starts(rig)
-    assert start[:2] == (m.beta_per_s, m.half_closure_s) and own_valve_starts(load_rig("perugia")) == []
+    beta, t_half, power, share, kappa, tail = start
+    assert (beta, t_half, share, kappa, tail) == (m.beta_per_s, m.half_closure_s, TABLE.series_loss_share, 1.0, 1.0)
+    assert np.allclose(closure_opening(t, beta, t_half, power, share, tail, shape),
+                       TABLE.opening(commanded_position_pct(t, m.beta_per_s, m.gamma)), atol=1e-12)
+    assert own_valve_starts(load_rig("perugia")) == []
 
 
 # ------------------------------------------------------------------ science

@@ -138,26 +138,16 @@ def _table_shape(position_pct: tuple, flow_ratio: tuple):
     return lambda x: np.clip(f(np.clip(np.asarray(x, dtype=float), 0.0, 1.0)), 0.0, 1.0)
 
 
-def rig_prototype(rig: Rig) -> tuple[float, float, float]:
-    """(power, loss share, tail) of the closure family that is the rig's own valve (its characteristic and
-    share on the actuator's sigmoid): a start of the closure fit, since a record usually comes from the
-    valve its rig file describes."""
-    valve = getattr(rig, "valve", None)
-    if valve is None or valve.law == "imposed":
-        return STARTS[1][:2] + (0.0,)
-    if valve.characteristic == "table":
-        return 2.0, float(valve.series_loss_share), 1.0
-    return float(valve.power), float(valve.series_loss_share), 0.0
-
-
 def own_valve_starts(rig: Rig) -> list[tuple]:
-    """[the closure (``PARAM_NAMES``) of the rig's own valve on its commanded sigmoid (``rig_prototype``)] for a
-    rig whose characteristic is a table ([] otherwise: the power-law starts hold a power law's basin already;
-    added for every rig, this start took a campaign's joint J(0.5 s) from the truth to 2.6 of its standard errors)."""
+    """[the closure (``PARAM_NAMES``) of the rig's own valve on its commanded sigmoid] for a rig whose
+    characteristic is a table (w = 1 on ``tail_shape``, its loss share; the imposed sigmoid if its law says so),
+    [] otherwise: the power-law starts hold a power law's basin already (added for every rig, this start took a
+    campaign's joint J(0.5 s) from the truth to 2.6 of its standard errors)."""
     if tail_shape(rig) is None:
         return []
     m = rig.manoeuvre
-    power, share, tail = rig_prototype(rig)
+    valve = rig.valve
+    power, share, tail = (1.0, 1.0, 0.0) if valve.law == "imposed" else (2.0, float(valve.series_loss_share), 1.0)
     return [(m.beta_per_s, m.half_closure_s, power, share, coupling_exponent(rig), tail)]
 
 
