@@ -112,11 +112,20 @@ def test_s1_material_is_not_named_s3(tmp_path):
     summary, _, _ = _run(tmp_path, "hdpe_s1", sim_config=_paper_friction_sim_config(tmp_path), fit_models=(0, 1, 2, 3))
     assert summary.status == "completed"
     fit = summary.fit
-    # the truth keeps support (an extra element gains chi2 with 2 dof by chance: P(dAIC > 7) ~ 0.4 %)
-    assert fit["S1"].delta_aic < 7.0
+    s1 = fit["S1"]
+    # The truth keeps support: by chance alone an extra element gains chi2 with 2 dof (P(dAIC > 7) ~ 0.4 %).
+    # The recorded valve position adds one more way: its feedback noise (0.02 %) during the stroke enters the
+    # flow at the valve, and the wavefront error it leaves repeats every period; in 2 of 100 simulated records
+    # an element faster than the closure fitted it, S1 16-21 behind (docs/fitting.md, "position"). That
+    # element holds ~1e-4 of the compliance: the creep function is S1's either way, and nothing else may win.
+    if s1.delta_aic >= 7.0:
+        best = fit.best
+        closure_s = 10.0 * fit.settings["bounds"]["tau_min_s"]  # (tau_min = a tenth of the closure time)
+        assert best.m == 2, fit.report(elements=True)
+        extra = min(range(2), key=lambda i: best.J_rel[i])
+        assert best.tau_s[extra] < closure_s and best.J_rel[extra] < 1e-3 * s1.J_rel[0], fit.report(elements=True)
     assert fit["EL"].delta_aic > 10
-    assert summary.best_model != "S3" or fit["S1"].delta_aic < 7.0
-    assert abs(fit["S1"].wave_speed_m_s - A_TRUE) < 0.5
+    assert abs(s1.wave_speed_m_s - A_TRUE) < 0.5
 
 
 def test_interlock_refuses_an_unsafe_manoeuvre_before_anything_moves(tmp_path):
