@@ -54,6 +54,18 @@ def _run(tmp_path, material, *, sim_config="default", clock="fast", **kw):
     return summary, events, valve_state
 
 
+def _stroke_element(fit, smaller: str) -> bool:
+    """The best model is ``smaller`` plus one element faster than the closure that holds under 1e-3 of
+    ``smaller``'s compliance: the recorded position's noise during the stroke, not the wall
+    (docs/fitting.md, the "position" manoeuvre)."""
+    best, small = fit.best, fit[smaller]
+    if best.m != small.m + 1:
+        return False
+    closure_s = 10.0 * fit.settings["bounds"]["tau_min_s"]  # (tau_min = a tenth of the closure time)
+    extra = min(range(best.m), key=lambda i: best.J_rel[i])
+    return best.tau_s[extra] < closure_s and best.J_rel[extra] < 1e-3 * sum(small.J_rel)
+
+
 def test_material_A_online_fit_names_S3(tmp_path):
     summary, events, _ = _run(tmp_path, "A", sim_config=_paper_friction_sim_config(tmp_path))
     assert summary.status == "completed" and summary.exit_code == 0
@@ -68,7 +80,8 @@ def test_material_A_online_fit_names_S3(tmp_path):
     # the last 1 s, 0.4 mm), and 0.3 mm moves S3's dAIC by about 10. S1 and S2 are ruled out every time.
     assert summary.best_model in ("S3", "S4")
     slow_ramp = fit["S4"].tau_s[-1] > fit.window_s  # (tau_s sorted: the extra element)
-    assert fit["S3"].delta_aic <= 10.0 or slow_ramp, fit.report(elements=True)
+    # (3) an element faster than the closure fits the stroke's feedback noise (below, S1's test)
+    assert fit["S3"].delta_aic <= 10.0 or slow_ramp or _stroke_element(fit, "S3"), fit.report(elements=True)
     assert fit["S2"].delta_aic > 10 and fit["S1"].delta_aic > 10
     assert abs(fit["S3"].wave_speed_m_s - A_TRUE) < 0.5
     # the simulated valve is a real one (orifice law): the fit took the manoeuvre from the measured
@@ -118,12 +131,7 @@ def test_s1_material_is_not_named_s3(tmp_path):
     # flow at the valve, and the wavefront error it leaves repeats every period; in 2 of 100 simulated records
     # an element faster than the closure fitted it, S1 16-21 behind (docs/fitting.md, "position"). That
     # element holds ~1e-4 of the compliance: the creep function is S1's either way, and nothing else may win.
-    if s1.delta_aic >= 7.0:
-        best = fit.best
-        closure_s = 10.0 * fit.settings["bounds"]["tau_min_s"]  # (tau_min = a tenth of the closure time)
-        assert best.m == 2, fit.report(elements=True)
-        extra = min(range(2), key=lambda i: best.J_rel[i])
-        assert best.tau_s[extra] < closure_s and best.J_rel[extra] < 1e-3 * s1.J_rel[0], fit.report(elements=True)
+    assert s1.delta_aic < 7.0 or _stroke_element(fit, "S1"), fit.report(elements=True)
     assert fit["EL"].delta_aic > 10
     assert abs(s1.wave_speed_m_s - A_TRUE) < 0.5
 
