@@ -123,7 +123,7 @@ class Recorder:
     def phase_data(self):
         return self.snapshot.data
 
-    def _emit(self, kind: str, data: Any) -> None:
+    def emit(self, kind: str, data: Any) -> None:
         ev = RecorderEvent(kind, time.time(), data)
         self.events.offer(ev)  # a phase, fault or fit is never lost: live data make room
         for fn in self._listeners:
@@ -143,9 +143,9 @@ class Recorder:
                                      trigger_queued=run is not None and run.trigger_fut is not None)
         self.snapshot = EngineSnapshot(phase, MappingProxyType(dict(data)), allowed)
 
-    def _set_phase(self, phase: str, **data) -> None:
+    def set_phase(self, phase: str, **data) -> None:
         self._publish(phase, data)
-        self._emit("phase", {"phase": phase, **data, "allowed": list(self.snapshot.allowed)})
+        self.emit("phase", {"phase": phase, **data, "allowed": list(self.snapshot.allowed)})
         run = self.current_run
         if run is not None and run.writer is not None and not run.writer.closed.is_set():
             extra = ", ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in data.items()
@@ -153,10 +153,10 @@ class Recorder:
             run.log("phase", phase + (f" ({extra})" if extra else ""))
 
     def _message(self, text: str) -> None:
-        self._emit("message", text)
+        self.emit("message", text)
         self._log("message", text)
 
-    def _make_fault(self, who: str, message: str, kind: str = "error", **extra) -> Fault:
+    def make_fault(self, who: str, message: str, kind: str = "error", **extra) -> Fault:
         """A Fault naming the bench device of a role (``who``: a role or a device name)."""
         role = who if who in self.roles else ""
         device = self.roles.get(who, who)
@@ -164,11 +164,11 @@ class Recorder:
             message = message[len(device) + 2:]
         return Fault(device, message, kind, role, **extra)
 
-    def _emit_valve(self, st) -> None:
-        self._note_valve(st)
-        self._emit("valve", valve_event(self.roles.get("valve", "valve"), st))
+    def emit_valve(self, st) -> None:
+        self.note_valve(st)
+        self.emit("valve", valve_event(self.roles.get("valve", "valve"), st))
 
-    def _note_valve(self, st) -> None:
+    def note_valve(self, st) -> None:
         """On the control thread (the slow channels' polls arrive as messages): the valve's last state."""
         self._valve_state, self._valve_position = st.state, float(st.position.value)
         snap = self.snapshot
@@ -195,7 +195,7 @@ class Recorder:
         return self.current_run.end(status, reason) if self.current_run is not None else None
 
     # ------------------------------------------------------------------ control thread
-    def _submit(self, fn: Callable[[], Any]) -> cf.Future:
+    def submit(self, fn: Callable[[], Any]) -> cf.Future:
         fut: cf.Future = cf.Future()
         if self._closing.is_set():
             fut.set_exception(VelabError("recorder is closed"))
@@ -226,7 +226,7 @@ class Recorder:
                 if self.current_run is not None:
                     self.current_run.request_end("failed", f"recorder error: {type(exc).__name__}: {exc}")
 
-    def _sleep(self, dt: float) -> None:
+    def device_sleep(self, dt: float) -> None:
         """Wait dt seconds of device time (the simulation clock if there is one)."""
         if self.clock is not None and hasattr(self.clock, "sleep"):
             self.clock.sleep(dt)
@@ -236,7 +236,7 @@ class Recorder:
     # ------------------------------------------------------------------ commands
     def connect(self) -> cf.Future:
         """(Re)connect every device of the bench: phase connecting -> ready."""
-        return self._submit(self._do_connect)
+        return self.submit(self._do_connect)
 
     def _do_arm(self):
         if self._run_active() or self.phase in (P.CONNECTING, P.FITTING):
@@ -260,26 +260,26 @@ class Recorder:
         """Arm a run (connects first if needed); ``settings`` replace the current ones for this and the
         next runs. The valve must be open and idle: after a run, ``reset_valve()`` first."""
         if settings is None:
-            return self._submit(self._do_arm)
+            return self.submit(self._do_arm)
 
         def arm_with():
             self._set_settings(settings)
             return self._do_arm()
-        return self._submit(arm_with)
+        return self.submit(arm_with)
 
     def trigger(self) -> cf.Future:
         """Trigger the manoeuvre. While the baseline is still filling the trigger is queued (a
         ``trigger`` event with queued=True) and carried out as soon as it can be; the Future then
         settles with the estimated trigger time, or with an error if the run ends first."""
-        return self._submit(self._do_trigger)
+        return self.submit(self._do_trigger)
 
     def stop(self) -> cf.Future:
         """End cleanly, keep the data (status stopped); the fit is kept if its window is in."""
-        return self._submit(lambda: self._end(P.STOPPED, "stopped by the operator"))
+        return self.submit(lambda: self._end(P.STOPPED, "stopped by the operator"))
 
     def abort(self, reason: str = "") -> cf.Future:
         """Valve to its safe state, end and mark the run (status aborted)."""
-        return self._submit(lambda: self._end(P.ABORTED, reason or "aborted by the operator"))
+        return self.submit(lambda: self._end(P.ABORTED, reason or "aborted by the operator"))
 
     def halt(self) -> None:
         """Stop now: valve safe, file closed "aborted" (reason "halted"), no fit; returns within ~5 s."""
@@ -288,7 +288,7 @@ class Recorder:
             run.halt_ev.set()
             if run.fit is not None:
                 run.fit.cancel()
-        fut = self._submit(lambda: self._end(P.ABORTED, "halted"))
+        fut = self.submit(lambda: self._end(P.ABORTED, "halted"))
         try:
             fut.result(timeout=5.0)
         except Exception:  # noqa: BLE001 - halting never raises
@@ -297,7 +297,7 @@ class Recorder:
     def reset_valve(self) -> cf.Future:
         """Reset the actuator (reopens the valve; clears a FAULT) and give the flow 1 s to settle.
         Refused while a run records; the Future's result is the valve's ValveStatus."""
-        return self._submit(self._do_reset_valve)
+        return self.submit(self._do_reset_valve)
 
     def predict_surge(self, beta_per_s=None, gamma=None):
         """Pure, no I/O: the interlock's prediction for the current settings."""
@@ -320,7 +320,7 @@ class Recorder:
 
     def _describe_valve(self, drv, name: str) -> str:
         st = drv.read_status()
-        self._emit_valve(st)
+        self.emit_valve(st)
         return f"{st.state.name}, {st.position.value:.1f} % open"
 
     def _describe_flowmeter(self, drv, name: str) -> str:
@@ -336,7 +336,7 @@ class Recorder:
     def _do_connect(self) -> list[DeviceStatus]:
         if self._run_active():
             raise VelabError(f"cannot reconnect while {self.phase}")
-        self._set_phase(P.CONNECTING)
+        self.set_phase(P.CONNECTING)
         out = []
         try:
             self.roles = resolve_roles(self.bench)
@@ -356,9 +356,9 @@ class Recorder:
                 self.profiles[name] = profile_contents(drv)
                 out.append(DeviceStatus(name, dev.kind, role, True, msg, self.identities[name]))
         except BaseException as exc:
-            self._set_phase(P.DISCONNECTED, reason=str(exc))
+            self.set_phase(P.DISCONNECTED, reason=str(exc))
             raise
-        self._set_phase(P.READY, devices=[{"name": d.name, "kind": d.kind, "role": d.role, "ok": d.ok,
+        self.set_phase(P.READY, devices=[{"name": d.name, "kind": d.kind, "role": d.role, "ok": d.ok,
                                            "message": d.message, "identity": d.identity} for d in out])
         return out
 
@@ -370,21 +370,21 @@ class Recorder:
             self._do_connect()
         valve = self.devices[self.roles["valve"]]
         try:
-            st = reopen_valve(valve, self._sleep)
-            self._emit_valve(st)
+            st = reopen_valve(valve, self.device_sleep)
+            self.emit_valve(st)
         except DEVICE_ERRORS as exc:
             raise DeviceFailure(f"{self.roles.get('valve', 'valve')}: reset failed: {exc}") from None
         self._message(f"valve reopened: actuator {st.state.name}, {st.position.value:.1f} % open")
         if self.phase in P.END_PHASES:
-            self._set_phase(self.phase, **self.phase_data)  # arm is possible again: say so
+            self.set_phase(self.phase, **self.phase_data)  # arm is possible again: say so
         return st
 
-    def _check_valve_ready(self) -> None:
+    def check_valve_ready(self) -> None:
         try:
             st = self.devices[self.roles["valve"]].read_status()
         except DEVICE_ERRORS as exc:
             raise DeviceFailure(f"{self.roles['valve']}: actuator does not answer: {exc}") from None
-        self._emit_valve(st)
+        self.emit_valve(st)
         check_valve_open(st)
 
     # ------------------------------------------------------------------ closing

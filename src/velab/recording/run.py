@@ -26,7 +26,7 @@ from velab.recording.slow import SlowChannels
 from velab.recording.timeline import Timeline
 from velab.recording.transducers import transducer_channels
 from velab.recording.trigger import TriggerFailed, make_safe, readback_note, trigger_manoeuvre
-from velab.recording.types import DEVICE_ERRORS, DeviceFailure, Hooks, RunRefused, RunSummary
+from velab.recording.types import DEVICE_ERRORS, DeviceFailure, Hooks, RunHost, RunRefused, RunSummary
 from velab.recording.writer import WriterStage, bytes_per_sample
 from velab.runfiles.fits import save_fit
 
@@ -42,7 +42,7 @@ class Run:
     thread; the recorder (``rec``) keeps the command queue, the phase machine and the device session,
     and hands a run its commands (trigger, end) and the control thread's ticks."""
 
-    def __init__(self, rec):
+    def __init__(self, rec: RunHost):
         self.rec = rec
         self.settings = rec.settings  # (fixed while the run is active: Recorder._set_settings refuses)
         self.path = None
@@ -64,7 +64,7 @@ class Run:
         self._end_request: tuple[str, str] | None = None
         self._end_lock = threading.Lock()  # guards _end_request and _marks (any thread)
         self._last_progress = 0.0
-        self.hooks = Hooks(emit=rec._emit, log=self.log, fault=self.fault, request_end=self.request_end)
+        self.hooks = Hooks(emit=rec.emit, log=self.log, fault=self.fault, request_end=self.request_end)
 
     @property
     def active(self) -> bool:
@@ -77,13 +77,13 @@ class Run:
             w.put(Event(tl.now_axis if tl is not None else 0.0, kind, text))
 
     def message(self, text: str) -> None:
-        self.rec._emit("message", text)
+        self.rec.emit("message", text)
         self.log("message", text)
 
     def fault(self, who: str, message: str, kind: str = "error", **extra) -> None:
         """A ``fault`` event (Fault), a line in the run file's event log, and a mark on the run."""
-        f = self.rec._make_fault(who, message, kind, **extra)
-        self.rec._emit("fault", f)
+        f = self.rec.make_fault(who, message, kind, **extra)
+        self.rec.emit("fault", f)
         self.log("fault", str(f))
         if self.writer is not None:
             with self._end_lock:
@@ -121,8 +121,8 @@ class Run:
         pred = predict_surge(self.rec.rig, s)
         if not pred.allowed:
             raise RunRefused(pred.message)
-        self.rec._check_valve_ready()
-        q = check_steady_flow(self.rec.devices[self.rec.roles["flowmeter"]].read_flow, self.rec._sleep,
+        self.rec.check_valve_ready()
+        q = check_steady_flow(self.rec.devices[self.rec.roles["flowmeter"]].read_flow, self.rec.device_sleep,
                               self.rec.rig.steady_flow_m3_s, s.flow_tolerance, self.rec.roles["flowmeter"])
         looks = source.look(fs)
         head, quality = looks[transducers[0].adc_channel]
@@ -135,7 +135,7 @@ class Run:
         if not pred.allowed:
             raise RunRefused(pred.message)
         if pred.peak_head_m >= ceiling:
-            self.rec._emit("message", f"warning: predicted peak {pred.peak_head_m:.1f} m is above the pressure "
+            self.rec.emit("message", f"warning: predicted peak {pred.peak_head_m:.1f} m is above the pressure "
                                   f"ceiling {ceiling:.1f} m: the run will probably be aborted")
         # 4. the run file, created before the stream starts (sample 0 = first sample of the stream)
         self.armed_timeout_s = s.armed_timeout(self.rec.bench_armed_timeout_s)
@@ -153,7 +153,7 @@ class Run:
         self.writer = WriterStage(w, fs, s.flush_interval_s, self.hooks, per_sample)
         self.source = source
         self.log("operator", f"armed by {s.operator or 'operator'}: {pred.message}")
-        self.fit = OnlineFit(commanded_rig(self.rec.rig, beta, gamma), s, fs, self.rec._emit, self.message)
+        self.fit = OnlineFit(commanded_rig(self.rec.rig, beta, gamma), s, fs, self.rec.emit, self.message)
         mon = self.redundancy = RedundancyMonitor()
         put = self.writer.put
 
@@ -164,7 +164,7 @@ class Run:
             put(op)
         self.timeline = Timeline(s, fs, (beta, gamma, end), ceiling, source.pressure_channel, source.valve_channel,
                                   self.hooks, write, self._window_closed,
-                                  on_baseline=lambda: self.rec._submit(lambda: None),
+                                  on_baseline=lambda: self.rec.submit(lambda: None),
                                   lead_window_s=self.fit.lead_window_s(), on_lead=self._lead_ready,
                                   others=transducers[1:])
         valve = self.rec.devices[self.rec.roles["valve"]]
@@ -173,7 +173,7 @@ class Run:
                                  self.writer.put, lambda: self.timeline.now_axis,
                                  lambda: self.timeline.triggered, s.stall_timeout_s,
                                  # the valve's state reaches the control thread as a message
-                                 on_valve=lambda st: (rec._submit(lambda: rec._note_valve(st)), mon.valve(st)),
+                                 on_valve=lambda st: (rec.submit(lambda: rec.note_valve(st)), mon.valve(st)),
                                  on_flow=lambda r: mon.flow(r.value) if r.quality.value == "ok"
                                  and not self.timeline.triggered else None)
         # 5. start the stream, then arm the actuator
@@ -189,7 +189,7 @@ class Run:
             raise DeviceFailure(f"arming failed: {exc}") from None
         self.slow.start()
         self.log("operator", f"actuator armed: beta {beta:g} 1/s, gamma {gamma:g}, end {end:g} %")
-        self.rec._set_phase(P.ARMED, path=str(self.path), baseline_s=s.pretrigger_s, remaining_s=s.pretrigger_s,
+        self.rec.set_phase(P.ARMED, path=str(self.path), baseline_s=s.pretrigger_s, remaining_s=s.pretrigger_s,
                             armed_timeout_s=self.armed_timeout_s)
         return self.path
 
@@ -201,9 +201,9 @@ class Run:
                 raise VelabError("a trigger is already queued")
             self.trigger_fut = fut
             left = max(0.0, self.settings.pretrigger_s - self.timeline.baseline_s)
-            self.rec._emit("trigger", {"queued": True, "baseline_remaining_s": left})
+            self.rec.emit("trigger", {"queued": True, "baseline_remaining_s": left})
             self.log("operator", f"trigger queued: {left:.2f} s of baseline still to record")
-            self.rec._set_phase(P.ARMED, **(self.rec.phase_data | {"trigger_queued": True}))
+            self.rec.set_phase(P.ARMED, **(self.rec.phase_data | {"trigger_queued": True}))
             return DEFER
         if self.rec.phase != P.TRIGGERABLE or not self.active:
             raise VelabError(f"cannot trigger while {self.rec.phase}" + (" (arm first)" if self.rec.phase in
@@ -236,10 +236,10 @@ class Run:
         estimate_kept = tl.commit_trigger()  # not if the feedback measured it already (a slow read-back)
         self.writer.put(Value("manoeuvre/trigger_host_time", sent))
         self.log("operator", f"trigger commanded at about t = {t_est:.3f} s")
-        self.rec._set_phase(P.RECORDING, trigger_time_s=tl.counters().trigger_time,
+        self.rec.set_phase(P.RECORDING, trigger_time_s=tl.counters().trigger_time,
                             fit_window_s=self.settings.fit_window_s, remaining_s=self.settings.fit_window_s)
         if estimate_kept:
-            self.rec._emit("trigger", {"trigger_time_s": t_est, "measured": False})
+            self.rec.emit("trigger", {"trigger_time_s": t_est, "measured": False})
         if self.fit is not None:
             self.fit.start_process()  # after the trigger: its start-up never delays the trigger
         return t_est
@@ -258,7 +258,7 @@ class Run:
             return
         s, tl = self.settings, self.timeline.counters()
         if self.rec.phase == P.ARMED and tl.baseline_complete:
-            self.rec._set_phase(P.TRIGGERABLE, path=str(self.path), disarm_in_s=self.armed_timeout_s - tl.baseline_s)
+            self.rec.set_phase(P.TRIGGERABLE, path=str(self.path), disarm_in_s=self.armed_timeout_s - tl.baseline_s)
             if self.trigger_fut is not None:
                 fut, self.trigger_fut = self.trigger_fut, None
                 try:
@@ -269,7 +269,7 @@ class Run:
             msg = (f"armed timeout: no trigger within {self.armed_timeout_s:g} s of arming; "
                    "actuator disarmed (armed manoeuvre cancelled)")
             self.log("disarmed", msg)
-            self.rec._emit("message", msg)
+            self.rec.emit("message", msg)
             self.end(P.ABORTED, msg)
             return
         now = time.monotonic()
@@ -284,7 +284,7 @@ class Run:
                 d = {"remaining_s": max(0.0, tl.trigger_time + s.fit_window_s - tl.now_axis), "what": "fit window"}
             else:
                 return
-            self.rec._emit("progress", {"phase": self.rec.phase, "t_s": tl.now_axis, **d})
+            self.rec.emit("progress", {"phase": self.rec.phase, "t_s": tl.now_axis, **d})
 
     # ------------------------------------------------------------------ the end
     def mark_lines(self) -> list[str]:
@@ -306,7 +306,7 @@ class Run:
             if self._end_request is not None or self.finished.is_set():
                 return
             self._end_request = (status, reason)
-        self.rec._submit(lambda: self.end(status, reason))
+        self.rec.submit(lambda: self.end(status, reason))
 
     def _lead_ready(self) -> None:
         """From the acquisition thread: the lead's part of the window is in: its fit starts now,
@@ -392,12 +392,12 @@ class Run:
             self.fault("storage", "the run file could not be closed within 30 s", "storage")
         if not self.valve_lost and self._valve_link()[0]:
             try:  # where the valve ended up (the GUI offers Reset valve when it is closed)
-                self.rec._emit_valve(self.rec.devices[self.rec.roles["valve"]].read_status())
+                self.rec.emit_valve(self.rec.devices[self.rec.roles["valve"]].read_status())
             except DEVICE_ERRORS + (KeyError,):
                 pass
         fit_pending = self.fit is not None and self.fit.final_started and not self.halt_ev.is_set()
         if fit_pending:
-            self.rec._set_phase(P.FITTING, status=status, reason=full_reason, path=str(self.path))
+            self.rec.set_phase(P.FITTING, status=status, reason=full_reason, path=str(self.path))
         threading.Thread(target=self._conclude, args=(status, full_reason), daemon=True,
                          name="velab-recorder-conclude").start()
         return None
@@ -426,7 +426,7 @@ class Run:
             if f is not None:  # a note, not a mark: see docs/recording.md, "Redundant measurements"
                 line = f"{self.rec.roles.get('pressure', 'pressure')}: {f.message}"
                 self.log("warning", line)
-                self.rec._emit("message", f"warning: {line}")
+                self.rec.emit("message", f"warning: {line}")
         except Exception as exc:  # noqa: BLE001 - a bug here must not lose the run: say it, flag it
             log.exception("redundancy check")
             self.fault("recorder", f"redundant-measurement check failed: {type(exc).__name__}: {exc}", "error")
@@ -468,7 +468,7 @@ class Run:
                     save_fit(self.path, result, name="online")
                 except Exception as exc:  # noqa: BLE001 - the fit is still in the summary
                     error = f"fit not saved in the run file: {exc}"
-                    self.rec._emit("message", error)
+                    self.rec.emit("message", error)
         tl = self.timeline.counters()
         summary = RunSummary(
             path=self.path, status=status, reason=reason, n_samples=tl.n_written, lost_samples=tl.lost,
@@ -478,12 +478,12 @@ class Run:
             trigger_time_s=tl.trigger_time, steady_head_m=self.steady, gaps=tl.gaps,
             fit_latency_s=latency if result is not None else None, fit_error=error,
             faults=self.mark_lines(), flagged_samples=tl.flagged)
-        fut = self.rec._submit(lambda: self._finish(summary))  # the phase is the control thread's
+        fut = self.rec.submit(lambda: self._finish(summary))  # the phase is the control thread's
         if fut.done() and fut.exception() is not None:  # (a recorder closing: no control thread any more)
             self._finish(summary)
 
     def _finish(self, summary: RunSummary) -> None:
         self.summary = summary
-        self.rec._set_phase(summary.status, status=summary.status, reason=summary.reason, path=str(self.path))
-        self.rec._emit("done", summary)
+        self.rec.set_phase(summary.status, status=summary.status, reason=summary.reason, path=str(self.path))
+        self.rec.emit("done", summary)
         self.done.set()

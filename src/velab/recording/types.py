@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from velab.drivers.base import DeviceError
 from velab.errors import SafetyError, VelabError
@@ -145,3 +145,34 @@ class Hooks:
     log: Any
     fault: Any
     request_end: Any
+
+
+class RunHost(Protocol):
+    """What a Run (velab.recording.run) asks of the recorder that armed it, and nothing more: the
+    device session (read), the phase machine and the live events (on the control thread), and the
+    control thread itself (``submit``). velab.recording.engine.Recorder is the one implementation."""
+
+    rig: Any
+    settings: Any
+    bench: Any
+    bench_where: str
+    bench_armed_timeout_s: float | None
+    clock: Any
+    sim: Any
+    devices: dict
+    roles: dict
+    identities: dict
+    profiles: dict
+
+    @property
+    def phase(self) -> str: ...
+    @property
+    def phase_data(self) -> Any: ...
+    def emit(self, kind: str, data: Any) -> None: ...                      # a live RecorderEvent
+    def set_phase(self, phase: str, **data) -> None: ...                   # publish a phase (control thread)
+    def submit(self, fn) -> Any: ...                                       # run fn on the control thread
+    def device_sleep(self, dt: float) -> None: ...                         # wait dt s of device time
+    def make_fault(self, who: str, message: str, kind: str = "error", **extra) -> Fault: ...
+    def emit_valve(self, st) -> None: ...                                  # a valve status read on the control thread
+    def note_valve(self, st) -> None: ...                                  # the slow poll's valve status (control thread)
+    def check_valve_ready(self) -> None: ...                               # raises if the valve cannot close now
