@@ -177,6 +177,13 @@ class RunInstants:
         with self._lock:
             self._events[kind].append(float(t))
 
+    def clear(self, start: float | None = None) -> None:
+        """Forget the arm and trigger instants (a new session on the same simulated rig; ``start``: its start)."""
+        with self._lock:
+            self._events = {"arm": [], "trigger": []}
+            if start is not None:
+                self.start = float(start)
+
     def times(self, kind: str) -> list[float]:
         if kind == "start":
             return [self.start]

@@ -192,3 +192,15 @@ def test_real_time_bench_fault_at_trigger_offset():
     first_after = t_start + gap.first_index / 1000.0
     assert first_after >= t1 - 0.01 and first_after < t1 + 0.02  # frames of 10 ms: the window's frame grid
     assert gap.overrun and stats.lost == gap.lost_before
+
+
+def test_cleared_instants_anchor_nothing_of_the_last_session():
+    inst = RunInstants(0.0)
+    inst.mark("trigger", 5.0)
+    f = ScheduledFault("pressure_adc", {"silent": True}, Instant.parse("trigger+0.5"), 1.0, created_s=2.0)
+    assert f.windows(inst) and f.active_at(5.6, inst)
+    inst.clear(start=3.0)
+    assert inst.times("trigger") == [] and inst.times("start") == [3.0]
+    assert not f.windows(inst) and not f.active_at(5.6, inst)
+    inst.mark("trigger", 7.0)
+    assert f.active_at(7.6, inst)
