@@ -63,7 +63,8 @@ def _stroke_element(fit, smaller: str) -> bool:
         return False
     closure_s = 10.0 * fit.settings["bounds"]["tau_min_s"]  # (tau_min = a tenth of the closure time)
     extra = min(range(best.m), key=lambda i: best.J_rel[i])
-    return best.tau_s[extra] < closure_s and best.J_rel[extra] < 1e-3 * sum(small.J_rel)
+    return (best.tau_s[extra] < closure_s and best.J_rel[extra] < 1e-3 * sum(small.J_rel)
+            and any("noise during the stroke" in n for n in fit.notes))  # (and the fit says so)
 
 
 def test_material_A_online_fit_names_S3(tmp_path):

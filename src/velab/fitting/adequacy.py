@@ -130,8 +130,40 @@ def assess(result, rec, rig) -> None:
         warnings.append({"code": "cavitation", "message": found.message()})
     if best is not None and best.at_bounds:
         warnings.append({"code": "bound", "message": bound_message(best)})
+    note = stroke_element_note(result, rig)
+    if note:
+        result.notes.append(note)
     result.adequacy = adequacy
     result.warnings = warnings
+
+
+STROKE_SHARE = 1e-3  # an element holding less than this share of the compliance, faster than the closure
+
+
+def stroke_element_note(result, rig) -> str:
+    """A note when the named model, driven by the recorded valve position, is the next smaller model plus one
+    element faster than the closure that holds under STROKE_SHARE of the compliance: the position's noise
+    during the stroke enters the flow and leaves a wavefront error every period that such an element fits
+    (docs/fitting.md, the "position" manoeuvre); the note gives how far the two creep functions differ."""
+    from velab.fitting.creep import creep_of  # (creep imports nothing of this module)
+
+    if ((result.settings or {}).get("manoeuvre") or {}).get("source") != "position" or not result.models:
+        return ""
+    best = result.best
+    smaller = [f for f in result.models if not f.reduced and f.m == best.m - 1 and f.m >= 1]
+    if best.reduced or not smaller or len(best.J_rel) != best.m or len(best.tau_s) != best.m:
+        return ""
+    small = smaller[0]
+    k = int(np.argmin(best.J_rel))
+    share = best.J_rel[k] / float(np.sum(best.J_rel))
+    closure = rig.manoeuvre.closure_time_s
+    if not (best.tau_s[k] < closure and share < STROKE_SHARE):
+        return ""
+    a, b = creep_of(result, best).J_per_pa, creep_of(result, small).J_per_pa
+    dev = float(np.max(np.abs(a / b - 1.0))) if a.size and a.size == b.size and np.all(b > 0) else math.nan
+    return (f"{best.name}'s element at tau = {best.tau_s[k]:.3g} s holds {share:.1e} of the compliance and is faster "
+            f"than the closure ({closure:.3g} s): the recorded valve position's noise during the stroke can make "
+            f"such an element; {best.name}'s creep function is {small.name}'s within {100 * dev:.2g} %")
 
 
 def is_misfit(result, f) -> bool:
