@@ -115,6 +115,14 @@ class StreamingADCSimulator(SADCDevice):
         self._threads: list[threading.Thread] = []
         self._listener: socket.socket | None = None
 
+    def fifo_bytes(self) -> int:
+        """The FIFO's room for frames the host has not read. On a clock K x real time it holds K x
+        ``fifo_frames``: the same *host* time as the device at real time (a test's speed-up must not
+        turn a host's scheduling hiccup into an overrun the real device would never see; overruns are
+        tested as faults, FaultPlan.overrun_at)."""
+        scale = float(getattr(self.clock, "scale", 1.0) or 1.0) if self.clock is not None else 1.0
+        return int(self.fifo_frames * max(1.0, scale)) * self.frame_len
+
     # ------------------------------------------------------------ one connection
 
     def _session(self, link: _Link) -> str:
@@ -137,7 +145,7 @@ class StreamingADCSimulator(SADCDevice):
                     dev_now = (self.clock.now() - self._t_source0) if self.clock is not None else now - self.t_start
                     due = int(dev_now * self.rate_hz) // self.block - self.frame_no
                     if due > 0:
-                        self._generate(min(due, 4096), out, self.fifo_frames * self.frame_len)
+                        self._generate(min(due, 4096), out, self.fifo_bytes())
                     if self.clock is not None:
                         scale = getattr(self.clock, "scale", 1.0)
                         wait = ((self.frame_no + 1) * self.block / self.rate_hz - (self.clock.now() - self._t_source0)) / scale

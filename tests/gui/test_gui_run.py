@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("PySide6")
 pytest.importorskip("pyqtgraph")
 
-from gui_operator import STALL_LIMIT_S, Operator, StallProbe, make_window, run_file  # noqa: E402
+from gui_operator import Operator, StallProbe, make_window, run_file, stall_limit_s  # noqa: E402
 
 pytestmark = [pytest.mark.slow, pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]  # the integration layer: the simulated bench (tests/recording: the stages alone)
 
@@ -43,7 +43,7 @@ def test_stop_and_abort_in_every_phase(qtbot, tmp_path, clock, phase, action):
         op.press_when_enabled("trigger", 60)
     assert op.press_when_enabled(action, 60, phase=phase) == phase
     summary = op.wait_done(60)
-    assert probe.stop() < STALL_LIMIT_S
+    assert probe.stop() < stall_limit_s()
     status, reason, best, run = run_file(summary.path)
     expected = {"stop": ("stopped", "stopped by the operator"), "abort": ("aborted", "operator abort")}[action]
     assert (summary.status, status) == (expected[0], expected[0]) and expected[1] in reason
@@ -71,7 +71,7 @@ def test_armed_rig_left_alone_disarms_at_the_configured_time(qtbot, tmp_path):
     op.press_when_enabled("arm", 60)
     qtbot.waitUntil(lambda: "disarms in" in win.run_controls.phase_text(), timeout=10000)
     summary = op.wait_done(60)
-    assert probe.stop() < STALL_LIMIT_S
+    assert probe.stop() < stall_limit_s()
     assert summary.status == "aborted" and summary.reason.startswith("armed timeout: no trigger within 3 s")
     status, reason, best, run = run_file(summary.path)
     assert status == "aborted" and reason.startswith("armed timeout") and best is None
