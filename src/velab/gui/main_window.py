@@ -15,7 +15,7 @@ from PySide6.QtCore import QSettings, Qt, QTimer, Signal
 from PySide6.QtGui import QAction, QGuiApplication, QKeySequence
 from PySide6.QtWidgets import QDockWidget, QLabel, QMainWindow, QTabWidget
 
-from velab.gui import tasks
+from velab.gui import gcguard, tasks
 from velab.gui.archive import ArchiveBrowser
 from velab.gui.archive_io import fit_window_of
 from velab.gui.controller import RecorderController
@@ -118,6 +118,8 @@ class MainWindow(QMainWindow):
         self._restore()
         self.update_prediction()
         freeze_heap()  # long-lived objects out of the garbage collector's full scans
+        gcguard.acquire()  # collections on this thread only while the window is open (velab.gui.gcguard)
+        self._gc_held = True
 
     # ------------------------------------------------------------------ layout
     def _menus(self) -> None:
@@ -179,6 +181,9 @@ class MainWindow(QMainWindow):
             self.controller.close()
         tasks.wait_idle(5000)
         super().closeEvent(event)
+        if getattr(self, "_gc_held", False):
+            self._gc_held = False
+            gcguard.release()
 
     # ------------------------------------------------------------------ messages
     def show_message(self, text: str, level: str = "info", details: str = "") -> None:
