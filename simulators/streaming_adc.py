@@ -120,8 +120,11 @@ class StreamingADCSimulator(SADCDevice):
         ``fifo_frames``: the same *host* time as the device at real time (a test's speed-up must not
         turn a host's scheduling hiccup into an overrun the real device would never see; overruns are
         tested as faults, FaultPlan.overrun_at)."""
-        scale = float(getattr(self.clock, "scale", 1.0) or 1.0) if self.clock is not None else 1.0
-        return int(self.fifo_frames * max(1.0, scale)) * self.frame_len
+        return int(self.fifo_frames * max(1.0, self.clock_scale())) * self.frame_len
+
+    def clock_scale(self) -> float:
+        """Device seconds per host second: the simulation clock's scale (1 without one)."""
+        return float(getattr(self.clock, "scale", 1.0) or 1.0) if self.clock is not None else 1.0
 
     # ------------------------------------------------------------ one connection
 
@@ -147,8 +150,8 @@ class StreamingADCSimulator(SADCDevice):
                     if due > 0:
                         self._generate(min(due, 4096), out, self.fifo_bytes())
                     if self.clock is not None:
-                        scale = getattr(self.clock, "scale", 1.0)
-                        wait = ((self.frame_no + 1) * self.block / self.rate_hz - (self.clock.now() - self._t_source0)) / scale
+                        wait = ((self.frame_no + 1) * self.block / self.rate_hz
+                                - (self.clock.now() - self._t_source0)) / self.clock_scale()
                     else:
                         wait = self.t_start + (self.frame_no + 1) * self.block / self.rate_hz - time.monotonic()
                     timeout = min(timeout, max(0.0, wait))

@@ -175,4 +175,4 @@ class RunHost(Protocol):
     def make_fault(self, who: str, message: str, kind: str = "error", **extra) -> Fault: ...
     def emit_valve(self, st) -> None: ...                                  # a valve status read on the control thread
     def note_valve(self, st) -> None: ...                                  # the slow poll's valve status (control thread)
-    def check_valve_ready(self) -> None: ...                               # raises if the valve cannot close now
+    def check_valve_ready(self) -> None: ...                               # reads the actuator: raises unless open and idle
