@@ -44,6 +44,8 @@ IMPLAUSIBLE = {"streaming_adc": {"device": "streaming_adc", "fault": {"corrupt_e
 # a flipped byte has no checksum to fail: which outcome it has depends on which counter value it hits
 # (docs/recording.md, "Modbus TCP corruption"), so it is no deterministic test.
 IMPLAUSIBLE_ENDPOINTS = {"pressure_adc": [{"transport": "rtu-socket", "port": 0}]}
+# after the trigger: this many corrupted replies (the client's retries: 3 attempts per request, so two polls refused)
+POLLED_CORRUPT = 6
 SCENARIOS = [(src, f, at) for src in ("streaming_adc", "pressure_adc") for f in (*SENSOR, "implausible")
              for at in ("arm", "trigger")]
 
@@ -51,11 +53,18 @@ SCENARIOS = [(src, f, at) for src in ("streaming_adc", "pressure_adc") for f in 
 def sim_config(entry: dict, at: str, endpoints: dict | None = None) -> dict:
     _, doc = load_sim_config("default")
     doc = copy.deepcopy(dict(doc))
-    # after the trigger the fault lasts 0.4 s of device time; corrupted Modbus replies (not samples: the ring keeps
-    # those) need a poll inside the window, and 0.4 s is 33 ms of host time at the fast clock: a loaded host
-    # (two suites at once) polled around it and the run was clean. 2 s is 0.17 s of host time, still inside the run
+    # after the trigger a sensor fault lasts 0.4 s of device time. Corrupted Modbus replies (not samples: the ring
+    # keeps those) are counted instead: the next POLLED_CORRUPT replies from 0.4 s after the trigger on, whenever the
+    # recorder polls. A time window depends on the host: 0.4 s (33 ms of host time at the fast clock) fell between a
+    # loaded host's polls and the run was clean; 2 s (0.17 s) left the ring (4 s) 0.17 s of host time to catch up,
+    # which three loads at once did not (a 538-sample gap)
     polled = entry["fault"].get("corrupt_crc")
-    entry = dict(entry, at="arm+0.2") if at == "arm" else dict(entry, at="trigger+0.4", duration_s=2.0 if polled else 0.4)
+    if at == "arm":
+        entry = dict(entry, at="arm+0.2")
+    elif polled:
+        entry = dict(entry, at="trigger+0.4", duration_s=2.5, fault=dict(entry["fault"], count=POLLED_CORRUPT))
+    else:
+        entry = dict(entry, at="trigger+0.4", duration_s=0.4)
     doc["faults"] = {"schedule": [entry]}
     if endpoints:
         doc["devices"] = copy.deepcopy(dict(doc["devices"]))

@@ -85,6 +85,29 @@ def test_the_trigger_window_and_end_from_the_sample_clock():
     assert r.t[-1] == pytest.approx(t_est + 2.0 - 1 / FS) and r.position.size == r.t.size == r.head.size
 
 
+def test_a_stroke_after_the_estimates_window_is_measured_not_missing():
+    """The TRIGGER reached the actuator late (a loaded host: at the fast clock 0.2 s of host time is 2.4 s of the
+    axis) and its reply came back at axis 3.0: the stroke starts 2.5 s after the estimate, after the estimate's
+    window. The feedback is watched until a window after the reply: the trigger is measured from it, and the
+    window and the record follow it (they used to close on the estimate: "no stroke seen", the record cut)."""
+    tl, rec, ops, closed, _ = make()  # 1 s pretrigger, 2 s window, 3 s record; manoeuvre beta 10, gamma 0
+    for i in range(15):
+        feed(tl, 100 * i, 100, host_time_s=(100 * i + 100) / FS)
+    t_est = tl.mark_trigger(1.5, clock_scale=1.0)
+    assert tl.commit_trigger(4.0, clock_scale=1.0)  # the reply: host 4.0 s, sample 4000, axis 3.0
+    stroke = 3.0
+    for i in range(15, 70):
+        t = (100 * i + np.arange(100) - 1000) / FS
+        feed(tl, 100 * i, 100, position_pct=100.0 / (1.0 + np.exp(10.0 * (t - stroke))))
+    triggers = [op.t for op in ops if isinstance(op, Trigger)]
+    assert triggers[0] == t_est and triggers[-1] == pytest.approx(stroke, abs=2e-3)
+    assert not any("no stroke seen" in f[1] for f in rec.faults), rec.faults
+    assert closed == [(2.0, True)] and rec.ends == [("completed", "")]
+    r = tl.fit_window(2.0)
+    assert r.trigger_time_s == triggers[-1] and r.t[-1] == pytest.approx(triggers[-1] + 2.0, abs=2e-3)
+    assert tl.counters().n_written == pytest.approx(1000 + (stroke + 3.0) * FS, abs=2)  # the record follows it
+
+
 def test_the_steady_head_is_the_fit_paths_baseline_mean():
     tl, *_ = make(pretrigger_s=5.0)
     rng = np.random.default_rng(1)

@@ -221,3 +221,38 @@ def test_bench_config_sim_toml_matches_default_sim():
     assert bench.simulate == "default"
     assert bench.devices["flowmeter"].settings["port"].startswith("socket://")
     assert isinstance(Bench.from_dict(bench.to_dict()), Bench)
+
+
+def test_adc_ring_holds_the_same_host_time_on_a_fast_clock():
+    """The ring (4 s of 2 channels at 2 kHz on the profile) holds 4 s of *host* time on a clock 12 x real time as
+    far as the register space goes (65535 - 2000 registers: 15.9 s of device time, 1.3 s of host time): a recorder
+    0.6 s of host time behind (7 s of device time) loses nothing; the capacity register says so. On the manual clock
+    the ring is the profile's (checked by the module's fixture sim: 8000 samples)."""
+    from velab.simulators.bench import SimulatedBench
+    from velab.simulators.clock import make_clock
+    from velab.simulators.modbus_devices import REGISTER_SPACE
+
+    config = dict(CONFIG, clock="fast", devices={"pressure_adc": dict(CONFIG["devices"]["pressure_adc"],
+                                                                      endpoints=[{"transport": "tcp"}])})
+    with SimulatedBench(config, clock=make_clock("fast"), ephemeral=True) as fast:
+        adc = open_device(fast.bench(prefer=("tcp",), pressure_adc={"timeout_s": 2.0, "retries": 1})
+                          .devices["pressure_adc"])
+        try:
+            adc.start_buffer()
+            assert adc.read_value("buffer_capacity") == (REGISTER_SPACE - 2000) // 2
+            t0 = fast.clock.now()
+            while fast.clock.now() - t0 < 7.0:  # 7 s of device time unread: more than the profile's ring
+                __import__("time").sleep(0.05)
+            idx = adc.read_buffer().index  # everything since the start, at once
+            assert adc.stats.lost == 0 and idx.size >= 14000
+            assert np.array_equal(idx, np.arange(idx.size))
+        finally:
+            adc.close()
+
+
+def test_adc_ring_on_the_manual_clock_is_the_profile_s(sim):
+    adc = connect(sim, "pressure_adc", "tcp")
+    try:
+        assert adc.read_value("buffer_capacity") == 16000 // 2
+    finally:
+        adc.close()

@@ -221,7 +221,8 @@ class Run:
             # its polls go unanswered: a TRIGGER would most likely be lost, or start a stroke nobody can watch
             self._trigger_failed(f"does not answer its status polls ({error}): not triggered", ask_valve=False)
         sent = time.time()
-        t_est = tl.mark_trigger(sent, getattr(self.rec.clock, "scale", 1.0) if self.rec.clock is not None else 1.0)
+        scale = getattr(self.rec.clock, "scale", 1.0) if self.rec.clock is not None else 1.0
+        t_est = tl.mark_trigger(sent, scale)
         if self.slow is not None:
             self.slow.hold_valve(True)  # the trigger and its read-back have the bus to themselves
         try:
@@ -233,7 +234,8 @@ class Run:
         note = readback_note(out)
         if note:
             self.fault("valve", note, "protocol")
-        estimate_kept = tl.commit_trigger()  # not if the feedback measured it already (a slow read-back)
+        # not if the feedback measured it already (a slow read-back); the stroke started by now
+        estimate_kept = tl.commit_trigger(time.time(), scale)
         self.writer.put(Value("manoeuvre/trigger_host_time", sent))
         self.log("operator", f"trigger commanded at about t = {t_est:.3f} s")
         self.rec.set_phase(P.RECORDING, trigger_time_s=tl.counters().trigger_time,

@@ -129,6 +129,9 @@ class Timeline:
         self.trigger_time: float | None = None
         self.trigger_measured = False  # the feedback was looked at (whether or not a stroke was seen)
         self.trigger_from_feedback = False  # ... and the instant measured from it
+        # the latest axis instant the stroke can have started (the command's reply came back then); None: the
+        # command is still out, so it can start any time (velab.recording.run.fire_trigger, commit_trigger)
+        self.trigger_latest: float | None = None
         self._pos_t: list = []
         self._pos_v: list = []
         self._fit = None  # the window's rows: axis, head, valve position, the other transducers' heads
@@ -190,9 +193,7 @@ class Timeline:
         The samples processed so far lag the device by whatever is still queued: the estimate
         extrapolates from the last block's host arrival time (device seconds = scale x host seconds)."""
         with self._lock:
-            idx = self.gidx
-            if self._last_host is not None:
-                idx = max(idx, int(round(self._last_idx + (now_host - self._last_host) * self.fs * clock_scale)))
+            idx = self._index_at(now_host, clock_scale)
             cap = int((self.s.fit_window_s + 2.0) * self.fs + (idx - self.gidx)) + 1
             self._fit = np.empty((3 + len(self.others), cap))
             self._fit_n = 0
@@ -200,10 +201,21 @@ class Timeline:
             self.trigger_time = (idx - self.n_pre) / self.fs
         return self.trigger_time
 
-    def commit_trigger(self) -> bool:
+    def _index_at(self, now_host: float, clock_scale: float) -> int:
+        """The sample index at host time ``now_host``: extrapolated from the last block's arrival."""
+        idx = self.gidx
+        if self._last_host is not None:
+            idx = max(idx, int(round(self._last_idx + (now_host - self._last_host) * self.fs * clock_scale)))
+        return idx
+
+    def commit_trigger(self, now_host: float | None = None, clock_scale: float = 1.0) -> bool:
         """The trigger command was carried out: its estimate goes into the file, unless the valve
-        feedback has measured the instant already (the command's reply was lost and read back)."""
+        feedback has measured the instant already (the command's reply was lost and read back).
+        ``now_host``: when its reply (or read-back) came; the stroke started by then, and the feedback
+        is watched until a fit window after it before "no stroke seen" (None: the estimate's instant)."""
         with self._lock:
+            self.trigger_latest = (self.trigger_time if now_host is None
+                                   else max(self.trigger_time, (self._index_at(now_host, clock_scale) - self.n_pre) / self.fs))
             if self.trigger_from_feedback:
                 return False
             self.write(Trigger(self.trigger_time))
@@ -251,7 +263,7 @@ class Timeline:
         g = self.gidx + np.arange(n)
         t = (g - self.n_pre) / fs
         if self.trigger_time is not None:
-            keep = t < self.trigger_time + s.duration_s - 0.5 / fs
+            keep = t < self._stroke_by() + s.duration_s - 0.5 / fs
             if not keep.all():
                 n = int(keep.sum())
                 b, g, t = slice_block(b, n), g[:n], t[:n]
@@ -391,19 +403,29 @@ class Timeline:
     def _reached(self, t_axis: float) -> bool:
         return self.now_axis >= t_axis - 0.5 / self.fs
 
+    def _stroke_by(self) -> float:
+        """The axis instant the run's trigger is taken at for its window and end: the trigger's (measured, or
+        the estimate when there is no feedback or it was looked at); while the feedback is awaited, the latest
+        instant the stroke can have started (inf while the command is out). A command that reached the
+        actuator late (a loaded host; at the fast clock 0.1 s of host time is 1.2 s of the axis) starts a
+        stroke after the estimate's window: it is measured, not "no stroke seen"."""
+        if self.trigger_measured or not self.vch:
+            return self.trigger_time
+        return math.inf if self.trigger_latest is None else self.trigger_latest
+
     def _check_boundaries(self) -> None:
         if self.trigger_time is None:
             return
-        if not self.window_closed and self._reached(self.trigger_time + self.s.fit_window_s):
-            if not self.trigger_measured and self.vch:
-                self._measure_trigger()
-        # (again: the measured trigger may be later than the commanded one, the window then closes later)
-        if not self.window_closed and self._reached(self.trigger_time + self.s.fit_window_s):
+        if not self.trigger_measured and self.vch and self._reached(self._stroke_by() + self.s.fit_window_s):
+            self._measure_trigger()
+        # (the measured trigger may be later than the commanded one, the window then closes later)
+        if not self.window_closed and (self.trigger_measured or not self.vch) \
+                and self._reached(self.trigger_time + self.s.fit_window_s):
             self.window_closed = True
             self.hooks.emit("message", f"fit window closed ({self.s.fit_window_s:g} s after the trigger)")
             if self.s.fit and self.s.online_fit:
                 self.on_window_closed(self.s.fit_window_s, final=True)
-        if self._reached(self.trigger_time + self.s.duration_s):
+        if self._reached(self._stroke_by() + self.s.duration_s):
             self.hooks.request_end("completed", "")
 
     # ---------------------------------------------------------------- the fit's data
