@@ -119,16 +119,29 @@ class Operator:
         from PySide6.QtCore import Qt
 
         b = self.button(name)
-        self.qtbot.waitUntil(lambda: b.isEnabled() and (phase is None or self.win.controller.phase == phase),
-                             timeout=int(timeout_s * 1000))
+        self._wait(lambda: b.isEnabled() and (phase is None or self.win.controller.phase == phase), timeout_s,
+                   f"{name!r} not enabled")
         ph = self.win.controller.phase
         self.qtbot.mouseClick(b, Qt.LeftButton)
         self.presses.append((name, ph))
         return ph
 
     def wait_done(self, timeout_s: float = 120.0):
-        self.qtbot.waitUntil(lambda: self.win.last_summary is not None, timeout=int(timeout_s * 1000))
+        self._wait(lambda: self.win.last_summary is not None, timeout_s, "the run did not end")
         return self.win.last_summary
+
+    def _wait(self, condition, timeout_s: float, what: str) -> None:
+        """qtbot.waitUntil; on timeout, where the run stood: its phases, the presses so far, the window's log
+        (a bare timeout says nothing about why)."""
+        from pytestqt.exceptions import TimeoutError as QtTimeout
+
+        try:
+            self.qtbot.waitUntil(condition, timeout=int(timeout_s * 1000))
+        except QtTimeout:
+            raise AssertionError(
+                f"{what} within {timeout_s:g} s: phase {self.win.controller.phase!r}, phases seen "
+                f"{[st.phase for st in self.states][-12:]}, presses {self.presses}, log "
+                f"{self.win.log.texts()[-12:]}") from None
 
     def shown_while(self, phase: str) -> set:
         """The union of the buttons enabled while the window showed ``phase``."""
