@@ -109,6 +109,15 @@ def clock_scale(clock) -> float:
     return float(getattr(clock, "scale", 1.0))
 
 
+def buffer_scale(clock) -> float:
+    """How many times the real device's buffer a simulated device holds (its FIFO, its ring): the clock's
+    speed-up, so that the buffer holds the same *host* time as the real device (a test's speed-up must not turn
+    a host's scheduling hiccup into an overrun the real bench would never see); 1 at real time, without a
+    clock, and on a manual clock (time moves only when a test advances it: overruns are tested there)."""
+    scale = float(getattr(clock, "scale", 1.0) or 1.0) if clock is not None else 1.0
+    return max(1.0, scale)
+
+
 def make_clock(kind: str = "realtime") -> Clock:
     """'realtime', 'manual', 'fast' (x12) or 'scaled:K' (K x real time)."""
     if kind == "realtime":

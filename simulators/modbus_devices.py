@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from velab.drivers.profile import Profile, load_profile
-from velab.simulators.clock import clock_scale
+from velab.simulators.clock import buffer_scale
 from velab.simulators.faults import DeviceFaults
 from velab.simulators.rig import CommandRefused, SimulatedRig
 
@@ -168,13 +168,12 @@ REGISTER_SPACE = 65536  # Modbus holding-register addresses 0..65535
 
 
 def ring_registers(profile_registers: int, ring_address: int, scale: float) -> int:
-    """The simulated ring's size: the profile's at real time; on a clock K x real time, K x larger as far as the
-    register space allows (from the ring's address to 65535). The real module's ring holds 4 s of 2 channels at
-    2 kHz, and a recorder that falls that far behind loses samples; at the fast clock (12 x) those 4 s are 0.33 s of
-    host time, and a loaded test host lost samples the real bench never would (the streaming ADC's FIFO is scaled
-    the same way). The module reports its capacity (``buffer_capacity``), which the driver reads: any size is the
-    protocol's."""
-    return min(int(profile_registers * max(1.0, scale)), REGISTER_SPACE - ring_address)
+    """The simulated ring's size: the profile's times ``scale`` (velab.simulators.clock.buffer_scale) as far as
+    the register space allows (from the ring's address to 65535). The real module's ring holds 4 s of 2 channels at
+    2 kHz; at the fast clock (12 x) those 4 s were 0.33 s of host time, and a loaded test host lost samples the real
+    bench never would. The module reports its capacity (``buffer_capacity``), which the driver reads: any size is
+    the protocol's."""
+    return min(int(profile_registers * scale), REGISTER_SPACE - ring_address)
 
 
 class SimModbusADC(SimModbusDevice):
@@ -196,8 +195,7 @@ class SimModbusADC(SimModbusDevice):
         self.polled_rate = float(pol.get("sample_rate_hz", 10))
         buf = self.profile.section("buffer")
         self.ring_addr = int(buf["ring_address"])
-        scale = clock_scale(rig.clock)  # (a manual clock: inf; its ring is the profile's)
-        self.ring_regs = ring_registers(int(buf["ring_registers"]), self.ring_addr, scale if math.isfinite(scale) else 1.0)
+        self.ring_regs = ring_registers(int(buf["ring_registers"]), self.ring_addr, buffer_scale(rig.clock))
         chans = self.profile.section("channels")
         self.type_codes = [int(chans.get(f"ch{i}", {}).get("type_code", 0x0180)) for i in range(self.n_ai)]
         for i, code in enumerate(self.type_codes):

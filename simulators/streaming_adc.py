@@ -34,6 +34,7 @@ import tty
 
 from velab.drivers.sadc_protocol import ERR_LINE_TOO_LONG, MAX_LINE
 from velab.errors import ConfigError
+from velab.simulators.clock import buffer_scale
 from velab.simulators.endpoint import Endpoint
 from velab.simulators.sadc_device import (  # noqa: F401 - the device's names, re-exported
     FaultPlan,
@@ -120,7 +121,7 @@ class StreamingADCSimulator(SADCDevice):
         ``fifo_frames``: the same *host* time as the device at real time (a test's speed-up must not
         turn a host's scheduling hiccup into an overrun the real device would never see; overruns are
         tested as faults, FaultPlan.overrun_at)."""
-        return int(self.fifo_frames * max(1.0, self.clock_scale())) * self.frame_len
+        return int(self.fifo_frames * buffer_scale(self.clock)) * self.frame_len
 
     def clock_scale(self) -> float:
         """Device seconds per host second: the simulation clock's scale (1 without one)."""

@@ -52,6 +52,8 @@ class Recorder:
         self.rig = rig_for_bench(rig, bench.devices, bench.recorder.get("valve"))
         self.sim, self._owns_sim = sim, owns_sim
         self.clock = getattr(sim, "clock", None)
+        # device seconds per host second: the simulated rig's clock (1 at a real bench and on a manual clock)
+        self.clock_scale = float(getattr(self.clock, "scale", 1.0)) if self.clock is not None else 1.0
         self.bench_armed_timeout_s = bench_armed_timeout(bench)
         self.bench_where = bench.path or bench.name  # (the bench's file, in its config errors)
         # the bench's channel map names transducers of this rig, and every one of them (its channels: at arm)
@@ -395,8 +397,7 @@ class Recorder:
         return run.summary
 
     def _deadline(self, device_seconds: float) -> float:
-        scale = getattr(self.clock, "scale", 1.0) if self.clock is not None else 1.0
-        return device_seconds / max(1e-9, min(scale, 1e6)) + 30.0
+        return device_seconds / max(1e-9, min(self.clock_scale, 1e6)) + 30.0
 
     def run(self, *, reset_valve: bool = False) -> RunSummary:
         """Blocking: connect, (reset the valve), arm, trigger (queued until the baseline is in), wait.

@@ -99,8 +99,7 @@ class Run:
         """Checks (nothing moves), the run file, the stages, the stream, the actuator armed."""
         s = self.settings
         name = self.rec.roles["pressure"]
-        src = pressure_source(self.rec.devices[name], name, getattr(self.rec.clock, "scale", 1.0)
-                              if self.rec.clock is not None else 1.0)
+        src = pressure_source(self.rec.devices[name], name, self.rec.clock_scale)
         # every transducer of the rig on its channel (the bench's [recorder.transducers]), the valve's first
         transducers = transducer_channels(self.rec.rig, self.rec.bench.transducer_channels, self.rec.bench_where,
                                           src.pressure_channels(), name)
@@ -221,8 +220,7 @@ class Run:
             # its polls go unanswered: a TRIGGER would most likely be lost, or start a stroke nobody can watch
             self._trigger_failed(f"does not answer its status polls ({error}): not triggered", ask_valve=False)
         sent = time.time()
-        scale = getattr(self.rec.clock, "scale", 1.0) if self.rec.clock is not None else 1.0
-        t_est = tl.mark_trigger(sent, scale)
+        t_est = tl.mark_trigger(sent, self.rec.clock_scale)
         if self.slow is not None:
             self.slow.hold_valve(True)  # the trigger and its read-back have the bus to themselves
         try:
@@ -235,7 +233,7 @@ class Run:
         if note:
             self.fault("valve", note, "protocol")
         # not if the feedback measured it already (a slow read-back); the stroke started by now
-        estimate_kept = tl.commit_trigger(time.time(), scale)
+        estimate_kept = tl.commit_trigger(time.time(), self.rec.clock_scale)
         self.writer.put(Value("manoeuvre/trigger_host_time", sent))
         self.log("operator", f"trigger commanded at about t = {t_est:.3f} s")
         self.rec.set_phase(P.RECORDING, trigger_time_s=tl.counters().trigger_time,

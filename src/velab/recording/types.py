@@ -157,7 +157,7 @@ class RunHost(Protocol):
     bench: Any
     bench_where: str
     bench_armed_timeout_s: float | None
-    clock: Any
+    clock_scale: float  # device seconds per host second (the simulated rig's clock; 1 at a real bench)
     sim: Any
     devices: dict
     roles: dict
