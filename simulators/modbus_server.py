@@ -32,8 +32,11 @@ import threading
 import time
 
 from pymodbus.constants import ExcCodes
-from pymodbus.framer import FramerType
+from pymodbus.exceptions import ModbusIOException, NoSuchIdException
+from pymodbus.framer import FramerRTU, FramerType
+from pymodbus.pdu import ExceptionResponse
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from velab.drivers.modbus import crc16
@@ -72,6 +75,112 @@ def _shut_sockets_on_port(port: int) -> None:
             pass
         finally:
             s.detach()
+
+
+class _InOrderHandler(ServerRequestHandler):
+    """One client connection that answers every request it receives, one after another.
+
+    pymodbus (3.16) decodes one frame per read from the socket and clears its receive buffer when
+    it replies, so a request that arrives together with another (a client whose previous request
+    timed out while this device was busy, on a loaded host) is dropped without a reply and never
+    carried out: a TRIGGER lost that way read back as "not started". A real device queues what
+    arrives and answers each request in turn; so does this handler."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._queue: asyncio.Queue | None = None
+        self._answering: asyncio.Task | None = None
+
+    def callback_disconnected(self, exc: Exception | None) -> None:
+        super().callback_disconnected(exc)
+        if self._answering is not None:
+            self._answering.cancel()  # what was queued goes with the connection, as on a device
+
+    def callback_data(self, data: bytes, addr: tuple | None = None) -> int:
+        used = 0
+        while used < len(data):
+            try:
+                n, pdu = self.framer.handleFrame(self.trace_packet(False, data[used:]), 0, 0)
+            except ModbusIOException as exc:  # undecodable: pymodbus's own answer, the rest dropped
+                self._enqueue(ExceptionResponse(0x00 if exc.fcode is None else exc.fcode,
+                                                exception_code=ExcCodes.ILLEGAL_FUNCTION,
+                                                device_id=exc.dev_id, transaction=exc.transaction_id), addr)
+                return len(data)
+            if n == 0:
+                break  # an incomplete frame: kept until the rest arrives
+            used += n
+            if pdu is not None:
+                self._enqueue(pdu, addr)
+        return used
+
+    def _enqueue(self, item, addr) -> None:
+        if self._queue is None:
+            self._queue = asyncio.Queue()
+            self._answering = self.loop.create_task(self._answer_in_turn())
+        self._queue.put_nowait((item, addr))
+
+    async def _answer_in_turn(self) -> None:
+        while True:
+            item, addr = await self._queue.get()
+            if isinstance(item, ExceptionResponse):
+                self.server_send(item, addr)
+            else:
+                await self._answer(item, addr)
+
+    async def _answer(self, pdu, addr) -> None:
+        # as pymodbus's handle_request, for this request rather than the handler's "last" one
+        try:
+            response = await pdu.datastore_update(self.server.context, pdu.dev_id)
+        except NoSuchIdException:
+            if self.server.ignore_missing_devices:
+                return
+            response = ExceptionResponse(pdu.function_code, ExcCodes.GATEWAY_NO_RESPONSE)
+        except Exception:  # noqa: BLE001 - pymodbus answers a datastore failure so
+            log.exception("simulated device request failed")
+            response = ExceptionResponse(pdu.function_code, ExcCodes.DEVICE_FAILURE)
+        response.transaction_id = pdu.transaction_id
+        response.dev_id = pdu.dev_id
+        self.server_send(response, addr)
+
+    def send(self, data: bytes, addr: tuple | None = None) -> None:
+        kept = self.recv_buffer  # pymodbus clears it on sending: a partial next request would be lost
+        super().send(data, addr)
+        self.recv_buffer = kept
+
+
+class _RtuFrames(FramerRTU):
+    """RTU frames are delimited by silence on the wire, and pymodbus takes all it has read as one
+    frame (the rest dropped). Frames that reached one read together (a starved host; on the line
+    they were a timeout apart) are decoded each at its own length here."""
+
+    def decode(self, data: bytes) -> tuple[int, int, int, bytes]:
+        for start in range(len(data)):
+            if len(data) - start < self.MIN_SIZE:
+                return 0, 0, 0, self.EMPTY
+            if not (pdu_class := self.decoder.lookupPduClass(data[start:])):
+                continue  # hunting past garbage, as pymodbus does
+            dev_id = int(data[start])
+            if not (size := pdu_class.calculateRtuFrameSize(data[start:])) or len(data) < start + size:
+                return 0, dev_id, 0, self.EMPTY  # wait for more
+            end = start + size
+            if not FramerRTU.check_CRC(data[start:end - 2], int.from_bytes(data[end - 2:end], "big")):
+                return len(data), 0, 0, self.EMPTY  # garbage: dropped, as pymodbus does
+            return end, dev_id, 0, data[start + 1:end - 2]
+        return 0, 0, 0, self.EMPTY
+
+
+class _TcpServer(ModbusTcpServer):
+    def callback_new_connection(self):
+        return _InOrderHandler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+
+
+class _SerialServer(ModbusSerialServer):
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.framer = _RtuFrames
+
+    def callback_new_connection(self):
+        return _InOrderHandler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
 
 
 class ModbusDeviceServer:
@@ -200,12 +309,12 @@ class ModbusDeviceServer:
         kw = dict(trace_packet=self._trace_packet)
         try:
             if self.transport == "tcp":
-                self._server = ModbusTcpServer(self._sim_device(), address=(self.host, self.port), **kw)
+                self._server = _TcpServer(self._sim_device(), address=(self.host, self.port), **kw)
             elif self.transport == "rtu-socket":
-                self._server = ModbusSerialServer(self._sim_device(), framer=FramerType.RTU,
+                self._server = _SerialServer(self._sim_device(), framer=FramerType.RTU,
                                                   port=f"socket://{self.host}:{self.port}", baudrate=self.baudrate, **kw)
             else:
-                self._server = ModbusSerialServer(self._sim_device(), framer=FramerType.RTU,
+                self._server = _SerialServer(self._sim_device(), framer=FramerType.RTU,
                                                   port=self.serial_path, baudrate=self.baudrate, **kw)
             await self._server.serve_forever(background=True)
             if self.transport != "rtu":
@@ -224,6 +333,11 @@ class ModbusDeviceServer:
         try:
             self._loop.run_until_complete(self._main())
         finally:
+            pending = asyncio.all_tasks(self._loop)  # e.g. a client still connected: its answering task
+            for task in pending:
+                task.cancel()
+            if pending:
+                self._loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
             self._loop.close()
 
     # ------------------------------------------------------------ lifecycle
