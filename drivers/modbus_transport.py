@@ -63,6 +63,7 @@ class TcpTransport:
         if self._sock is None:
             raise DeviceDisconnected(f"{self.name}: not connected")
         try:
+            self._sock.settimeout(self.connect_timeout_s)  # (a read may have left it non-blocking)
             self._sock.sendall(data)
         except OSError as exc:
             self.close()
@@ -73,13 +74,12 @@ class TcpTransport:
             raise DeviceDisconnected(f"{self.name}: not connected")
         buf = bytearray()
         while len(buf) < n:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                break
-            self._sock.settimeout(remaining)
+            # past the deadline, what has already arrived is still taken (non-blocking): a reader that woke late
+            # on a busy host has not met a silent device
+            self._sock.settimeout(max(0.0, deadline - time.monotonic()))
             try:
                 chunk = self._sock.recv(n - len(buf))
-            except socket.timeout:
+            except (socket.timeout, BlockingIOError):
                 break
             except OSError as exc:
                 self.close()
@@ -175,15 +175,15 @@ class SerialTransport:
         buf = bytearray()
         while len(buf) < n:
             remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                break
-            self._ser.timeout = remaining
+            self._ser.timeout = max(0.0, remaining)  # past the deadline: what has arrived is still taken (as TCP)
             try:
                 chunk = self._ser.read(n - len(buf))
             except (serial.SerialException, OSError) as exc:
                 self.close()
                 raise DeviceDisconnected(f"{self.name}: read failed: {exc}") from exc
             buf += chunk
+            if remaining <= 0 and not chunk:
+                break
         return bytes(buf)
 
     def discard_input(self) -> int:
