@@ -7,6 +7,7 @@ a simulation time to host epoch seconds (time.time()), for readings' timestamps.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from typing import Protocol, runtime_checkable
@@ -114,8 +115,8 @@ def buffer_scale(clock) -> float:
     speed-up, so that the buffer holds the same *host* time as the real device (a test's speed-up must not turn
     a host's scheduling hiccup into an overrun the real bench would never see); 1 at real time, without a
     clock, and on a manual clock (time moves only when a test advances it: overruns are tested there)."""
-    scale = float(getattr(clock, "scale", 1.0) or 1.0) if clock is not None else 1.0
-    return max(1.0, scale)
+    scale = clock_scale(clock)
+    return 1.0 if math.isinf(scale) else max(1.0, scale)
 
 
 def make_clock(kind: str = "realtime") -> Clock:
