@@ -18,16 +18,31 @@ from velab.recording.transducers import TransducerChannel
 FS = 1000.0
 
 
-def make(pretrigger_s=1.0, duration_s=3.0, fit_window_s=2.0, ceiling=100.0, **kw):
+class Host:
+    """The host's clock, as the time line reads it (``now``): set by the test, it never moves alone."""
+
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def make(pretrigger_s=1.0, duration_s=3.0, fit_window_s=2.0, ceiling=100.0, host=None, **kw):
     s = RecordSettings(pretrigger_s=pretrigger_s, duration_s=duration_s, fit_window_s=fit_window_s, fit=True,
                        intermediate_fits=False, sample_rate_hz=FS)
     rec, ops, closed, baseline = RecordingHooks(), [], [], []
     tl = Timeline(s, FS, (10.0, 0.0, 0.0), ceiling, "pressure", "valve_position", rec.hooks, ops.append,
-                  lambda w, final: closed.append((w, final)), on_baseline=lambda: baseline.append(True), **kw)
+                  lambda w, final: closed.append((w, final)), on_baseline=lambda: baseline.append(True),
+                  now=host or Host(), **kw)
     return tl, rec, ops, closed, baseline
 
 
-def feed(tl, first, n, **kw):
+def feed(tl, first, n, host=None, arrival=None, **kw):
+    """A block of samples [first, first + n); with ``host``: it arrives at host time ``arrival``
+    (default: when its last sample was made, device and host clocks both starting at 0)."""
+    if host is not None:
+        host.t = (first + n) / FS if arrival is None else arrival
     b = block(first, n, rate_hz=FS, **kw)
     tl.process(b, codes_of(b))
 
@@ -69,10 +84,11 @@ def test_a_head_above_the_ceiling_aborts_the_run():
 
 
 def test_the_trigger_window_and_end_from_the_sample_clock():
-    tl, rec, ops, closed, _ = make()
+    host = Host()
+    tl, rec, ops, closed, _ = make(host=host)
     for i in range(15):
-        feed(tl, 100 * i, 100, host_time_s=(100 * i + 100) / FS)
-    t_est = tl.mark_trigger(1.5, clock_scale=1.0)  # the last block arrived at host 1.5 s: sample 1500
+        feed(tl, 100 * i, 100, host)
+    t_est = tl.mark_trigger()  # the last block arrived at host 1.5 s, the command now: sample 1500
     assert t_est == pytest.approx(0.5) and tl.commit_trigger()
     assert [op for op in ops if isinstance(op, Trigger)] == [Trigger(t_est)]
     for i in range(15, 45):  # the valve never moves here: the trigger stays the command's estimate
@@ -85,16 +101,59 @@ def test_the_trigger_window_and_end_from_the_sample_clock():
     assert r.t[-1] == pytest.approx(t_est + 2.0 - 1 / FS) and r.position.size == r.t.size == r.head.size
 
 
+def test_the_trigger_is_estimated_from_the_block_that_waited_least_not_the_last_one():
+    """A loaded host at the fast clock: the stream's blocks arrive on time for 1 s, then queue up (the
+    acquisition thread starved) and the last ones processed are 1.4 s of samples behind the device when
+    the trigger is commanded. The estimate is where the device is (the block that waited least, plus
+    the samples made since), not the last block's index plus the time since it came (which put a
+    real run's trigger 6.5 s early: its record ended before the stroke was in)."""
+    scale = 12.0  # device seconds per host second
+    host = Host()
+    tl, rec, ops, _, _ = make(host=host, clock_scale=scale)
+    for i in range(10):  # on time: block i's last sample made at host (100 i + 100) / FS / scale
+        feed(tl, 100 * i, 100, host, arrival=(100 * i + 100) / FS / scale)
+    for i in range(10, 15):  # late: the backlog arrives at host 3.0 s / scale, the device at sample 3000
+        feed(tl, 100 * i, 100, host, arrival=2.9 / scale)
+    host.t = 3.0 / scale
+    t_est = tl.mark_trigger()
+    assert t_est == pytest.approx(3.0 - 1.0, abs=1.5 / FS)  # the device's sample 3000 (the old rule: 0.6)
+    assert tl.counters().now_axis == pytest.approx(0.5)  # the samples themselves are still behind
+    (kind, text), = [entry for entry in rec.logged if entry[0] == "trigger"]
+    assert "lags the device by about 1.50 s" in text
+    assert tl.commit_trigger() and [op for op in ops if isinstance(op, Trigger)] == [Trigger(t_est)]
+    # the record runs to the estimate + its duration on the samples' own axis, however late they come
+    for i in range(15, 60):
+        feed(tl, 100 * i, 100, host, arrival=4.0 / scale)
+    assert rec.ends == [("completed", "")]
+    assert tl.counters().n_written == pytest.approx(1000 + (t_est + 3.0) * FS, abs=1)
+
+
+def test_a_restarted_stream_is_estimated_from_its_own_blocks_only():
+    """After a restart the lost count is an estimate: the blocks before it say nothing of the new
+    axis, so the trigger is estimated from the blocks after it."""
+    host = Host()
+    tl, *_ = make(host=host)
+    for i in range(5):
+        feed(tl, 100 * i, 100, host)  # on time: device sample 499 at host 0.5
+    # restarted: 300 samples estimated lost; its blocks arrive 0.5 s of samples later than on time
+    for i in range(8, 15):
+        feed(tl, 100 * i, 100, host, arrival=(100 * i + 100) / FS + 0.5, restarted=(i == 8), lost_before=300 * (i == 8))
+    host.t = 2.0
+    assert tl.mark_trigger() == pytest.approx(2.0 - 0.5 - 1.0, abs=1.5 / FS)  # with the blocks before it: 1.0
+
+
 def test_a_stroke_after_the_estimates_window_is_measured_not_missing():
     """The TRIGGER reached the actuator late (a loaded host: at the fast clock 0.2 s of host time is 2.4 s of the
     axis) and its reply came back at axis 3.0: the stroke starts 2.5 s after the estimate, after the estimate's
     window. The feedback is watched until a window after the reply: the trigger is measured from it, and the
     window and the record follow it (they used to close on the estimate: "no stroke seen", the record cut)."""
-    tl, rec, ops, closed, _ = make()  # 1 s pretrigger, 2 s window, 3 s record; manoeuvre beta 10, gamma 0
+    host = Host()
+    tl, rec, ops, closed, _ = make(host=host)  # 1 s pretrigger, 2 s window, 3 s record; manoeuvre beta 10, gamma 0
     for i in range(15):
-        feed(tl, 100 * i, 100, host_time_s=(100 * i + 100) / FS)
-    t_est = tl.mark_trigger(1.5, clock_scale=1.0)
-    assert tl.commit_trigger(4.0, clock_scale=1.0)  # the reply: host 4.0 s, sample 4000, axis 3.0
+        feed(tl, 100 * i, 100, host)
+    t_est = tl.mark_trigger()
+    host.t = 4.0
+    assert tl.commit_trigger()  # the reply: host 4.0 s, sample 4000, axis 3.0
     stroke = 3.0
     for i in range(15, 70):
         t = (100 * i + np.arange(100) - 1000) / FS
@@ -109,13 +168,14 @@ def test_a_stroke_after_the_estimates_window_is_measured_not_missing():
 
 
 def test_the_steady_head_is_the_fit_paths_baseline_mean():
-    tl, *_ = make(pretrigger_s=5.0)
+    host = Host()
+    tl, *_ = make(pretrigger_s=5.0, host=host)
     rng = np.random.default_rng(1)
     heads = 30.0 + rng.normal(0, 0.01, 5000)
     heads[:1000] += 5.0  # more than the baseline's length before the trigger: not in it
     for i in range(50):
-        feed(tl, 100 * i, 100, head_m=heads[100 * i:100 * i + 100], host_time_s=(100 * i + 100) / FS)
-    tl.mark_trigger(5.0)
+        feed(tl, 100 * i, 100, host, head_m=heads[100 * i:100 * i + 100])
+    tl.mark_trigger()
     t = (np.arange(5000) - 5000) / FS
     assert tl.steady_head(None) == pytest.approx(steady_head(t, heads, 0.0, np.nan, FS), abs=1e-12)
     assert tl.steady_head(None) == pytest.approx(30.0, abs=0.002)
@@ -143,7 +203,7 @@ def test_every_transducer_is_recorded_in_its_own_channels():
 
 def test_the_steady_head_and_the_ceiling_are_the_valves_transducers():
     tl, rec, _, _, _ = make(ceiling=50.0, others=(MID,))
-    feed(tl, 0, 100, head_m=30.0, others={"pressure_2": 60.0}, host_time_s=0.1)  # mid above the ceiling: not watched
+    feed(tl, 0, 100, head_m=30.0, others={"pressure_2": 60.0})  # mid above the ceiling: not watched
     assert not rec.ends and tl.steady_head(None) == pytest.approx(30.0)
     assert tl.counters().peak == pytest.approx(30.0)
 
@@ -162,10 +222,11 @@ def test_a_flagged_transducer_before_the_trigger_aborts_naming_it():
 
 
 def test_a_flagged_transducer_after_the_trigger_is_said_once_and_shortens_every_sections_window():
-    tl, rec, _, closed, _ = make(duration_s=4.0, fit_window_s=3.0, others=(MID,))
+    host = Host()
+    tl, rec, _, closed, _ = make(duration_s=4.0, fit_window_s=3.0, others=(MID,), host=host)
     for i in range(15):
-        feed(tl, 100 * i, 100, others={"pressure_2": 31.0}, host_time_s=(100 * i + 100) / FS)
-    t0 = tl.mark_trigger(1.5, clock_scale=1.0)
+        feed(tl, 100 * i, 100, host, others={"pressure_2": 31.0})
+    t0 = tl.mark_trigger()
     tl.commit_trigger()
     for i in range(15, 55):
         codes = np.zeros((100, 3), np.uint8)

@@ -165,7 +165,7 @@ class Run:
                                   self.hooks, write, self._window_closed,
                                   on_baseline=lambda: self.rec.submit(lambda: None),
                                   lead_window_s=self.fit.lead_window_s(), on_lead=self._lead_ready,
-                                  others=transducers[1:])
+                                  others=transducers[1:], clock_scale=self.rec.clock_scale)
         valve = self.rec.devices[self.rec.roles["valve"]]
         rec = self.rec
         self.slow = SlowChannels(valve, rec.roles["valve"], rec.devices[rec.roles["flowmeter"]], self.hooks,
@@ -220,7 +220,7 @@ class Run:
             # its polls go unanswered: a TRIGGER would most likely be lost, or start a stroke nobody can watch
             self._trigger_failed(f"does not answer its status polls ({error}): not triggered", ask_valve=False)
         sent = time.time()
-        t_est = tl.mark_trigger(sent, self.rec.clock_scale)
+        t_est = tl.mark_trigger()
         if self.slow is not None:
             self.slow.hold_valve(True)  # the trigger and its read-back have the bus to themselves
         try:
@@ -233,7 +233,7 @@ class Run:
         if note:
             self.fault("valve", note, "protocol")
         # not if the feedback measured it already (a slow read-back); the stroke started by now
-        estimate_kept = tl.commit_trigger(time.time(), self.rec.clock_scale)
+        estimate_kept = tl.commit_trigger()
         self.writer.put(Value("manoeuvre/trigger_host_time", sent))
         self.log("operator", f"trigger commanded at about t = {t_est:.3f} s")
         self.rec.set_phase(P.RECORDING, trigger_time_s=tl.counters().trigger_time,

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass, field, replace
 
@@ -97,7 +98,7 @@ class Timeline:
     def __init__(self, settings, fs: float, manoeuvre: tuple[float, float, float], ceiling_m: float,
                  pressure_channel: str, valve_channel: str | None, hooks, write, on_window_closed,
                  on_baseline=lambda: None, lead_window_s: float | None = None, on_lead=lambda: None,
-                 others: tuple[TransducerChannel, ...] = ()):
+                 others: tuple[TransducerChannel, ...] = (), clock_scale: float = 1.0, now=time.monotonic):
         self.s = settings
         self.fs = fs
         self.beta, self.gamma, self.end_pct = manoeuvre
@@ -142,8 +143,13 @@ class Timeline:
         self.ended = False  # no more samples are taken (end requested)
         self._quick_next = 0
         self._seen_quality: set = set()
-        self._last_host: float | None = None  # host arrival time of the last processed sample
-        self._last_idx = 0
+        # the device's sample index at host time h is at least ``_lead + h x rate``: each block's last
+        # index less its arrival (here, ``now()``) times the device's samples per host second; the
+        # largest over the blocks is the block that waited least (velab.recording.run marks the
+        # trigger with it). rate: fs x clock_scale (a simulated rig's fast clock; 1 at a real bench)
+        self._rate = fs * clock_scale
+        self._now = now
+        self._lead: float | None = None
         self._lock = threading.RLock()
 
     # ---------------------------------------------------------------- counters (any thread)
@@ -187,35 +193,39 @@ class Timeline:
         return (np.concatenate(ts), np.concatenate(hs)) if ts else (np.empty(0), np.empty(0))
 
     # ---------------------------------------------------------------- the trigger (control thread)
-    def mark_trigger(self, now_host: float, clock_scale: float = 1.0) -> float:
+    def mark_trigger(self) -> float:
         """The trigger command is being sent now: estimate its instant on the sample clock.
 
-        The samples processed so far lag the device by whatever is still queued: the estimate
-        extrapolates from the last block's host arrival time (device seconds = scale x host seconds)."""
+        The samples processed so far lag the device by whatever is still queued (a loaded host: seconds
+        of the fast clock's axis): the estimate is the device's index now, from the block that
+        waited least (``_index_now``), never before the samples already processed."""
         with self._lock:
-            idx = self._index_at(now_host, clock_scale)
+            idx = self._index_now()
+            lag_s = (idx - self.gidx) / self.fs
             cap = int((self.s.fit_window_s + 2.0) * self.fs + (idx - self.gidx)) + 1
             self._fit = np.empty((3 + len(self.others), cap))
             self._fit_n = 0
             self.trigger_idx = idx
             self.trigger_time = (idx - self.n_pre) / self.fs
+        if lag_s >= 1.0:  # said, so a record whose trigger is estimated far ahead of its data is explained
+            self.hooks.log("trigger", f"the pressure stream lags the device by about {lag_s:.2f} s of samples "
+                                      "at the trigger command")
         return self.trigger_time
 
-    def _index_at(self, now_host: float, clock_scale: float) -> int:
-        """The sample index at host time ``now_host``: extrapolated from the last block's arrival."""
-        idx = self.gidx
-        if self._last_host is not None:
-            idx = max(idx, int(round(self._last_idx + (now_host - self._last_host) * self.fs * clock_scale)))
-        return idx
+    def _index_now(self) -> int:
+        """The device's sample index now: the tightest lower bound the blocks give (each one's index
+        when it arrived, plus the samples made since), at least the next sample to process."""
+        if self._lead is None:
+            return self.gidx
+        return max(self.gidx, int(round(self._lead + self._now() * self._rate)))
 
-    def commit_trigger(self, now_host: float | None = None, clock_scale: float = 1.0) -> bool:
-        """The trigger command was carried out: its estimate goes into the file, unless the valve
-        feedback has measured the instant already (the command's reply was lost and read back).
-        ``now_host``: when its reply (or read-back) came; the stroke started by then, and the feedback
-        is watched until a fit window after it before "no stroke seen" (None: the estimate's instant)."""
+    def commit_trigger(self) -> bool:
+        """The trigger command was carried out (its reply, or read-back, came now): its estimate goes into
+        the file, unless the valve feedback has measured the instant already (the command's reply was lost
+        and read back). The stroke started by now: the feedback is watched until a fit window after it
+        before "no stroke seen"."""
         with self._lock:
-            self.trigger_latest = (self.trigger_time if now_host is None
-                                   else max(self.trigger_time, (self._index_at(now_host, clock_scale) - self.n_pre) / self.fs))
+            self.trigger_latest = max(self.trigger_time, (self._index_now() - self.n_pre) / self.fs)
             if self.trigger_from_feedback:
                 return False
             self.write(Trigger(self.trigger_time))
@@ -259,6 +269,8 @@ class Timeline:
         o_codes = [codes[o.adc_channel] for o in self.others]
         if b.lost_before or b.restarted:  # a restarted device is never taken as contiguous, even with 0 lost
             self._gap(int(b.lost_before), bool(b.restarted))
+            if b.restarted:  # its lost count is estimated: the blocks before say nothing of its index now
+                self._lead = None
         n = b.n
         g = self.gidx + np.arange(n)
         t = (g - self.n_pre) / fs
@@ -294,7 +306,8 @@ class Timeline:
         self.n_written += n
         before = self.gidx
         self.gidx += n
-        self._last_host, self._last_idx = float(b.host_time_s), self.gidx - 1
+        lead = (self.gidx - 1) - self._now() * self._rate
+        self._lead = lead if self._lead is None else max(self._lead, lead)
         if before < self.n_pre <= self.gidx:
             self.on_baseline()
         ok = p_codes == OK
