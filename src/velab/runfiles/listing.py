@@ -95,7 +95,9 @@ def sample_files(folder: str | Path) -> dict[str, Path]:
         raise RuntimeError("velab fit failed")
     rec_dir = folder / "rec"
     rec_dir.mkdir()
-    if velab(["record", "--simulate", "--fast", "--duration", "2", "--window", "1.5", "--models", "0-1",
+    # 6 s after the trigger: the slow channels (polled every 0.15 s of host time, 1.8 s of the fast clock's axis)
+    # have at least two readings inside the record on a loaded host (tests/runfiles/test_run_standards.py)
+    if velab(["record", "--simulate", "--fast", "--duration", "6", "--window", "1.5", "--models", "0-1",
              "--out-dir", str(rec_dir), "--quiet"]) != 0:
         raise RuntimeError("velab record --simulate failed")
     return {"synth": synth, "recorded": next(rec_dir.glob("*.h5"))}
