@@ -43,6 +43,7 @@ def ctl(qapp):
 
 
 def test_events_become_signals_and_samples_are_batched_in_order(ctl):
+    ctl.budget_s = 60.0  # one tick takes them all however slow the host (the budget: the test below)
     got = []
     ctl.samples.connect(lambda t, h, v, lost: got.append(("samples", t.tolist(), lost)))
     ctl.message.connect(lambda text, level: got.append(("message", text)))
@@ -61,6 +62,19 @@ def test_events_become_signals_and_samples_are_batched_in_order(ctl):
     assert got == [("samples", [0.0, 1.0], 1), ("message", "hello"), ("samples", [2.0], 0), ("trigger", 0.5, True),
                    ("valve", "IDLE")]
     assert ctl.valve_info == {"state": "IDLE", "open": True} and ctl.events_seen == 7
+
+
+def test_events_past_the_ticks_time_budget_wait_for_the_next_tick(ctl):
+    got = []
+    ctl.message.connect(lambda text, level: got.append(text))
+    for i in range(3):
+        ctl.recorder.emit("message", f"m{i}")
+    ctl.budget_s = 0.0  # the budget spent before the first event: the GUI thread is handed back at once
+    ctl.drain()
+    assert got == [] and ctl.events_seen == 0
+    ctl.budget_s = 60.0
+    ctl.drain()
+    assert got == ["m0", "m1", "m2"] and ctl.events_seen == 3
 
 
 def test_the_state_is_the_engines_snapshot_plus_commands_in_flight(ctl):
