@@ -128,6 +128,27 @@ def test_the_trigger_is_estimated_from_the_block_that_waited_least_not_the_last_
     assert tl.counters().n_written == pytest.approx(1000 + (t_est + 3.0) * FS, abs=1)
 
 
+@pytest.mark.parametrize("after_s, fault", [(0.1, False), (1.0, True)])
+def test_a_run_ended_before_its_stroke_could_be_seen_is_not_a_feedback_fault(after_s, fault):
+    """Stopped 0.1 s after the trigger's estimate (the stroke reaches 10 % of the way 0.22 s after its start on
+    beta 10): the estimate is kept and the log says why, no fault. Stopped 1 s after it with the feedback
+    still at 100 %: no stroke seen, a valve fault."""
+    host = Host()
+    tl, rec, ops, _, _ = make(host=host)
+    for i in range(15):
+        feed(tl, 100 * i, 100, host)
+    t_est = tl.mark_trigger()
+    assert tl.commit_trigger()
+    n = int(after_s * FS)
+    feed(tl, 1500, n, host)  # the valve still open in the feedback
+    tl.finish()
+    feedback = [f for f in rec.faults if "no stroke seen" in f[1]]
+    assert bool(feedback) == fault
+    noted = [text for kind, text in rec.logged if "ended before the valve's stroke" in text]
+    assert bool(noted) != fault
+    assert [op.t for op in ops if isinstance(op, Trigger)] == [t_est]
+
+
 def test_a_restarted_stream_is_estimated_from_its_own_blocks_only():
     """After a restart the lost count is an estimate: the blocks before it say nothing of the new
     axis, so the trigger is estimated from the blocks after it."""

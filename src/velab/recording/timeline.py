@@ -250,11 +250,23 @@ class Timeline:
         self.hooks.emit("trigger", {"trigger_time_s": t0, "measured": True, "estimate_s": estimate})
 
     def finish(self) -> None:
-        """At the end of the run: measure the trigger if the stroke was seen but not yet used."""
+        """At the end of the run: measure the trigger if the stroke was seen but not yet used. A run ended
+        (stopped, aborted) before its samples could show the stroke keeps the command's estimate and says so:
+        that is not a feedback fault."""
         with self._lock:
             self.ended = True
-            if self.trigger_time is not None and not self.trigger_measured and self.vch:
+            if self.trigger_time is None or self.trigger_measured or not self.vch:
+                return
+            seen = sum(p.size for p in self._pos_t)
+            if seen >= 3 or self._reached(self._stroke_by() + self._stroke_s()):
                 self._measure_trigger()
+            else:
+                self.hooks.log("trigger", "the record ended before the valve's stroke was in its samples: the "
+                                          "trigger instant is the command's estimate")
+
+    def _stroke_s(self) -> float:
+        """From the stroke's start (t0) to 10 % of it, on the commanded sigmoid: by then the feedback shows it."""
+        return max(0.0, (math.log(9.0) - self.gamma) / self.beta)
 
     # ---------------------------------------------------------------- blocks (acquisition thread)
     def process(self, b, codes: dict) -> None:
