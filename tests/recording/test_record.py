@@ -79,7 +79,13 @@ def test_material_A_online_fit_names_S3(tmp_path):
     # slow ramp, soaks up the error of the steady head. That head is the mean of the baseline (the
     # 2 s before the trigger here, velab.fitting.window): sigma 0.012 m / sqrt(2000) = 0.27 mm (it was
     # the last 1 s, 0.4 mm), and 0.3 mm moves S3's dAIC by about 10. S1 and S2 are ruled out every time.
-    assert summary.best_model in ("S3", "S4")
+    # Both at once, with (3) below, make S5: S3 + an element at tau_min (the stroke's feedback noise) + a
+    # 200 s ramp, S3 at dAIC 6.4 (once, in a loaded pair on 27 Nov)
+    assert summary.best_model in ("S3", "S4", "S5")
+    if summary.best_model == "S5":
+        taus = fit["S5"].tau_s
+        assert min(taus) < 10.0 * fit.settings["bounds"]["tau_min_s"] and max(taus) > fit.window_s, \
+            fit.report(elements=True)
     slow_ramp = fit["S4"].tau_s[-1] > fit.window_s  # (tau_s sorted: the extra element)
     # (3) an element faster than the closure fits the stroke's feedback noise (below, S1's test)
     assert fit["S3"].delta_aic <= 10.0 or slow_ramp or _stroke_element(fit, "S3"), fit.report(elements=True)
