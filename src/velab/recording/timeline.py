@@ -34,15 +34,27 @@ from velab.recording.transducers import TransducerChannel
 PRE_TRIGGER_KEPT_S = BASELINE_S + 1.0
 
 
+# the stroke is measured from the feedback samples whose opening (the part of the stroke still to go, %)
+# lies in this band, at least this many of them; past the band's lower end the stroke is taken as seen
+STROKE_BAND_PCT = (10.0, 90.0)
+MIN_STROKE_SAMPLES = 3
+
+
+def stroke_opening_pct(pos_pct, end_pct: float) -> np.ndarray:
+    """The valve position as the opening of the commanded stroke: 100 % open, 0 % at its end position."""
+    return (np.asarray(pos_pct, dtype=float) - end_pct) / (100.0 - end_pct) * 100.0
+
+
 def trigger_from_position(t: np.ndarray, pos_pct: np.ndarray, beta: float, gamma: float, end_pct: float) -> float | None:
     """The trigger instant from the measured valve opening (the commanded sigmoid, only t0 unknown).
 
     opening = end + (100 - end) / (1 + exp(beta (t - t0) + gamma)): from every sample
     between 10 % and 90 % of the stroke, t0 = t - (ln(100/p - 1) - gamma) / beta; median.
     """
-    p = (np.asarray(pos_pct, dtype=float) - end_pct) / (100.0 - end_pct) * 100.0
-    sel = np.isfinite(p) & (p > 10.0) & (p < 90.0)
-    if sel.sum() < 3:
+    lo, hi = STROKE_BAND_PCT
+    p = stroke_opening_pct(pos_pct, end_pct)
+    sel = np.isfinite(p) & (p > lo) & (p < hi)
+    if sel.sum() < MIN_STROKE_SAMPLES:
         return None
     y = np.log(100.0 / p[sel] - 1.0)
     return float(np.median(np.asarray(t, dtype=float)[sel] - (y - gamma) / beta))
@@ -258,15 +270,17 @@ class Timeline:
             if self.trigger_time is None or self.trigger_measured or not self.vch:
                 return
             seen = sum(p.size for p in self._pos_t)
-            if seen >= 3 or self._reached(self._stroke_by() + self._stroke_s()):
+            if seen >= MIN_STROKE_SAMPLES or self._reached(self._stroke_by() + self._stroke_s()):
                 self._measure_trigger()
             else:
                 self.hooks.log("trigger", "the record ended before the valve's stroke was in its samples: the "
                                           "trigger instant is the command's estimate")
 
     def _stroke_s(self) -> float:
-        """From the stroke's start (t0) to 10 % of it, on the commanded sigmoid: by then the feedback shows it."""
-        return max(0.0, (math.log(9.0) - self.gamma) / self.beta)
+        """From the stroke's start (t0) until the commanded opening passes the band's lower end (10 %: 90 % of
+        the stroke done), when the feedback shows the stroke (``_after_trigger``'s ``passed``)."""
+        lo = STROKE_BAND_PCT[0]
+        return max(0.0, (math.log((100.0 - lo) / lo) - self.gamma) / self.beta)
 
     # ---------------------------------------------------------------- blocks (acquisition thread)
     def process(self, b, codes: dict) -> None:
@@ -386,10 +400,11 @@ class Timeline:
     def _after_trigger(self, t, head, pos, o_heads) -> None:
         s = self.s
         if not self.trigger_measured and self.vch:
-            pn = (pos - self.end_pct) / (100.0 - self.end_pct) * 100.0
+            lo, hi = STROKE_BAND_PCT
+            pn = stroke_opening_pct(pos, self.end_pct)
             with np.errstate(invalid="ignore"):
-                sel = (pn > 10) & (pn < 90)
-                passed = (pn < 10).any()
+                sel = (pn > lo) & (pn < hi)
+                passed = (pn < lo).any()
             if sel.any():
                 self._pos_t.append(t[sel])
                 self._pos_v.append(pos[sel])
