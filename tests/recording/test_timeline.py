@@ -14,18 +14,9 @@ from velab.recording.ops import Append, Gap, Trigger
 from velab.recording.settings import RecordSettings
 from velab.recording.timeline import Timeline
 from velab.recording.transducers import TransducerChannel
+from velab.simulators.clock import ManualClock
 
 FS = 1000.0
-
-
-class Host:
-    """The host's clock, as the time line reads it (``now``): set by the test, it never moves alone."""
-
-    def __init__(self):
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
 
 
 def make(pretrigger_s=1.0, duration_s=3.0, fit_window_s=2.0, ceiling=100.0, host=None, **kw):
@@ -34,15 +25,16 @@ def make(pretrigger_s=1.0, duration_s=3.0, fit_window_s=2.0, ceiling=100.0, host
     rec, ops, closed, baseline = RecordingHooks(), [], [], []
     tl = Timeline(s, FS, (10.0, 0.0, 0.0), ceiling, "pressure", "valve_position", rec.hooks, ops.append,
                   lambda w, final: closed.append((w, final)), on_baseline=lambda: baseline.append(True),
-                  now=host or Host(), **kw)
+                  now=(host or ManualClock()).now, **kw)
     return tl, rec, ops, closed, baseline
 
 
 def feed(tl, first, n, host=None, arrival=None, **kw):
-    """A block of samples [first, first + n); with ``host``: it arrives at host time ``arrival``
-    (default: when its last sample was made, device and host clocks both starting at 0)."""
+    """A block of samples [first, first + n); with ``host`` (the host's clock as the time line reads it, a
+    ManualClock): it arrives at host time ``arrival`` (default: when its last sample was made, device and
+    host clocks both starting at 0)."""
     if host is not None:
-        host.t = (first + n) / FS if arrival is None else arrival
+        host.set((first + n) / FS if arrival is None else arrival)
     b = block(first, n, rate_hz=FS, **kw)
     tl.process(b, codes_of(b))
 
@@ -84,7 +76,7 @@ def test_a_head_above_the_ceiling_aborts_the_run():
 
 
 def test_the_trigger_window_and_end_from_the_sample_clock():
-    host = Host()
+    host = ManualClock()
     tl, rec, ops, closed, _ = make(host=host)
     for i in range(15):
         feed(tl, 100 * i, 100, host)
@@ -108,13 +100,13 @@ def test_the_trigger_is_estimated_from_the_block_that_waited_least_not_the_last_
     the samples made since), not the last block's index plus the time since it came (which put a
     real run's trigger 6.5 s early: its record ended before the stroke was in)."""
     scale = 12.0  # device seconds per host second
-    host = Host()
+    host = ManualClock()
     tl, rec, ops, _, _ = make(host=host, clock_scale=scale)
     for i in range(10):  # on time: block i's last sample made at host (100 i + 100) / FS / scale
         feed(tl, 100 * i, 100, host, arrival=(100 * i + 100) / FS / scale)
     for i in range(10, 15):  # late: the backlog arrives at host 3.0 s / scale, the device at sample 3000
         feed(tl, 100 * i, 100, host, arrival=2.9 / scale)
-    host.t = 3.0 / scale
+    host.set(3.0 / scale)
     t_est = tl.mark_trigger()
     assert t_est == pytest.approx(3.0 - 1.0, abs=1.5 / FS)  # the device's sample 3000 (the old rule: 0.6)
     assert tl.counters().now_axis == pytest.approx(0.5)  # the samples themselves are still behind
@@ -130,10 +122,10 @@ def test_the_trigger_is_estimated_from_the_block_that_waited_least_not_the_last_
 
 @pytest.mark.parametrize("after_s, fault", [(0.1, False), (1.0, True)])
 def test_a_run_ended_before_its_stroke_could_be_seen_is_not_a_feedback_fault(after_s, fault):
-    """Stopped 0.1 s after the trigger's estimate (the stroke reaches 10 % of the way 0.22 s after its start on
-    beta 10): the estimate is kept and the log says why, no fault. Stopped 1 s after it with the feedback
+    """Stopped 0.1 s after the trigger's estimate (the commanded opening passes 10 % 0.22 s after the stroke's
+    start on beta 10, gamma 0): the estimate is kept and the log says why, no fault. Stopped 1 s after it with the feedback
     still at 100 %: no stroke seen, a valve fault."""
-    host = Host()
+    host = ManualClock()
     tl, rec, ops, _, _ = make(host=host)
     for i in range(15):
         feed(tl, 100 * i, 100, host)
@@ -152,14 +144,14 @@ def test_a_run_ended_before_its_stroke_could_be_seen_is_not_a_feedback_fault(aft
 def test_a_restarted_stream_is_estimated_from_its_own_blocks_only():
     """After a restart the lost count is an estimate: the blocks before it say nothing of the new
     axis, so the trigger is estimated from the blocks after it."""
-    host = Host()
+    host = ManualClock()
     tl, *_ = make(host=host)
     for i in range(5):
         feed(tl, 100 * i, 100, host)  # on time: device sample 499 at host 0.5
     # restarted: 300 samples estimated lost; its blocks arrive 0.5 s of samples later than on time
     for i in range(8, 15):
         feed(tl, 100 * i, 100, host, arrival=(100 * i + 100) / FS + 0.5, restarted=(i == 8), lost_before=300 * (i == 8))
-    host.t = 2.0
+    host.set(2.0)
     assert tl.mark_trigger() == pytest.approx(2.0 - 0.5 - 1.0, abs=1.5 / FS)  # with the blocks before it: 1.0
 
 
@@ -168,12 +160,12 @@ def test_a_stroke_after_the_estimates_window_is_measured_not_missing():
     axis) and its reply came back at axis 3.0: the stroke starts 2.5 s after the estimate, after the estimate's
     window. The feedback is watched until a window after the reply: the trigger is measured from it, and the
     window and the record follow it (they used to close on the estimate: "no stroke seen", the record cut)."""
-    host = Host()
+    host = ManualClock()
     tl, rec, ops, closed, _ = make(host=host)  # 1 s pretrigger, 2 s window, 3 s record; manoeuvre beta 10, gamma 0
     for i in range(15):
         feed(tl, 100 * i, 100, host)
     t_est = tl.mark_trigger()
-    host.t = 4.0
+    host.set(4.0)
     assert tl.commit_trigger()  # the reply: host 4.0 s, sample 4000, axis 3.0
     stroke = 3.0
     for i in range(15, 70):
@@ -189,7 +181,7 @@ def test_a_stroke_after_the_estimates_window_is_measured_not_missing():
 
 
 def test_the_steady_head_is_the_fit_paths_baseline_mean():
-    host = Host()
+    host = ManualClock()
     tl, *_ = make(pretrigger_s=5.0, host=host)
     rng = np.random.default_rng(1)
     heads = 30.0 + rng.normal(0, 0.01, 5000)
@@ -243,7 +235,7 @@ def test_a_flagged_transducer_before_the_trigger_aborts_naming_it():
 
 
 def test_a_flagged_transducer_after_the_trigger_is_said_once_and_shortens_every_sections_window():
-    host = Host()
+    host = ManualClock()
     tl, rec, _, closed, _ = make(duration_s=4.0, fit_window_s=3.0, others=(MID,), host=host)
     for i in range(15):
         feed(tl, 100 * i, 100, host, others={"pressure_2": 31.0})
