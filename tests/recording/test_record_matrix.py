@@ -61,6 +61,13 @@ SCENARIOS.append(("streaming_adc", "flowmeter", "flow_nan", "mid_record", {CWF})
 SCENARIOS.append(("streaming_adc", "flowmeter", "flow_alarm", "mid_record", {CWF}))  # empty-pipe alarm
 
 DEVICE_OF = {"position_feedback": "valve"}
+# Faults of the valve and the flowmeter reach the run only through the slow channels' polls (one every
+# velab.recording.slow.POLL_S of host time; a poll of a device that does not answer takes its retries, about
+# 1.5 s). A 3 s record is 0.25 s of host time on the fast clock: a starved host can let it end before a poll
+# starts after the fault, and the run is rightly "completed" (nothing recorded was bad). Their records are
+# long enough in host time for several polls after the fault.
+SLOW_TARGETS = ("valve", "flowmeter")
+SLOW_DURATION_S = 12.0  # device seconds: 1 s of host time at 12 x
 STALL_S = 1.5  # the runs' stall timeout (wall seconds without pressure samples -> failed)
 # a pressure ADC outage shorter than the stall timeout is survived (C-F); one as long is a lost device: the
 # outage must stay well inside it (reconnecting and the first read take a timeout or two), or it is a race
@@ -117,7 +124,8 @@ def inject(sim, rec, target: str, fault: str) -> None:
 def test_fault_table(tmp_path, thread_errors, source, target, fault, instant, expected):
     sim = SimulatedBench.from_config("default", ephemeral=True, clock=make_clock("fast")).start()
     bench = dataclasses.replace(sim.bench(), recorder={"pressure_source": source})
-    s = RecordSettings(duration_s=3.0, pretrigger_s=0.5, fit=False, out_dir=tmp_path, stall_timeout_s=STALL_S)
+    duration_s = SLOW_DURATION_S if target in SLOW_TARGETS else 3.0
+    s = RecordSettings(duration_s=duration_s, pretrigger_s=0.5, fit=False, out_dir=tmp_path, stall_timeout_s=STALL_S)
     rec = Recorder(bench, sim.rig.rig, s, sim=sim, owns_sim=True)
     faults, fired = [], threading.Event()
     trigger_t = []
@@ -154,10 +162,14 @@ def test_fault_table(tmp_path, thread_errors, source, target, fault, instant, ex
                     box["summary"] = rec.run()
                     return
                 # at arm: the fault is switched on as the baseline starts; the trigger goes out only after
-                # 1 s more of baseline (device time), so the fault is in the baseline, not after the trigger
+                # 1 s more of baseline (device time), so the fault is in the baseline, not after the trigger;
+                # a flowmeter's fault is seen by a poll (above): the trigger waits for it
                 rec.arm().result(timeout=DEADLINE_S)
                 start = rec.current_run.timeline.baseline_s
-                while rec.current_run.timeline.baseline_s < start + 1.0 and rec.phase in ("armed", "triggerable"):
+                end = time.monotonic() + DEADLINE_S
+                while (rec.current_run.timeline.baseline_s < start + 1.0
+                       or (target == "flowmeter" and not any(f["device"] == target for f in faults))) \
+                        and rec.phase in ("armed", "triggerable") and time.monotonic() < end:
                     time.sleep(0.005)
                 try:
                     rec.trigger().result(timeout=DEADLINE_S)
