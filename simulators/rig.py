@@ -370,7 +370,7 @@ class SimulatedRig:
             head, q = transient(tau, rig_c, self.material, position=moved)
         flow = self.rig.steady_flow_m3_s + q
         volume = np.concatenate([[0.0], np.cumsum(0.5 * (flow[1:] + flow[:-1]) * dt)])
-        done_tau = (math.log(999.0) - gamma) / beta
+        done_tau = rig_c.manoeuvre.closed_s
         return _Transient(trigger_time, beta, gamma, end, dt, position, head, flow, volume, freeze_tau, done_tau,
                           others)
 

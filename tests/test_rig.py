@@ -61,6 +61,19 @@ def test_transient_is_velab_model_for_commanded_manoeuvre(rig):
     assert rig.state() is ValveState.DONE
 
 
+def test_the_valve_is_done_when_the_commanded_stroke_has_0_1_percent_left(rig):
+    m = Manoeuvre(40.0, -6.0)
+    assert commanded_position_pct(m.closed_s, 40.0, -6.0) == pytest.approx(0.1)
+    rig.set_manoeuvre(40.0, -6.0)
+    rig.arm()
+    t0 = rig.trigger()
+    rig.clock.advance(m.closed_s - 1e-3)
+    assert rig.state() is ValveState.RUNNING
+    rig.clock.advance(2e-3)
+    assert rig.state() is ValveState.DONE
+    assert Manoeuvre(1.0, 8.0).closed_s == 0.0  # a sigmoid that starts below 0.1 % is closed at the trigger
+
+
 def test_hold_freezes_valve_and_flow(rig):
     rig.arm()
     rig.trigger()

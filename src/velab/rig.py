@@ -54,6 +54,11 @@ class Manoeuvre:
         """90 % -> 10 % of Q0."""
         return math.log(81.0) / self.beta_per_s
 
+    @property
+    def closed_s(self) -> float:
+        """When the commanded sigmoid has 0.1 % of Q0 left (s from the trigger; 0 if it starts there)."""
+        return max(0.0, (math.log(999.0) - self.gamma) / self.beta_per_s)
+
 
 @dataclass(frozen=True)
 class Transducer:

@@ -261,8 +261,7 @@ def from_position(t, h, position_pct, rig: Rig) -> ValveInput:
 
 def early_window_s(rig: Rig, window_s: float) -> float:
     """Up to the first reflection's return, 2L/a, or 1.5 x the commanded closure (down to 0.1 %)."""
-    m = rig.manoeuvre
-    closure = max(0.0, (math.log(999.0) - m.gamma) / m.beta_per_s)
+    closure = rig.manoeuvre.closed_s
     return min(window_s, max(2.0 * rig.pipe.length_m / rig.nominal_wave_speed_m_s, CLOSURE_SPAN_FACTOR * closure))
 
 
