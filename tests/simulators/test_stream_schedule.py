@@ -54,6 +54,16 @@ class Rig:
             time.sleep(0.003)
             blocks += self.adc.get_blocks()
 
+    def drain(self, device_time_s, blocks):
+        """Collect blocks until the driver has every frame the clock has made by device_time_s (a state,
+        not a sleep: on a loaded host the simulator's thread and the driver's reader lag the clock)."""
+        last = int(round(device_time_s * FS)) - K  # the first sample of the last whole frame
+        deadline = time.monotonic() + 30
+        while not any(b.first_index + b.n > last for b in blocks):
+            assert time.monotonic() < deadline, "the frames made by the clock never arrived"
+            time.sleep(0.005)
+            blocks += self.adc.get_blocks()
+
     def close(self):
         self.adc.close()
         self.sim.close()
@@ -74,8 +84,7 @@ def test_silence_window_is_an_exact_overrun_gap(rig):
     rig.fault(0.2, 0.1, silent=True)
     blocks = []
     rig.run_until(0.5, blocks)
-    time.sleep(0.1)
-    blocks += rig.adc.get_blocks()
+    rig.drain(0.5, blocks)
     idx = indices(blocks)
     silent = (idx >= 2000) & (idx < 3000)
     assert not silent.any() and idx.max() >= 4000  # nothing from inside the window, data after it
@@ -89,8 +98,7 @@ def test_corrupted_frames_window_counted(rig):
     rig.fault(0.1, 0.05, corrupt=True)
     blocks = []
     rig.run_until(0.3, blocks)
-    time.sleep(0.1)
-    blocks += rig.adc.get_blocks()
+    rig.drain(0.3, blocks)
     after = next(b for b in blocks if b.first_index >= 1500)
     assert after.first_index == 1500 and after.lost_before == 500 and not after.overrun
     assert 0 < after.rejected_frames <= 25 or rig.adc.stats.resyncs > 0
