@@ -181,6 +181,11 @@ def coupling_head(t, h, rig: Rig) -> np.ndarray:
 def half_flow_offset(power: float, share: float, tail: float = 0.0) -> float:
     """u50 with T(sigmoid(u50)) = 1/2: the flow is half closed at t50 = t_half + u50 / beta (with the linear
     tail; with a table's (``tail_shape``) t50 stays this coordinate, near the half-flow instant)."""
+    return _half_flow_offset(float(power), float(share), float(tail))
+
+
+@lru_cache(maxsize=4096)  # a pure function the solvers ask again at every point they revisit (from_solver)
+def _half_flow_offset(power: float, share: float, tail: float) -> float:
     phi50 = math.sqrt(share / (3.0 + share))
     x50 = phi50 ** (1.0 / power)
     if tail > 0.0:  # (1 - w) x^n + w x = phi50: phi is increasing and convex or concave, Newton from x^n's root
