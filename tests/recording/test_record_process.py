@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -72,7 +73,32 @@ retries = 2
 """
     cfg = tmp_path / "bench.toml"
     cfg.write_text(bench)
-    return p, cfg
+    ports = [int(u.rsplit(":", 1)[1]) for u in (pick("streaming_adc", "socket"), valve, flow)]
+    return p, cfg, ports
+
+
+def _hold(ports) -> list:
+    """Listen on a killed simulator's ports, never answering. Otherwise another test's simulator (three
+    suites' worth of them start on ephemeral ports) can be given a freed port: the recorder's reconnect then
+    reached a stranger's valve ("answers again"), found it at rest and had nothing to command. A listener
+    blocks any other bind; SO_REUSEADDR only gets past the killed server's TIME_WAIT connections."""
+    socks = []
+    for port in ports:
+        deadline = time.monotonic() + 2.0
+        while True:
+            s = socket.socket()
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind(("127.0.0.1", port))
+                s.listen(1)
+                socks.append(s)
+                break
+            except OSError:  # (not yet released, or already taken by another process: then not held)
+                s.close()
+                if time.monotonic() > deadline:
+                    break
+                time.sleep(0.01)
+    return socks
 
 
 def _record(cfg, out, *extra, wait=True):
@@ -102,17 +128,23 @@ def _recording(out: Path, timeout=60.0) -> Path:
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize("how", ["SIGKILL", "SIGSTOP"])
 def test_simulator_process_lost_mid_run_fails_naming_the_device(tmp_path, how):
-    sim, cfg = _start_sim(tmp_path)
+    sim, cfg, ports = _start_sim(tmp_path)
     out = tmp_path / "runs"
+    held = []
     try:
         rec = _record(cfg, out, "--duration", "60", "--no-fit", wait=False)
         path = _recording(out)
         time.sleep(0.5)
         t0 = time.monotonic()
         os.kill(sim.pid, signal.SIGKILL if how == "SIGKILL" else signal.SIGSTOP)
+        if how == "SIGKILL":
+            sim.wait(30)  # its sockets are closed once it is gone
+            held = _hold(ports)
         stdout, stderr = rec.communicate(timeout=60)  # a hang detector; the bound is printed below
         took = time.monotonic() - t0
     finally:
+        for s in held:
+            s.close()
         if sim.poll() is None:
             os.kill(sim.pid, signal.SIGCONT)
             sim.kill()
@@ -127,11 +159,13 @@ def test_simulator_process_lost_mid_run_fails_naming_the_device(tmp_path, how):
     assert not run.incomplete and run.status == "failed" and "streaming_adc" in run.status_reason
     safe = [m for _, k, m in run.events if "abort" in m or "safe state" in m]
     assert safe, run.events  # the valve was commanded safe (or the attempt is recorded)
+    if how == "SIGKILL" and len(held) == len(ports):  # nothing else answered at the dead simulator's addresses
+        assert not [m for _, k, m in run.events if k == "fault" and "answers again" in m], run.events
 
 
 @pytest.mark.timeout(240)
 def test_valve_command_reopens_the_valve_between_cli_runs(tmp_path):
-    sim, cfg = _start_sim(tmp_path)
+    sim, cfg, _ = _start_sim(tmp_path)
     out = tmp_path / "runs"
     try:
         st = subprocess.run(CLI + ["valve", "status", "--config", str(cfg), "--json"], capture_output=True, text=True,

@@ -48,10 +48,12 @@ def readback_note(out: TriggerOutcome) -> str | None:
 def make_safe(valve, ask: bool = True) -> str | None:
     """Command the valve to its safe state: an armed manoeuvre cancelled, a running one stopped where it
     is (ABORT). ``ask`` False: ABORT without reading the state first (it did not answer). Returns the
-    line for the run's log (None: nothing to do); raises a device error if the valve cannot be commanded."""
-    state = valve.read_status().state if ask else None
+    line for the run's log (at rest too: the check's outcome is part of the record); raises a device error if
+    the valve cannot be commanded."""
+    st = valve.read_status() if ask else None
+    state = st.state if st is not None else None
     if state not in (ValveState.ARMED, ValveState.RUNNING, None):
-        return None
+        return f"actuator: {state.name} at {float(st.position.value):.1f} % open, at rest: the safe state already"
     try:
         valve.abort()
     except DEVICE_ERRORS as exc:
