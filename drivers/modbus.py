@@ -74,6 +74,11 @@ __all__ = [
 MAX_READ_REGISTERS = 125
 MAX_WRITE_REGISTERS = 123
 MIN_FRAME_GAP_S = 0.00175  # Modbus RTU t3.5 floor (baud rates above 19200)
+# after a failed exchange, once bytes have come: the silence that ends the wait for the line to go quiet. A slave
+# answering the requests it queued while busy, or a USB adapter's latency timer (16 ms by default on FTDI),
+# delivers a backlog in pieces further apart than t3.5; a quiet line declared between two of them left the next
+# one to be read as the answer to the next request
+QUIET_AFTER_BYTES_S = 0.1
 
 EXCEPTION_NAMES = {
     1: "illegal function",
@@ -281,7 +286,7 @@ class ModbusClient:
                 except ProtocolError as exc:
                     self.stats.protocol_errors += 1
                     last = exc
-                    self._quiet_line()
+                    self._quiet_line(bytes_came=True)
                 except DeviceDisconnected as exc:
                     last = exc
                     self.transport.close()
@@ -300,12 +305,13 @@ class ModbusClient:
         if dropped:
             self.stats.flushed_bytes += int(dropped)
 
-    def _quiet_line(self) -> None:
-        """After a timeout or a rejected reply: wait until nothing has arrived for one
-        inter-frame gap (RTU; bounded by timeout_s), dropping what came, then flush."""
+    def _quiet_line(self, bytes_came: bool = False) -> None:
+        """After a timeout or a rejected reply (``bytes_came``): wait until nothing has arrived
+        for one inter-frame gap, or for QUIET_AFTER_BYTES_S once something has (RTU; bounded by
+        timeout_s), dropping what came, then flush."""
         if self.framing == "rtu" and self.transport.is_open:
             end = time.monotonic() + self.timeout_s
-            gap = max(self.frame_gap_s, 0.005)
+            gap = max(self.frame_gap_s, 0.005, QUIET_AFTER_BYTES_S if bytes_came else 0.0)
             while time.monotonic() < end:
                 try:
                     got = self.transport.read(256, min(end, time.monotonic() + gap))
@@ -314,6 +320,7 @@ class ModbusClient:
                 if not got:
                     break
                 self.stats.flushed_bytes += len(got)
+                gap = max(gap, QUIET_AFTER_BYTES_S)
         if self.transport.is_open:
             self._flush("after a failed exchange")
 

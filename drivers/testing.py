@@ -9,6 +9,8 @@ Each pair is (bytes the driver must write, bytes the device answers). A reply of
 ``Late(data)`` is a reply that arrives only after the driver gave up waiting (its
 read came back empty at the deadline); ``Late(data, with_next=True)`` arrives just
 before the *next* exchange's reply (a late reply glued to the next answer).
+``Trickle(((delay_s, data), ...))`` arrives in pieces, each ``delay_s`` after the write
+(a slave answering a backlog, a USB adapter's latency timer).
 Writing anything unexpected fails the test with both byte strings shown.
 """
 
@@ -26,6 +28,11 @@ class Late:
     with_next: bool = False
 
 
+@dataclass(frozen=True)
+class Trickle:
+    pieces: tuple  # ((delay_s after the write, bytes), ...)
+
+
 class ExpectedProtocolTransport:
     name = "expected-protocol"
     char_time_s = 0.0
@@ -36,6 +43,7 @@ class ExpectedProtocolTransport:
         self._rx = bytearray()
         self._late: bytes = b""  # arrives when the driver's next read times out
         self._glued: bytes = b""  # arrives in front of the next exchange's reply
+        self._coming: list = []  # (monotonic arrival, bytes) of Trickle pieces
         self._open = False
         self.opens = 0
         self.discarded = bytearray()  # every byte the driver threw away (flush / resync)
@@ -63,7 +71,10 @@ class ExpectedProtocolTransport:
         if self._glued:
             self._rx += self._glued
             self._glued = b""
-        if isinstance(reply, Late):
+        if isinstance(reply, Trickle):
+            now = time.monotonic()
+            self._coming = sorted(self._coming + [(now + dt, bytes(b)) for dt, b in reply.pieces])
+        elif isinstance(reply, Late):
             if reply.with_next:
                 self._glued = reply.data
             else:
@@ -71,7 +82,16 @@ class ExpectedProtocolTransport:
         elif reply:
             self._rx += reply
 
+    def _arrive(self) -> None:
+        now = time.monotonic()
+        while self._coming and self._coming[0][0] <= now:
+            self._rx += self._coming.pop(0)[1]
+
     def read(self, n: int, deadline: float) -> bytes:
+        self._arrive()
+        if not self._rx and self._coming and self._coming[0][0] <= deadline:
+            time.sleep(max(0.0, self._coming[0][0] - time.monotonic()))
+            self._arrive()
         if not self._rx:
             # a silent device: wait out the (short, test-chosen) deadline
             time.sleep(max(0.0, deadline - time.monotonic()))
@@ -84,9 +104,11 @@ class ExpectedProtocolTransport:
         return out
 
     def pending(self) -> bool:
+        self._arrive()
         return bool(self._rx)
 
     def discard_input(self) -> int:
+        self._arrive()
         n = len(self._rx)
         self.discarded += self._rx
         self._rx.clear()

@@ -9,7 +9,7 @@ from velab.drivers.base import (ChecksumError, DeviceDisconnected, DeviceExcepti
 from velab.drivers.flowmeter import Flowmeter
 from velab.drivers.modbus import ModbusClient, WordOrder, crc16, decode_registers, encode_value
 from velab.drivers.modbus_device import RangeError
-from velab.drivers.testing import ExpectedProtocolTransport, Late, expected_protocol
+from velab.drivers.testing import ExpectedProtocolTransport, Late, Trickle, expected_protocol
 from velab.drivers.valve import ValveActuator
 
 
@@ -273,6 +273,20 @@ def test_rtu_late_reply_glued_before_the_next_reply_is_rejected_then_retried():
         bus.retries = 1
         assert bus.read_holding(3100, 2) == [1, 2]
     assert bus.stats.protocol_errors == 1 and bus.stats.retries == 1
+
+
+def test_rtu_backlog_in_pieces_is_drained_before_the_retry():
+    """A rejected frame, then 30 ms later a stale reply of the same shape (a slave answering what it queued
+    while busy, in pieces further apart than t3.5), and the retry's own reply 40 ms after the retry. The line
+    is quiet only after QUIET_AFTER_BYTES_S without a byte: the stale frame is dropped, not taken as the
+    retry's answer (a loaded pair read the product code after the flow this way)."""
+    stale = rtu(2, 3, 4, bytes.fromhex("11110000"))
+    pairs = [(READ_3002, Trickle(((0.0, GOOD_3002 + b"\xff"), (0.03, stale)))),
+             (READ_3002, Trickle(((0.04, GOOD_3002),)))]
+    with expected_protocol(pairs) as t:
+        bus = rtu_bus(t, retries=1, timeout_s=0.5)
+        assert bus.read_holding(3002, 2) == [0x406D, 0]
+    assert bus.stats.protocol_errors == 1 and bus.stats.flushed_bytes >= len(stale)
 
 
 def test_rtu_exception_reply_is_checked_too():

@@ -305,10 +305,12 @@ def test_valve_reply_corrupted_mid_stroke_is_a_position_mismatch(tmp_path, threa
 def test_steady_flow_off_q0_during_the_baseline_is_a_flow_mismatch(tmp_path, thread_errors):
     """The readiness check saw Q0; from the arm on the meter shows 10 % less (the downstream valve
     moved, or the meter drifted): a plausible, OK reading, which only the comparison with the rig's
-    Q0 catches. A 4 s baseline, so that several slow polls (1.8 s apart on the fast clock) fall in it."""
-    rec = recorder(fast_sim(), short_settings(tmp_path, pretrigger_s=4.0))
+    Q0 catches. A 12 s baseline (1 s of host time), so that several slow polls (1.8 s apart on the fast
+    clock) fall in it on a loaded host too (a loaded pair had none in a 4 s one: "completed"); the meter
+    shows it until just after the trigger, and for less than its 2 s of host time to "stale"."""
+    rec = recorder(fast_sim(), short_settings(tmp_path, pretrigger_s=12.0))
     q0 = rec.rig.steady_flow_m3_s
-    rec.sim.schedule_fault("rig", at="arm", duration_s=4.0, flow_value=0.9 * q0)
+    rec.sim.schedule_fault("rig", at="arm", duration_s=13.0, flow_value=0.9 * q0)
     faults: list = []
     out = run_bounded(rec, faults)
     assert out.error is None and thread_errors == []
