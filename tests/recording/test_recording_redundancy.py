@@ -156,10 +156,11 @@ def test_flagged_adc_samples_are_no_position():
 
 def test_the_steady_flow_is_the_mean_of_the_readings_before_the_trigger():
     m = RedundancyMonitor()
-    assert m.flow_finding(3.64e-3, 0.05) is None  # no reading: no verdict
+    assert m.flow_finding(3.64e-3, 0.05) is None and m.flow_readings == 0  # no reading: no verdict (a note)
     for q in (3.30e-3, 3.31e-3, 3.29e-3):
         m.flow(q)
     f = m.flow_finding(3.64e-3, 0.05)
+    assert m.flow_readings == 3
     assert f is not None and f.extras["steady_flow_m3_s"] == pytest.approx(3.30e-3) and "3 readings" in f.message
 
 

@@ -258,6 +258,12 @@ class RedundancyMonitor:
             out.append(f)
         return worst(out), n
 
+    @property
+    def flow_readings(self) -> int:
+        """How many OK flow readings came before the trigger (0: the steady flow was not compared)."""
+        with self._lock:
+            return len(self._flows)
+
     def flow_finding(self, q0: float, rig_tolerance: float) -> Finding | None:
         with self._lock:
             flows = list(self._flows)

@@ -419,6 +419,9 @@ class Run:
             if f is not None:
                 self.fault("flowmeter", f.message, f.kind, deviation=round(f.deviation, 5), tolerance=f.tolerance,
                             **f.extras)
+            elif c.trigger_time is not None and not mon.flow_readings:  # no verdict: say why, in the file
+                self.log("warning", f"{self.rec.roles.get('flowmeter', 'flowmeter')}: no OK reading between arm "
+                                    f"and trigger: the steady flow was not compared with the rig's Q0")
             tr = self.rec.rig.transducer
             steady = tl.steady_head(None)
             f = head_mismatch(steady if steady is not None else math.nan, self.rec.rig.steady_head_m,
