@@ -341,4 +341,5 @@ def test_steady_head_off_the_rig_is_a_warning_in_the_file_not_a_fault(tmp_path, 
     assert len(warn) == 1 and warn[0].startswith("warning: ") and "2.00 m apart" in warn[0]
     run = read_run(out.summary.path)
     assert run.status == "completed"
-    assert [m for _, k, m in run.events if k == "warning"] == [warn[0][len("warning: "):]]
+    # (a 0.5 s baseline is 42 ms of host time on the fast clock: often no flow poll in it, which is another warning)
+    assert [m for _, k, m in run.events if k == "warning" and "head mismatch" in m] == [warn[0][len("warning: "):]]

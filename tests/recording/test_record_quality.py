@@ -62,7 +62,9 @@ def sim_config(entry: dict, at: str, endpoints: dict | None = None) -> dict:
     if at == "arm":
         entry = dict(entry, at="arm+0.2")
     elif polled:
-        entry = dict(entry, at="trigger+0.4", duration_s=2.5, fault=dict(entry["fault"], count=POLLED_CORRUPT))
+        # the window outlasts the record: the read that brings the record's last sample comes after 0.4 s, inside it
+        # (a loaded pair's reader made no request within a 2.5 s window, 0.21 s of host time: "completed")
+        entry = dict(entry, at="trigger+0.4", duration_s=60.0, fault=dict(entry["fault"], count=POLLED_CORRUPT))
     else:
         entry = dict(entry, at="trigger+0.4", duration_s=0.4)
     doc["faults"] = {"schedule": [entry]}
