@@ -179,7 +179,7 @@ def test_a_halt_during_the_lead_fit_is_a_named_outcome(tmp_path):
 
     _when_the_lead_runs(halt)
     out = run_bounded(rec, deadline_s=60)
-    assert out.summary.fit_error == HALTED
+    assert out.summary.fit_error == HALTED, (out.summary.status, out.summary.reason)  # (a loaded pair: failed, why?)
     assert_halted_fit(out.summary, seen["halt_s"], seen["busy"])
 
 
