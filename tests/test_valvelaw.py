@@ -10,7 +10,7 @@ from velab.config import load_material, load_rig
 from velab.model import creep_scale, flow_perturbation
 from velab.moc import commanded_opening, moc_head, moc_transient
 from velab.rig import rig_from_dict
-from velab.valvelaw import Valve, commanded_position_pct, effective_opening, orifice_flow
+from velab.valvelaw import Valve, commanded_position_pct, commanded_time_s, effective_opening, orifice_flow
 
 
 def _params(rig, mat):
@@ -54,6 +54,13 @@ def test_commanded_position_has_a_small_step_at_the_trigger():
     p = commanded_position_pct(np.array([-1e-3, 0.0, 0.172, 1.0]), 32.0, -5.5)
     assert p[0] == 100.0 and p[1] == pytest.approx(100 / (1 + np.exp(-5.5))) and p[2] == pytest.approx(50, abs=0.1)
     assert 1 - Valve().opening(p[1]) == pytest.approx(4.1e-4, rel=0.05)
+
+
+def test_the_commanded_time_inverts_the_commanded_position():
+    p = np.array([0.1, 10.0, 50.0, 90.0, 99.0])
+    t = commanded_time_s(p, 32.0, -5.5)
+    assert commanded_position_pct(t, 32.0, -5.5) == pytest.approx(p, rel=1e-12)
+    assert t[2] == pytest.approx(5.5 / 32.0) and commanded_time_s(0.1, 1.0, 8.0) < 0  # starts below 0.1 %
 
 
 def test_stored_rigs_without_a_valve_read_as_the_imposed_flow():

@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 from velab.errors import ConfigError
 from velab.friction import FACTOR_LAWS, LAMINAR_RE, STEADY_LAWS, UNSTEADY_LAWS, darcy_factor
-from velab.valvelaw import Valve, valve_from_dict
+from velab.valvelaw import Valve, commanded_time_s, valve_from_dict
 
 GRAVITY_M_S2 = 9.81
 
@@ -57,7 +57,7 @@ class Manoeuvre:
     @property
     def closed_s(self) -> float:
         """When the commanded sigmoid has 0.1 % of Q0 left (s from the trigger; 0 if it starts there)."""
-        return max(0.0, (math.log(999.0) - self.gamma) / self.beta_per_s)
+        return max(0.0, float(commanded_time_s(0.1, self.beta_per_s, self.gamma)))
 
 
 @dataclass(frozen=True)

@@ -139,6 +139,13 @@ def commanded_position_pct(t_s, beta_per_s: float, gamma: float, end_pct: float 
     return np.where(t >= 0, p, 100.0)
 
 
+def commanded_time_s(opening_pct, beta_per_s: float, gamma: float):
+    """The inverse of :func:`commanded_position_pct` during the stroke: when (s from its start) the commanded
+    opening, as % of the stroke still to go, is ``opening_pct`` (0 < p < 100): (ln(100/p - 1) - gamma) / beta.
+    Negative before the stroke's start (a sigmoid that starts below p)."""
+    return (np.log(100.0 / np.asarray(opening_pct, dtype=float) - 1.0) - gamma) / beta_per_s
+
+
 def orifice_coupling(head_rise_m, valve_head_m: float) -> np.ndarray:
     """sqrt((Hv0 + h) / Hv0): how the head rise upstream of the valve drives the flow (0 below the
     free discharge: no flow runs back in through a valve discharging to air)."""

@@ -28,6 +28,7 @@ from velab.recording.online_fit import MIN_FIT_WINDOW_S
 from velab.recording.ops import Append, Gap, Trigger
 from velab.recording.safety import OK, ceiling_crossing, describe_codes, finite_max
 from velab.recording.transducers import TransducerChannel
+from velab.valvelaw import commanded_time_s
 
 # samples kept from before the trigger is marked: the fit path's baseline (velab.fitting.window), and
 # 1 s for the trigger's estimate being ahead of the last sample processed when it was marked
@@ -56,8 +57,7 @@ def trigger_from_position(t: np.ndarray, pos_pct: np.ndarray, beta: float, gamma
     sel = np.isfinite(p) & (p > lo) & (p < hi)
     if sel.sum() < MIN_STROKE_SAMPLES:
         return None
-    y = np.log(100.0 / p[sel] - 1.0)
-    return float(np.median(np.asarray(t, dtype=float)[sel] - (y - gamma) / beta))
+    return float(np.median(np.asarray(t, dtype=float)[sel] - commanded_time_s(p[sel], beta, gamma)))
 
 
 def slice_block(b, k: int):
@@ -279,8 +279,7 @@ class Timeline:
     def _stroke_s(self) -> float:
         """From the stroke's start (t0) until the commanded opening passes the band's lower end (10 %: 90 % of
         the stroke done), when the feedback shows the stroke (``_after_trigger``'s ``passed``)."""
-        lo = STROKE_BAND_PCT[0]
-        return max(0.0, (math.log((100.0 - lo) / lo) - self.gamma) / self.beta)
+        return max(0.0, float(commanded_time_s(STROKE_BAND_PCT[0], self.beta, self.gamma)))
 
     # ---------------------------------------------------------------- blocks (acquisition thread)
     def process(self, b, codes: dict) -> None:
