@@ -106,6 +106,7 @@ class RegisterBus(Protocol):
     """What a Modbus driver needs: register reads and writes to one unit id."""
 
     unit: int
+    timeout_s: float  # the longest a reply may take (a request whose reply was lost may still be executed within it)
 
     def read_holding(self, address: int, count: int, unit: int | None = None) -> list[int]: ...
     def read_input(self, address: int, count: int, unit: int | None = None) -> list[int]: ...

@@ -158,7 +158,8 @@ class ValveActuator(ModbusDevice):
         (a TriggerNotStarted and a DeviceException, ``.code``). Reply lost (timeout, bad CRC, garbled, connection dropped): the valve
         state is read back: the trigger count went up (or the valve left ARMED and its
         time since trigger fits) -> STARTED (``readback=True``); still ARMED with the same
-        count -> TriggerNotStarted (the valve stays ARMED: abort() it or trigger again);
+        count, and again one reply timeout later -> TriggerNotStarted (the valve stays ARMED:
+        abort() it or trigger again);
         read-back failed -> TriggerUnknown (the valve may be closing).
         """
         address = self.profile.reg("command").address
@@ -173,13 +174,15 @@ class ValveActuator(ModbusDevice):
             raise TriggerRefused(f"{self.name}: TRIGGER refused: {exc}", exc.code, device=self.name) from exc
         except (DeviceTimeout, ProtocolError, DeviceDisconnected) as exc:
             lost = exc
-        try:
-            st = self._reread_once(self.read_status)
-        except DeviceError as exc:
-            raise TriggerUnknown(f"{self.name}: TRIGGER reply lost ({lost}) and the state could not be read back "
-                                 f"({exc}): the valve may be moving", device=self.name) from exc
-        elapsed = time.monotonic() - sent_at
-        started = self._started_since(st, count_before, elapsed)
+        st = self._read_back(lost)
+        started = self._started_since(st, count_before, time.monotonic() - sent_at)
+        if started is False:
+            # The TRIGGER may still be on its way: over TCP the client reconnects after a timeout, and the
+            # old connection's request can run after the read-back on the new one (a loaded host did
+            # this). Once a reply time has passed without it, "not started" holds.
+            time.sleep(self.bus.timeout_s)
+            st = self._read_back(lost)
+            started = self._started_since(st, count_before, time.monotonic() - sent_at)
         if started is True:
             return TriggerOutcome(TriggerResult.STARTED, readback=True, status=st, lost_reply=lost)
         if started is False:
@@ -189,6 +192,14 @@ class ValveActuator(ModbusDevice):
             raise err from lost
         raise TriggerUnknown(f"{self.name}: TRIGGER reply lost ({lost}); read back state {st.state.name} does not "
                              f"tell whether this trigger started it", device=self.name) from lost
+
+    def _read_back(self, lost: DeviceError) -> ValveStatus:
+        """The status after a lost TRIGGER reply; TriggerUnknown if it cannot be read."""
+        try:
+            return self._reread_once(self.read_status)
+        except DeviceError as exc:
+            raise TriggerUnknown(f"{self.name}: TRIGGER reply lost ({lost}) and the state could not be read back "
+                                 f"({exc}): the valve may be moving", device=self.name) from exc
 
     @staticmethod
     def _started_since(st: ValveStatus, before: int | None, elapsed_s: float) -> bool | None:

@@ -68,7 +68,9 @@ def test_lost_trigger_reply_without_a_previous_status_uses_the_state():
 
 
 def test_lost_trigger_reply_read_back_not_started():
-    pairs = status(ValveState.ARMED, count=4) + [(TRIGGER, None)] + status(ValveState.ARMED, count=4)
+    """Still armed, and again one reply timeout later: not started."""
+    pairs = (status(ValveState.ARMED, count=4) + [(TRIGGER, None)] + status(ValveState.ARMED, count=4)
+             + status(ValveState.ARMED, count=4))
     with expected_protocol(pairs) as t:
         v = valve(t)
         v.read_status()
@@ -76,6 +78,18 @@ def test_lost_trigger_reply_read_back_not_started():
             v.trigger()
     e = ei.value
     assert e.reason == "trigger_not_started" and e.device == "valve" and e.status.state is ValveState.ARMED
+
+
+def test_a_trigger_that_runs_after_the_first_read_back_started():
+    """Over TCP the lost TRIGGER can run after the read-back (the client reconnected, the old connection's
+    request came late): the second read-back, a reply timeout later, sees it. STARTED, TRIGGER sent once."""
+    pairs = (status(ValveState.ARMED, count=4) + [(TRIGGER, None)] + status(ValveState.ARMED, count=4)
+             + status(ValveState.RUNNING, 98.0, 0.01, 5))
+    with expected_protocol(pairs) as t:
+        v = valve(t)
+        v.read_status()
+        out = v.trigger()
+    assert out.started and out.readback and out.status.trigger_count == 5
 
 
 def test_lost_trigger_reply_and_no_read_back_is_unknown():
