@@ -423,10 +423,12 @@ class StreamingADC(SADCLink):
             self._asm.pending_rejected += rejected - self._rejected_seen
             self._rejected_seen = rejected
         if frames:
-            self._last_frame_mono = time.monotonic()
             self._last_frame_host = host_t
             for b in self._asm.frames(frames, host_t):
                 self._emit(b)
+            # after the delivery: the data timeout counts the device's silence, not the time a slow consumer
+            # (the callback, a full queue) held the reader (a loaded host's run failed "no valid frame")
+            self._last_frame_mono = time.monotonic()
         return stop_total
 
     def _emit(self, block: SampleBlock) -> None:

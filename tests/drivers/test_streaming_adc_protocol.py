@@ -349,6 +349,31 @@ def test_callback_mode():
     assert sum(b.n for b in got) == 8 and stats.samples == 8
 
 
+def test_a_slow_consumer_is_not_a_silent_device():
+    """The data timeout counts the device's silence, not the time the reader spent delivering a block:
+    a callback that takes longer than the timeout (a loaded host's consumer) while frames keep coming
+    ends in no error (it ended StreamSilent: the last frame's instant was taken before the delivery)."""
+    fake, adc = configured([(b"START\n", b"OK START\n"), (b"STOP\n", b"OK STOP 40\n")])
+    got, errors, slow = [], [], threading.Event()
+
+    def consume(block):
+        got.append(block)
+        if not slow.is_set():
+            slow.set()
+            time.sleep(1.5 * adc.profile.data_timeout_s)
+
+    adc.start(callback=consume, on_error=errors.append)
+    for n in range(10):  # a frame every 0.1 s: the device never goes quiet for the data timeout
+        fake.feed(frame(n, 4 * n, counts(4 * n)))
+        time.sleep(0.1)
+    deadline = time.monotonic() + 5
+    while sum(b.n for b in got) < 40 and not errors and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert not errors and adc.error is None, errors
+    stats = adc.stop()
+    assert sum(b.n for b in got) == 40 and stats.lost == 0
+
+
 def test_silent_stream_ends_in_device_timeout():
     fake, adc = configured([(b"START\n", b"OK START\n"), (b"STOP\n", b"")])
     errors = []
