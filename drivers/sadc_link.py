@@ -154,6 +154,10 @@ class SADCLink:
             if len(self._rx) > 4 * MAX_LINE:
                 raise ProtocolError(f"{self.name}: {what!r} -> no line terminator in {bytes(self._rx[:32])!r}...")
             if time.monotonic() > deadline:
+                more = self._read(0)  # what is waiting already (this thread may have been kept from running)
+                if more:
+                    self._rx += more
+                    continue
                 got = f" (got {bytes(self._rx)!r})" if self._rx else ""
                 raise DeviceTimeout(f"{self.name}: no reply to {what!r} within {self.profile.command_timeout_s:g} s{got}")
             self._rx += self._read(1)

@@ -374,6 +374,36 @@ def test_a_slow_consumer_is_not_a_silent_device():
     assert sum(b.n for b in got) == 40 and stats.lost == 0
 
 
+def test_the_stop_reply_read_after_a_slow_consumer_is_taken():
+    """STOP's reply came while the reader was held longer than the command timeout by the consumer of the
+    last frames (a loaded host): it is read and taken, not a DeviceTimeout (the time was checked before
+    the bytes already waiting were read)."""
+    fake, adc = configured([(b"START\n", b"OK START\n"), (b"STOP\n", b"")])
+    got = []
+
+    def consume(block):
+        got.append(block)
+        if len(got) == 2:  # the frame that came after STOP
+            time.sleep(2.0 * adc.profile.command_timeout_s)
+
+    adc.start(callback=consume)
+    fake.feed(frame(0, 0, counts(0)))
+    while not got:
+        time.sleep(0.005)
+    out = {}
+    stopper = threading.Thread(target=lambda: out.setdefault("stats", adc.stop()), daemon=True)
+    stopper.start()
+    while fake.pairs:  # STOP written
+        time.sleep(0.002)
+    fake.feed(frame(1, 4, counts(4)))
+    while len(got) < 2:
+        time.sleep(0.002)
+    fake.feed(b"OK STOP 8\n")  # while the consumer holds the reader
+    stopper.join(10)
+    assert not stopper.is_alive() and "stats" in out, "stop() raised or hung"
+    assert out["stats"].samples == 8 and out["stats"].lost == 0
+
+
 def test_silent_stream_ends_in_device_timeout():
     fake, adc = configured([(b"START\n", b"OK START\n"), (b"STOP\n", b"")])
     errors = []
