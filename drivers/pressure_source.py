@@ -6,8 +6,8 @@ the device's own verbs chosen once, when the source is made (``pressure_source(d
     src.pressure_channels()        # every channel in Pa (the transducers it can record: several sections)
     src.rate_range(); src.calibration(); src.identity()
     looks = src.spot_heads(rate_hz, ("pressure",))  # a short look before anything is armed: {channel: (head, quality)}
-    src.configure(rate_hz, pressure=("pressure", "pressure_2"))  # the pressure channels to acquire (default: the first)
-    rate = src.start()                           # the rate the device runs at
+    rate = src.configure(rate_hz, pressure=("pressure", "pressure_2"))  # channels (default: the first); the rate it will run at
+    rate = src.start()                           # the rate the device reports once it runs
     r = src.read_blocks()          # BlockRead: blocks (each with per-sample quality), or a transient error
     src.stop()
 
@@ -58,7 +58,7 @@ class PressureSource(Protocol):
     def identity(self) -> dict: ...
     def describe(self) -> str: ...
     def spot_heads(self, rate_hz: float, channels: tuple[str, ...]) -> dict[str, tuple[float, str]]: ...
-    def configure(self, rate_hz: float, pressure: tuple[str, ...] | None = None) -> None: ...
+    def configure(self, rate_hz: float, pressure: tuple[str, ...] | None = None) -> float: ...
     def start(self) -> float: ...
     def read_blocks(self, wait_s: float = 0.2) -> BlockRead: ...
     def stall_hint(self) -> str: ...
@@ -162,10 +162,11 @@ class StreamingSource:
             self.adc.stop()
         return _look(heads, codes)
 
-    def configure(self, rate_hz: float, pressure: tuple[str, ...] | None = None) -> None:
+    def configure(self, rate_hz: float, pressure: tuple[str, ...] | None = None) -> float:
         chans = _acquired(self, pressure)
         cfg = self.adc.configure(rate_hz, chans, self._block_samples(rate_hz, len(chans)))
         self._rate = float(cfg.rate_hz) if abs(cfg.rate_hz - rate_hz) > 1e-6 * rate_hz else float(rate_hz)
+        return self._rate  # the clock divider's rate
 
     def start(self) -> float:
         # back-pressure to the device: its FIFO overrun is then counted exactly from its sample counter
@@ -224,12 +225,14 @@ class BufferedSource:
         return {c: (float(pressure_to_head_m(readings[c].value, self.adc.density_kg_m3)), readings[c].quality.value)
                 for c in channels}
 
-    def configure(self, rate_hz: float, pressure: tuple[str, ...] | None = None) -> None:
+    def configure(self, rate_hz: float, pressure: tuple[str, ...] | None = None) -> float:
         # the module records its inputs 0..n-1: n reaches the highest input acquired
         n = max(self.adc.channel(c).index for c in _acquired(self, pressure)) + 1
         self.adc.stop_buffer()
-        self.adc.configure_buffer(int(rate_hz), n)
-        self._rate = float(rate_hz)
+        hz = int(round(rate_hz))  # its rate register holds whole hertz; start() reads back what it runs at
+        self.adc.configure_buffer(hz, n)
+        self._rate = float(hz)
+        return self._rate
 
     def start(self) -> float:
         self.adc.start_buffer()  # the module's rate is known once it runs

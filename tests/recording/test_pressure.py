@@ -27,6 +27,7 @@ class ScriptedSource:
 
     def configure(self, rate_hz, pressure=None):
         self.rate, self.pressure = rate_hz, pressure
+        return rate_hz
 
     def start(self):
         return self.rate
@@ -52,7 +53,8 @@ class ScriptedSource:
 def run(reads, stall_s=0.05, **kw):
     rec, got = RecordingHooks(), []
     stage = PressureStage(ScriptedSource(reads, **kw))
-    stage.start(1000.0, stall_s, lambda b, codes: got.append((b, codes)), rec.hooks)
+    stage.configure(1000.0)
+    stage.start(stall_s, lambda b, codes: got.append((b, codes)), rec.hooks)
     assert rec.ended.wait(5.0)
     assert stage.stop() == ""
     return stage, rec, got

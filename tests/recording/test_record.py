@@ -143,6 +143,21 @@ def test_s1_material_is_not_named_s3(tmp_path):
     assert abs(s1.wave_speed_m_s - A_TRUE) < 0.5
 
 
+def test_the_run_is_built_on_the_rate_the_adc_samples_at(tmp_path):
+    """7000 Hz is not a divisor of the streaming ADC's 10 MHz clock: it samples at 6997.9 Hz. The run file's
+    time axis (and so the wave speed) is built on that rate, not the one asked for (it was: 0.03 % off)."""
+    from velab.drivers.sadc_protocol import actual_rate
+
+    summary, events, _ = _run(tmp_path, "A", duration_s=1.0, fit=False, sample_rate_hz=7000.0)
+    assert summary.status == "completed", summary.reason
+    fs = actual_rate(7000.0)
+    assert abs(fs - 7000.0) > 1.0
+    run = read_run(summary.path)
+    assert run.sample_rate_hz == pytest.approx(fs, rel=1e-7)  # (the device's RATE reply has three decimals)
+    assert np.diff(run.time_s) == pytest.approx(1.0 / fs, rel=1e-7)
+    assert any(e.kind == "message" and f"samples at {fs:.6g} Hz (asked 7000 Hz)" in str(e.data) for e in events)
+
+
 def test_interlock_refuses_an_unsafe_manoeuvre_before_anything_moves(tmp_path):
     s = RecordSettings(duration_s=3, fit=False, out_dir=tmp_path, surge_margin=1.0)
     with Recorder.simulated(s, clock="fast") as rec:

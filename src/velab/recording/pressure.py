@@ -58,9 +58,15 @@ class PressureStage:
             raise DeviceFailure(f"{self.name}: pressure check failed: {exc}") from None
 
     # ---------------------------------------------------------------- acquisition
-    def start(self, fs: float, stall_timeout_s: float, on_block, hooks) -> float:
-        """Start the device and the acquisition thread; returns the device's actual rate."""
-        self.source.configure(fs, self.pressure)
+    def configure(self, fs: float) -> float:
+        """Set the device up for a run at ``fs``; returns the rate it will sample at (a streaming ADC's clock
+        divider makes 7000 Hz 6997.9 Hz): the run's time axis, file and fit are built on that rate."""
+        self.fs = float(self.source.configure(fs, self.pressure))
+        return self.fs
+
+    def start(self, stall_timeout_s: float, on_block, hooks) -> float:
+        """Start the configured device and the acquisition thread; returns the rate the device reports once
+        it runs (the buffered ADC's read back)."""
         self.fs = self.source.start()
         self._stop.clear()
         self.outcome = ""

@@ -136,6 +136,12 @@ class Run:
         if pred.peak_head_m >= ceiling:
             self.rec.emit("message", f"warning: predicted peak {pred.peak_head_m:.1f} m is above the pressure "
                                   f"ceiling {ceiling:.1f} m: the run will probably be aborted")
+        # the rate the device will sample at: the time line, the run file and the fit are built on it
+        asked = fs
+        try:
+            fs = source.configure(fs)
+        except DEVICE_ERRORS as exc:
+            raise DeviceFailure(f"{source.name}: configuring the acquisition failed: {exc}") from None
         # 4. the run file, created before the stream starts (sample 0 = first sample of the stream)
         self.armed_timeout_s = s.armed_timeout(self.rec.bench_armed_timeout_s)
         self.path = run_file_name(s.out_dir, s.run_number)
@@ -177,9 +183,12 @@ class Run:
                                  and not self.timeline.triggered else None)
         # 5. start the stream, then arm the actuator
         try:
-            actual = source.start(fs, s.stall_timeout_s, self.timeline.process, self.hooks)
+            if abs(fs - asked) > 1e-6 * asked:
+                self.message(f"{source.name} samples at {fs:.6g} Hz (asked {asked:g} Hz): the run's time axis uses it")
+            actual = source.start(s.stall_timeout_s, self.timeline.process, self.hooks)
             if abs(actual - fs) > 1e-6 * fs:
-                self.message(f"{source.name} runs at {actual:g} Hz (asked {fs:g} Hz)")
+                self.message(f"warning: {source.name} reports {actual:.6g} Hz once running, configured for {fs:.6g} Hz: "
+                             f"the run's time axis uses {fs:.6g} Hz")
             valve.set_manoeuvre(beta, gamma, end)
             valve.arm()
             valve.wait_for({ValveState.ARMED}, timeout_s=5.0)
