@@ -183,7 +183,15 @@ class SADCLink:
                 del self._rx[: e.end()]
                 self._check_reply("STOP", line)
             if time.monotonic() > min(deadline, hard):
-                raise DeviceTimeout(f"{self.name}: no reply to 'STOP' within {self.profile.command_timeout_s:g} s")
+                late = self._read(0)  # what is waiting already (this thread may have been kept from running)
+                if not late or time.monotonic() > hard:
+                    self._rx += late
+                    if _STOP_REPLY.search(self._rx):
+                        continue
+                    raise DeviceTimeout(f"{self.name}: no reply to 'STOP' within {self.profile.command_timeout_s:g} s")
+                self._rx += late
+                deadline = time.monotonic() + t_cmd
+                continue
             got = self._read(64)
             if got:
                 deadline = time.monotonic() + t_cmd

@@ -404,6 +404,34 @@ def test_the_stop_reply_read_after_a_slow_consumer_is_taken():
     assert out["stats"].samples == 8 and out["stats"].lost == 0
 
 
+class LateWaker(ExpectedProtocol):
+    """A port whose reads after the first STOP time out empty, for 2 x the command timeout, just as its reply
+    arrives: a reader thread kept from running while the bytes came (a loaded host)."""
+
+    def __init__(self, pairs, hold_s):
+        super().__init__(pairs)
+        self.hold_s, self.held = hold_s, False
+
+    def read(self, size: int = 1) -> bytes:
+        if self.written[-1:] == [b"STOP\n"] and not self.held and size > 0:
+            self.held = True
+            with self.lock:
+                reply, self.rx[:] = bytes(self.rx), b""
+            time.sleep(self.hold_s)
+            with self.lock:
+                self.rx += reply  # it came while this read was ending
+            return b""
+        return super().read(size)
+
+
+def test_the_configure_stop_reply_that_came_while_the_reader_was_held_is_taken():
+    fake = LateWaker(CONFIG_2CH, hold_s=2 * 0.3)
+    adc = StreamingADC(fake, profile(command_timeout_s=0.3))
+    cfg = adc.configure(10_000, ["pressure", "valve_position"], block_samples=4)
+    assert fake.held and cfg.rate_hz == 10_000
+    fake.assert_done()
+
+
 def test_silent_stream_ends_in_device_timeout():
     fake, adc = configured([(b"START\n", b"OK START\n"), (b"STOP\n", b"")])
     errors = []
