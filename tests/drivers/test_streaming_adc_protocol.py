@@ -111,9 +111,9 @@ def counts(first, k=4, nch=2):
     return np.stack([1000 * c + i for c in range(nch)], axis=1)
 
 
-def configured(extra=()):
+def configured(extra=(), **profile_kw):
     fake = ExpectedProtocol(CONFIG_2CH + list(extra))
-    adc = StreamingADC(fake, profile())
+    adc = StreamingADC(fake, profile(**profile_kw))
     adc.configure(10_000, ["pressure", "valve_position"], block_samples=4)
     return fake, adc
 
@@ -257,7 +257,10 @@ def test_frames_to_samples_exact():
 
 
 def run_stream(stream: bytes, stop_total: int, **start_kw):
-    fake, adc = configured([(b"START\n", b"OK START\n"), (b"STOP\n", f"OK STOP {stop_total}\n".encode())])
+    # the fake device is silent after its frames until STOP: a data timeout that the test thread's way to
+    # STOP cannot reach on a loaded host (0.5 s did: StreamSilent in a loaded pair)
+    fake, adc = configured([(b"START\n", b"OK START\n"), (b"STOP\n", f"OK STOP {stop_total}\n".encode())],
+                           data_timeout_s=60.0)
     adc.start(**start_kw)
     fake.feed(stream)
     deadline = time.monotonic() + 5
@@ -360,25 +363,24 @@ def test_a_slow_consumer_is_not_a_silent_device():
         got.append(block)
         if not slow.is_set():
             slow.set()
+            fake.feed(b"".join(frame(n, 4 * n, counts(4 * n)) for n in range(1, 10)))  # they come meanwhile
             time.sleep(1.5 * adc.profile.data_timeout_s)
 
     adc.start(callback=consume, on_error=errors.append)
-    for n in range(10):  # a frame every 0.1 s: the device never goes quiet for the data timeout
-        fake.feed(frame(n, 4 * n, counts(4 * n)))
-        time.sleep(0.1)
-    deadline = time.monotonic() + 5
+    fake.feed(frame(0, 0, counts(0)))
+    deadline = time.monotonic() + 10
     while sum(b.n for b in got) < 40 and not errors and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert not errors and adc.error is None, errors
-    stats = adc.stop()
-    assert sum(b.n for b in got) == 40 and stats.lost == 0
+    # every frame delivered before any error (after the last one the fake is silent: a StreamSilent then is right)
+    assert sum(b.n for b in got) == 40, errors
+    adc.stop()
 
 
 def test_the_stop_reply_read_after_a_slow_consumer_is_taken():
     """STOP's reply came while the reader was held longer than the command timeout by the consumer of the
     last frames (a loaded host): it is read and taken, not a DeviceTimeout (the time was checked before
     the bytes already waiting were read)."""
-    fake, adc = configured([(b"START\n", b"OK START\n"), (b"STOP\n", b"")])
+    fake, adc = configured([(b"START\n", b"OK START\n"), (b"STOP\n", b"")], data_timeout_s=60.0)
     got = []
 
     def consume(block):
