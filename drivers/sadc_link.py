@@ -171,6 +171,7 @@ class SADCLink:
         t_cmd = self.profile.command_timeout_s
         hard = time.monotonic() + 5 * t_cmd
         deadline = time.monotonic() + t_cmd
+        final = False
         while True:
             m = _STOP_REPLY.search(self._rx)
             if m:
@@ -182,19 +183,15 @@ class SADCLink:
                 line = bytes(e.group(0)).decode("ascii", "replace").strip()
                 del self._rx[: e.end()]
                 self._check_reply("STOP", line)
-            if time.monotonic() > min(deadline, hard):
-                late = self._read(0)  # what is waiting already (this thread may have been kept from running)
-                if not late or time.monotonic() > hard:
-                    self._rx += late
-                    if _STOP_REPLY.search(self._rx):
-                        continue
-                    raise DeviceTimeout(f"{self.name}: no reply to 'STOP' within {self.profile.command_timeout_s:g} s")
-                self._rx += late
-                deadline = time.monotonic() + t_cmd
-                continue
-            got = self._read(64)
+            if final:
+                raise DeviceTimeout(f"{self.name}: no reply to 'STOP' within {self.profile.command_timeout_s:g} s")
+            # once the time is up, what is waiting already is still read (this thread may have been kept from
+            # running): that look is the last unless it brought bytes before the hard bound
+            expired = time.monotonic() > min(deadline, hard)
+            got = self._read(0 if expired else 64)
             if got:
                 deadline = time.monotonic() + t_cmd
+            final = expired and (not got or time.monotonic() > hard)
             self._rx += got
             if len(self._rx) > 1 << 20:
                 del self._rx[: -MAX_LINE]

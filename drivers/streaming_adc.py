@@ -338,22 +338,20 @@ class StreamingADC(SADCLink):
         t_cmd = self.profile.command_timeout_s
         hard = time.monotonic() + 5 * t_cmd  # frames still in flight are parsed, within bounds
         deadline = time.monotonic() + t_cmd
-        last_look = False
-        while True:
-            if time.monotonic() >= min(deadline, hard):
-                if last_look:
-                    break
-                # one more read once the time is up: what came while this thread was not running (a slow
-                # consumer of the last frames, a loaded host) is still the device's answer
-                last_look = True
+        final = False
+        while not final:
+            # once the time is up, one more read: what came while this thread was not running (a slow consumer
+            # of the last frames, a loaded host) is still the device's answer; that look is the last unless it
+            # brought bytes before the hard bound
+            expired = time.monotonic() >= min(deadline, hard)
             try:
                 data = self._read(self.config.frame_len)
             except DeviceDisconnected as exc:
                 self._stop_error = exc
                 return
+            final = expired and (not data or time.monotonic() >= hard)
             if data:
                 deadline = time.monotonic() + t_cmd
-                last_look = last_look and time.monotonic() >= hard  # (past the hard bound: that look was the last)
                 total = self._process(data, time.time(), stopping=True)
                 if total is not None:
                     tail = total - self._asm.expected
