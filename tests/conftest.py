@@ -1,10 +1,17 @@
 import atexit
 import os
 import shutil
+import sys
 import tempfile
 
 # Qt tests run offscreen; set before any Qt import.
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+
+# The suite starts some hundreds of child interpreters (velab commands, simulators, fit workers):
+# with PYTHONDONTWRITEBYTECODE set (some shells and CI images set it), each compiled velab's
+# source again, 0.4-0.6 s a child on a 2-core box. Bytecode goes to __pycache__ as usual.
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+sys.dont_write_bytecode = False
 
 # Config lookup is hermetic: a developer's ~/.config/velab or $VELAB_CONFIG_PATH must not change
 # what "perugia" or "A" means in a test (subprocesses inherit this too).
