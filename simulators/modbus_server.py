@@ -204,6 +204,7 @@ class ModbusDeviceServer:
         self._error: BaseException | None = None
         self._now: dict = {}  # the faults decided for the request being answered
         self._stopping = threading.Event()
+        self._held: socket.socket | None = None  # the port, held while disconnected (disconnect)
         self.requests = 0
 
     # ------------------------------------------------------------ endpoint
@@ -357,6 +358,7 @@ class ModbusDeviceServer:
         return self
 
     def stop(self, timeout_s: float = 5.0) -> None:
+        self._release_port()
         if not self.running or self._loop is None:
             return
         self._stopping.set()  # ends an injected delay in progress
@@ -371,12 +373,37 @@ class ModbusDeviceServer:
             _shut_sockets_on_port(self.port)
 
     def disconnect(self) -> None:
-        """Drop every client and stop listening (a device power-cycling or a cable pulled)."""
+        """Drop every client and stop listening (a device power-cycling or a cable pulled).
+
+        The port stays this device's while it is down: a socket bound to it that does not listen refuses
+        connections as the stopped server does, and the host gives the port to no one else meanwhile (on a
+        loaded host another test's simulator took a freed port once, and the device could not come back)."""
         self.stop()
+        if self.transport != "rtu":
+            self._hold_port()
 
     def reconnect(self) -> None:
-        """Listen again on the same endpoint."""
+        """Listen again on the same endpoint (the new listener binds beside the held port, then it is let go)."""
         self.start()
+        self._release_port()
+
+    def _hold_port(self) -> None:
+        family = socket.getaddrinfo(self.host, self.port, type=socket.SOCK_STREAM)[0][0]
+        s = socket.socket(family, socket.SOCK_STREAM)
+        # both the holder and the server's listener set SO_REUSEADDR: the listener may bind beside the holder
+        # (neither listens at that instant), and the dropped connections' TIME_WAIT does not block the holder
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((self.host, self.port))
+        except OSError:  # taken in the instant since the stop: nothing to hold, as before
+            s.close()
+            return
+        self._held = s
+
+    def _release_port(self) -> None:
+        if self._held is not None:
+            self._held.close()
+            self._held = None
 
     def __enter__(self):
         return self.start()

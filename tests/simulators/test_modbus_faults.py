@@ -1,6 +1,8 @@
 """Every injected fault ends in a typed error, a quality flag or a counted gap; never a hang or a silent wrong value."""
 
+import errno
 import math
+import socket
 import time
 
 import numpy as np
@@ -154,6 +156,35 @@ def test_disconnect_and_reconnect_tcp(sim):
     finally:
         v.close()
         if not h.servers[0].running:
+            h.reconnect()
+
+
+def test_a_disconnected_device_keeps_its_port(sim):
+    """While down, the device's port refuses connections and is no one else's: a socket bound to it fails
+    (before, the port was free for the outage, and another simulator could take it). Then it listens there again."""
+    h = sim.handles["valve"]
+    server = h.servers[0]
+    port = server.port
+    try:
+        h.disconnect()
+        other = socket.socket()
+        try:
+            with pytest.raises(OSError) as exc:
+                other.bind((server.host, port))  # (no SO_REUSEADDR: TIME_WAIT of the dropped links does not matter)
+        finally:
+            other.close()
+        assert exc.value.errno == errno.EADDRINUSE
+        with pytest.raises(ConnectionRefusedError):
+            socket.create_connection((server.host, port), timeout=2.0)
+        h.reconnect()
+        assert server.port == port
+        v = connect(sim, "valve")
+        try:
+            assert v.read_state() is ValveState.IDLE
+        finally:
+            v.close()
+    finally:
+        if not server.running:
             h.reconnect()
 
 
