@@ -26,6 +26,7 @@ rig) and the refresh converged slowly or not at all on the imperial rig.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from dataclasses import dataclass
 
@@ -89,6 +90,7 @@ class TimeDomainModel:
         self.active = self.steady == "quadratic" or self.unsteady not in FD_EXACT_UNSTEADY
         self.runs = 0
         self.seconds = 0.0
+        self._count_lock = threading.Lock()  # heads run in two threads at once (a polish's Jacobian columns)
 
     def on_grid(self, t_s) -> "TimeDomainModel":
         """The same laws on another grid (the flow, if any, is given again with ``head(flow=)``)."""
@@ -108,8 +110,9 @@ class TimeDomainModel:
         h = np.asarray(moc_head(self.rig, a, np.asarray(J_rel, dtype=float), np.asarray(tau, dtype=float), self.t,
                                 friction=self.steady, unsteady=self.unsteady,
                                 flow=flow if flow is not None else self.flow_of()), dtype=float)
-        self.runs += 1
-        self.seconds += time.perf_counter() - t0
+        with self._count_lock:
+            self.runs += 1
+            self.seconds += time.perf_counter() - t0
         if not np.all(np.isfinite(h)):
             raise DataError(f"friction: the time-domain model diverged at a = {a:.4g} m/s")
         return h
