@@ -5,10 +5,19 @@ import threading
 from velab.fitting.parallel import both, map_pair
 
 
+def _in_thread(fn, timeout_s=30.0):
+    out = {}
+    t = threading.Thread(target=lambda: out.setdefault("result", fn()), daemon=True)
+    t.start()
+    t.join(timeout_s)
+    assert not t.is_alive(), "did not return"
+    return out["result"]
+
+
 def test_work_on_the_helper_that_splits_again_runs_there_in_turn():
-    """A fit handed to the helper (a joint fit's per-run work) whose own work splits in two (a time-domain
-    polish's Jacobian columns): on the helper the two parts run one after the other. The helper waited for
-    itself before: that call never returned."""
+    """Items handed to the helper (map_pair) whose own work splits in two (a time-domain polish's Jacobian
+    columns inside a per-run job): the helper is busy, so their parts run in turn where they are. The
+    helper waited for itself before: that call never returned."""
     names = []
 
     def inner(i):
@@ -16,20 +25,34 @@ def test_work_on_the_helper_that_splits_again_runs_there_in_turn():
         names.append((a[1], b[1]))
         return a[0] + b[0] + 10 * i
 
-    out = {}
+    assert _in_thread(lambda: map_pair(lambda _, i: inner(i), list(range(6)), lambda: None)) == [10 * i for i in range(6)]
+    assert len(names) == 6 and all(a == b for a, b in names)  # each call's two parts in one thread
 
-    def run():
-        out["result"] = map_pair(lambda _, i: inner(i), list(range(6)), lambda: None)
 
-    t = threading.Thread(target=run, daemon=True)
-    t.start()
-    t.join(30.0)
-    assert not t.is_alive(), "map_pair over work that calls both() did not return"
-    assert out["result"] == [10 * i for i in range(6)]
-    # on the helper, both parts ran on the helper; elsewhere the second part went to the helper
-    helper = [n for n in names if n[0].startswith("velab-fit-helper")]
-    assert helper and all(a == b for a, b in helper)
-    assert all(b.startswith("velab-fit-helper") for _, b in names)
+def test_a_busy_helper_is_not_waited_for():
+    """While the helper runs another fit's part, a second fit's split runs both parts in its own thread at
+    once (it queued behind the other's part before)."""
+    release, started = threading.Event(), threading.Event()
+
+    def held():
+        started.set()
+        release.wait(30.0)
+        return "held"
+
+    other = threading.Thread(target=lambda: both(lambda: release.wait(30.0), held), daemon=True)
+    other.start()
+    try:
+        assert started.wait(10.0)
+        me = threading.current_thread().name
+        here, there = _in_thread(lambda: both(lambda: threading.current_thread().name,
+                                              lambda: threading.current_thread().name), timeout_s=5.0)
+        assert here == there != me and not here.startswith("velab-fit-helper")
+    finally:
+        release.set()
+        other.join(10.0)
+    # free again: the second part goes to the helper
+    here, there = both(lambda: threading.current_thread().name, lambda: threading.current_thread().name)
+    assert there.startswith("velab-fit-helper") and here == threading.current_thread().name
 
 
 def test_both_returns_both_results_and_raises_after_both_ended():

@@ -4,9 +4,10 @@ A full-band evaluation (velab.fitting.engine) is a few large numpy passes over t
 bins and a batched inverse FFT, all of which release the GIL: split in two halves (bins, then
 rows), the second half on the helper thread, it runs about 1.8 x faster on two free cores, with
 bit-identical results (every operation is per bin or per row). One helper per process, started
-on first use (and again in a forked child): fits in several threads share it (they then take turns). Work
-handed to the helper that calls :func:`both` again runs its two parts there one after the other, so
-nothing deadlocks.
+on first use (and again in a forked child). The helper takes a part only when it is free: a
+:func:`both` that finds it busy (another fit thread's part, or work handed to the helper that splits
+again) runs its two parts in the calling thread, one after the other. So nothing waits in a queue
+behind another's work and nothing deadlocks, and results never depend on which thread ran what.
 """
 
 from __future__ import annotations
@@ -21,14 +22,16 @@ U = TypeVar("U")
 
 _helper: ThreadPoolExecutor | None = None
 _lock = threading.Lock()
+_busy = threading.Lock()  # held while the helper has a part to run (taken without waiting)
 
 
 def _forget_helper() -> None:
     """In a forked child the helper thread does not exist (only its executor object was copied):
-    start afresh on first use, with a new lock (the parent's may have been held at the fork)."""
-    global _helper, _lock
+    start afresh on first use, with new locks (the parent's may have been held at the fork)."""
+    global _helper, _lock, _busy
     _helper = None
     _lock = threading.Lock()
+    _busy = threading.Lock()
 
 
 os.register_at_fork(after_in_child=_forget_helper)
@@ -42,29 +45,20 @@ def _pool() -> ThreadPoolExecutor:
         return _helper
 
 
-_thread = threading.local()  # .on_helper: this thread is the helper
-
-
-def _as_helper(fn: Callable[[], U]) -> U:
-    _thread.on_helper = True
-    try:
-        return fn()
-    finally:
-        _thread.on_helper = False
-
-
 def both(here: Callable[[], T], there: Callable[[], U]) -> tuple[T, U]:
     """Run ``there`` on the helper thread and ``here`` in the calling thread; both results.
     An exception in either is raised here (after both have ended: no half is left running).
-    Called on the helper itself (work handed to it that splits again), both run here, one after
-    the other: the helper cannot wait for itself."""
-    if getattr(_thread, "on_helper", False):
+    With the helper busy (or on the helper itself), both run here, one after the other."""
+    if not _busy.acquire(blocking=False):
         return here(), there()
-    fut = _pool().submit(_as_helper, there)
     try:
-        a = here()
+        fut = _pool().submit(there)
+        try:
+            a = here()
+        finally:
+            b = fut.result()  # waits even if ``here`` raised: the buffers are shared
     finally:
-        b = fut.result()  # waits even if ``here`` raised: the buffers are shared
+        _busy.release()
     return a, b
 
 
@@ -73,8 +67,9 @@ def map_pair(fn: Callable[[object, T], U], items: list[T], make_context: Callabl
     """[fn(context, item) for item in items], the items shared out between the calling thread and
     the helper, each with its own ``make_context()`` (e.g. an evaluator fork). The results are in
     the items' order and do not depend on which thread ran which item, as long as ``fn``'s result
-    depends only on the item (the context holds work buffers, not state). ``fn`` must not call
-    :func:`both` (it may run on the helper)."""
+    depends only on the item (the context holds work buffers, not state). A :func:`both` inside
+    ``fn`` finds the helper busy and runs its parts in turn. With the helper busy when called, the
+    items run here, in turn."""
     if not parallel or len(items) < 2:
         ctx = make_context()
         return [fn(ctx, it) for it in items]
