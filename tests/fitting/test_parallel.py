@@ -2,7 +2,7 @@
 
 import threading
 
-from velab.fitting.parallel import both, map_pair
+from velab.fitting.parallel import both, map_each, map_pair
 
 
 def _in_thread(fn, timeout_s=30.0):
@@ -73,3 +73,8 @@ def test_both_returns_both_results_and_raises_after_both_ended():
     else:
         raise AssertionError("both() swallowed the error")
     assert both(lambda: 1, lambda: 2) == (1, 2)
+
+
+def test_map_each_keeps_the_items_order():
+    assert map_each(lambda i: i * i, list(range(9))) == [i * i for i in range(9)]
+    assert map_each(lambda i: i, []) == [] and map_each(lambda i: -i, [4]) == [-4]

@@ -26,7 +26,6 @@ grids stacked (one Jacobian, rows of every run: the per-run HeadEvaluator reused
 from __future__ import annotations
 
 import math
-import os
 import time
 from dataclasses import dataclass, replace
 
@@ -39,7 +38,8 @@ from velab.fitting.creep import creep_curve
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import sumsq
 from velab.fitting.nuisance import marginalised
-from velab.fitting.parallel import map_pair
+# (each run's own work, closure fits and time-domain heads, touches only that run's objects: map_each)
+from velab.fitting.parallel import map_each
 from velab.fitting.jointresult import JointResult
 from velab.fitting.params import ParamMap, derive_bounds
 from velab.fitting.parts import Part, Record
@@ -56,13 +56,6 @@ REFRESH_GAIN = 0.05
 # closure refinements (each run's, with the joint wall) followed by a continuation of every model; a
 # second pass was measured to change nothing that matters (J(0.05 s) moved 0.1 %, a 0.003 m/s) for 1.5 x the time
 REFINE_PASSES = 1  # ... stopped when one gains less than this in sum n ln F
-
-
-def per_run(fn, items: list) -> list:
-    """[fn(item) for item in items], shared out over two threads on a machine with two cores or more: each
-    run's own work (closure fits, time-domain heads) touches only that run's objects, and the results do
-    not depend on which thread ran which (velab.fitting.parallel.map_pair)."""
-    return map_pair(lambda _, item: fn(item), items, lambda: None, parallel=(os.cpu_count() or 1) > 1)
 
 
 @dataclass
@@ -130,7 +123,7 @@ class _JointSweep:
     def evaluate(self, sol: Sol) -> _Model:
         """Each run's model head at ``sol`` (time-domain with a nonlinear friction) and its F."""
         p = sol.pm.unpack(sol.x)
-        heads = per_run(lambda r: r.model_head(p), self.runs)
+        heads = map_each(lambda r: r.model_head(p), self.runs)
         F = np.array([sumsq(h - r.rec.h) / r.n for h, r in zip(heads, self.runs)])
         return _Model(sol, heads, F)
 
@@ -291,7 +284,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
                       position_pct=s.position_pct, manoeuvre=manoeuvre, friction=friction,
                       friction_unsteady=friction_unsteady)
 
-    records = per_run(make, sources)
+    records = map_each(make, sources)
     parts = [p for r in records for p in r.parts]  # record after record: each record's parts consecutive
     dt = min(float(p.rec.t[1] - p.rec.t[0]) for p in parts)
     bounds = derive_bounds(parts[0].rig, dt, max(p.rec.window_s for p in parts), tau_min_s=tau_min_s,
@@ -344,7 +337,7 @@ def refine_closures(sw: _JointSweep, records: list[Record], ms) -> None:
     for _ in range(REFINE_PASSES if any(r.vi.source == "fitted" for r in records) else 0):
         first = _first_pass_best(sw, ms)
         p = first.sol.pm.unpack(first.sol.x)
-        per_run(lambda r: r.refine(p, sw.bounds), records)
+        map_each(lambda r: r.refine(p, sw.bounds), records)
         for m in range(0, max(ms) + 1):
             sw.final[m] = sw.continue_model(m, sw.final[m])
 
@@ -353,7 +346,7 @@ def closure_groups(parts, records: list[Record], top: _Model) -> list:
     """Per record: its parts' indices and each part's closure rows at the best-fitting wall (for the wall's
     covariance marginalised over the records' closures, ``_JointSweep.summarise``)."""
     p_top = top.sol.pm.unpack(top.sol.x)
-    rows = per_run(lambda p: p.closure_rows(p_top), parts)
+    rows = map_each(lambda p: p.closure_rows(p_top), parts)
     out, i = [], 0
     for r in records:
         idx = list(range(i, i + len(r.parts)))
@@ -414,7 +407,7 @@ def _per_run(records, sources, sw: _JointSweep, fin: _Model, best: ModelFit, bou
     first = [0]
     for r in records[:-1]:
         first.append(first[-1] + len(r.parts))
-    owns = per_run(lambda k: _own_wall(sw, list(range(first[k], first[k] + len(records[k].parts))), fin, best.m,
+    owns = map_each(lambda k: _own_wall(sw, list(range(first[k], first[k] + len(records[k].parts))), fin, best.m,
                                        bounds), list(range(len(records))))
     for k, rec in enumerate(records):
         secs = assess_parts(best, rec.parts, fin, first[k], "joint")

@@ -42,7 +42,7 @@ from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate, prepare_window
 from velab.fitting.engine import HeadEvaluator, sumsq
 from velab.fitting.friction import EquivalentFriction, TimeDomainModel, anderson, equivalent_friction, fit_rig, rms
-from velab.fitting.parallel import map_pair
+from velab.fitting.parallel import map_each
 from velab.fitting.params import FitBounds, ParamMap, creep_const, derive_bounds
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
 from velab.fitting.solvers import Sol, Stage, levenberg_marquardt
@@ -482,8 +482,7 @@ class _Sweep:
             h0 = head(x)
             # one MOC run a column, shared out over two threads (the MOC releases the GIL; each column
             # depends on its parameter only, so the Jacobian is the same whichever thread ran it)
-            cols = map_pair(lambda _, i: column(x, h0, i), list(range(x.size)), lambda: None,
-                            parallel=(os.cpu_count() or 1) > 1)
+            cols = map_each(lambda i: column(x, h0, i), list(range(x.size)))
             return np.array(cols).T
 
         sol = levenberg_marquardt(residual, jacobian, fin.sol.x, lo, hi, max_iter=MOC_POLISH_ITERATIONS, ftol=1e-9,
