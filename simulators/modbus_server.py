@@ -29,7 +29,6 @@ import os
 import socket
 import stat
 import threading
-import time
 
 from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import ModbusIOException, NoSuchIdException
@@ -258,9 +257,9 @@ class ModbusDeviceServer:
         if now.get("silent") or now.get("drop_request") or now.get("disconnect"):
             return None  # the device never sees the request: nothing is carried out (and no reply: _trace_packet)
         if now.get("delay_s"):
-            end = time.monotonic() + now["delay_s"]
-            while time.monotonic() < end and not self._stopping.is_set():  # blocking on purpose (see above)
-                time.sleep(min(0.01, end - time.monotonic()))
+            # blocking on purpose (a slow device holds its line); stop() ends it. (A sleep of the time left,
+            # computed after the loop's own check, went negative on a loaded host: ValueError, a failed request.)
+            self._stopping.wait(now["delay_s"])
         if now.get("exception_code"):
             return ExcCodes(now["exception_code"])
         if self.wire_delay and self.transport != "tcp":
