@@ -207,7 +207,10 @@ class StreamingADCSimulator(SADCDevice):
                         out += reply.encode("ascii") + b"\n"
             if w and out:
                 n = len(out) if not self.baud else min(len(out), int(allowance))
-                sent = link.send(memoryview(out)[: min(n, 65536)])
+                # a copy, not a memoryview of ``out``: a view kept alive a little longer (a caught socket error's
+                # traceback holds send()'s frame; with the GUI's collector on a timer, until it runs) made the
+                # ``del`` below raise BufferError and end the simulated device's session
+                sent = link.send(out[: min(n, 65536)])  # (a bytearray slice is a copy)
                 if sent < 0:
                     return "closed"
                 if self.baud:

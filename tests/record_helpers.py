@@ -37,12 +37,13 @@ def thread_errors():
     threading.excepthook = old
 
 
-def fast_sim(config="default") -> SimulatedBench:
-    """The simulated rig of a sim config (name, path or dict) on the fast clock, ephemeral endpoints."""
+def fast_sim(config="default", clock: str = "fast") -> SimulatedBench:
+    """The simulated rig of a sim config (name, path or dict) on the fast clock (or ``clock``: "scaled:K"),
+    ephemeral endpoints."""
     if isinstance(config, dict):
-        sim = SimulatedBench(config, ephemeral=True, clock=make_clock("fast"))
+        sim = SimulatedBench(config, ephemeral=True, clock=make_clock(clock))
     else:
-        sim = SimulatedBench.from_config(config, ephemeral=True, clock=make_clock("fast"))
+        sim = SimulatedBench.from_config(config, ephemeral=True, clock=make_clock(clock))
     return sim.start()
 
 

@@ -142,8 +142,8 @@ class LivePlot(QWidget):
         lay.setContentsMargins(0, 0, 0, 0)
         self.stack = QStackedWidget()
         lay.addWidget(self.stack)
-        self.strip = StripChart([Panel("head", "m", "#1f4e9c", 1.3, (0.0, 1.0)),  # 1 px lines showed gaps (raster)
-                                 Panel("valve position", "%", "#b3541e", 1.6, (-5.0, 105.0))],
+        self.strip = StripChart([Panel("head", "m", "#1f4e9c", (0.0, 1.0)),
+                                 Panel("valve position", "%", "#b3541e", (-5.0, 105.0))],
                                 title="pressure head at the valve")
         self.stack.addWidget(self.strip)
         self.strip.zoom_requested.connect(self.show_interactive)

@@ -40,9 +40,12 @@ def nice_ticks(lo: float, hi: float, target: int = 6) -> tuple[np.ndarray, int]:
 class Panel:
     """One plot area of the strip chart: a y label with units, a colour, a y range and its data."""
 
-    def __init__(self, label: str, units: str, color: str, width: float = 1.0, y_range=(0.0, 1.0)):
+    def __init__(self, label: str, units: str, color: str, y_range=(0.0, 1.0)):
         self.label, self.units = label, units
-        self.pen = QPen(QColor(color), width)
+        # one pixel, aliased: Qt strokes a wider pen through its general stroker, ~10 x the time, and PySide
+        # holds the GIL in drawPath (a 1.3 px pen took 6 ms a curve; under CPU contention a frame held the
+        # GIL for 0.6 s and the recorder's and the simulated rig's threads waited)
+        self.pen = QPen(QColor(color), 1)
         self.y_range = tuple(y_range)
         self.x = self.y = np.empty(0)
         self.path = QPainterPath()  # in pixels, built when the data, a range or the size changed
@@ -136,14 +139,16 @@ class StripChart(QWidget):
     # ------------------------------------------------------------------ painting (one Python call a frame)
     def _path(self, panel: Panel, r: QRectF) -> QPainterPath:
         """The panel's curve in pixels (mapped here, not by a painter transform: a raster painter with a
-        strongly anisotropic transform dropped segments of near-horizontal lines)."""
+        strongly anisotropic transform dropped segments of near-horizontal lines), each point at the centre
+        of its pixel: a 1 px aliased line between fractional points also drops short near-horizontal
+        segments (the rasteriser's diamond rule; a valve position's flat start showed gaps)."""
         key = (r.left(), r.top(), r.width(), r.height(), self.x_range, panel.y_range)
         if panel.path_key != key:
             (x0, x1), (y0, y1) = self.x_range, panel.y_range
             if panel.x.size > 1:
                 px = r.left() + (panel.x - x0) * (r.width() / (x1 - x0) if x1 > x0 else 1.0)
                 py = r.bottom() - (panel.y - y0) * (r.height() / (y1 - y0) if y1 > y0 else 1.0)
-                panel.path = pg.arrayToQPath(px, py, connect="finite")
+                panel.path = pg.arrayToQPath(np.floor(px) + 0.5, np.floor(py) + 0.5, connect="finite")
             else:
                 panel.path = QPainterPath()
             panel.path_key = key
