@@ -21,7 +21,7 @@ import math
 import numpy as np
 import pytest
 
-from record_helpers import ABORTED, CWF, FAILED, fast_sim, recorder, run_bounded, short_settings, thread_errors  # noqa: F401
+from record_helpers import ABORTED, CWF, FAILED, MODBUS_ADC_CLOCK, fast_sim, recorder, run_bounded, short_settings, thread_errors  # noqa: F401
 from velab.drivers.blocks import QUALITY_CODES
 from velab.runfiles.reader import read_run
 from velab.simulators.bench import load_sim_config
@@ -78,7 +78,8 @@ def sim_config(entry: dict, at: str, endpoints: dict | None = None) -> dict:
 @pytest.mark.parametrize("source,fault,at", SCENARIOS, ids=[f"{s}-{f}-at_{a}" for s, f, a in SCENARIOS])
 def test_sensor_quality_path(tmp_path, thread_errors, source, fault, at):
     entry = IMPLAUSIBLE[source] if fault == "implausible" else SENSOR[fault][0]
-    sim = fast_sim(sim_config(entry, at, IMPLAUSIBLE_ENDPOINTS if fault == "implausible" else None))
+    sim = fast_sim(sim_config(entry, at, IMPLAUSIBLE_ENDPOINTS if fault == "implausible" else None),
+                   clock=MODBUS_ADC_CLOCK if source == "pressure_adc" else "fast")  # (every sample counts here)
     # at arm: a long baseline, so that the fault (0.2 s after ARM) is in it before the trigger goes out; 3 s after
     # the trigger (0.25 s of host time at the fast clock): on a loaded host the TRIGGER reaches the actuator up
     # to ~0.1 s of host time after the recorder's estimate, and a 1.5 s record could end before the stroke. The

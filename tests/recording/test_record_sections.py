@@ -14,7 +14,7 @@ import h5py
 import numpy as np
 import pytest
 
-from record_helpers import CWF, fast_sim, recorder, run_bounded, thread_errors  # noqa: F401 - a fixture
+from record_helpers import CWF, MODBUS_ADC_CLOCK, fast_sim, recorder, run_bounded, thread_errors  # noqa: F401 - a fixture
 from velab.cli import main
 from velab.commands.fit import fit_file
 from velab.configpath import find_config
@@ -32,10 +32,7 @@ WINDOW_S = 6.0
 # which is the fitter's adequacy, not the recording's; docs/recording.md "Several sections".)
 MODELS = (1, 2, 3)
 MID_X = 41.032
-# The Modbus ADC's ring is read 125 registers a request: its 2 kHz x 3 channels at the fast clock (12 x) asked the
-# in-process client and simulator for ~580 requests a second (48 on the real bench), and under two suites at once
-# the host fell behind and lost samples (the run rightly "completed-with-faults"). At 4 x: ~190 a second.
-CLOCK = {"streaming_adc": "fast", "pressure_adc": "scaled:4"}
+CLOCK = {"streaming_adc": "fast", "pressure_adc": MODBUS_ADC_CLOCK}  # (record_helpers: why not 12 x)
 A_TRUE = 353.73
 
 
