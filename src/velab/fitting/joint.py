@@ -408,7 +408,7 @@ def _per_run(records, sources, sw: _JointSweep, fin: _Model, best: ModelFit, bou
     for r in records[:-1]:
         first.append(first[-1] + len(r.parts))
     owns = map_each(lambda k: _own_wall(sw, list(range(first[k], first[k] + len(records[k].parts))), fin, best.m,
-                                       bounds), list(range(len(records))))
+                                        bounds), list(range(len(records))))
     for k, rec in enumerate(records):
         secs = assess_parts(best, rec.parts, fin, first[k], "joint")
         for (sec, ws), part in zip(secs, rec.parts):
