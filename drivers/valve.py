@@ -2,7 +2,7 @@
 
     v = ValveActuator(open_bus({"transport": "tcp", "host": ..., "port": ..., "unit": 3}))
     v.set_manoeuvre(beta_per_s=32.0, gamma=-5.5, end_position_pct=0.0)   # or set_closure_time(0.137)
-    v.arm(); v.trigger()
+    v.arm(); v.trigger()                   # arm() returns once the actuator reports ARMED
     v.wait_for({ValveState.DONE}, timeout_s=2.0)
     v.read_status()       # state, position Reading, fault names, time since trigger
 
@@ -148,8 +148,11 @@ class ValveActuator(ModbusDevice):
                 return
         raise lost
 
-    def arm(self) -> None:
+    def arm(self, timeout_s: float = 10.0) -> ValveStatus:
+        """ARM, then wait until the actuator reports ARMED: its controller prepares the profile after the
+        command's reply (IDLE meanwhile). DeviceFault if it goes to FAULT, DeviceTimeout after timeout_s."""
         self.command(Command.ARM)
+        return self.wait_for({ValveState.ARMED}, timeout_s=timeout_s)
 
     def trigger(self) -> TriggerOutcome:
         """Start the armed manoeuvre: TRIGGER is sent once, never retried blindly.

@@ -162,6 +162,8 @@ class SimulatedRig:
         self._beta, self._gamma, self._end = m.beta_per_s, m.gamma, 0.0
         self._state = ValveState.IDLE
         self._armed: _Transient | None = None
+        self._arming = False  # an ARM's transient being computed (arm(background=True))
+        self._arm_gen = 0  # the arming in force: a cancelled one's result is dropped
         self._tr: _Transient | None = None
         self._stopped_state: ValveState | None = None  # HOLDING / ABORTED set by command
         self._vol_base = 0.0
@@ -206,8 +208,14 @@ class SimulatedRig:
                 raise CommandRefused(f"invalid manoeuvre beta={beta_per_s} gamma={gamma} end={end_position_pct}")
             self._beta, self._gamma, self._end = float(beta_per_s), float(gamma), float(end_position_pct)
 
-    def arm(self) -> None:
-        """Precompute the transient of the commanded manoeuvre (so the trigger is instant)."""
+    def arm(self, background: bool = False) -> None:
+        """Precompute the transient of the commanded manoeuvre (so the trigger is instant); ARMED when done.
+
+        ``background``: as the actuator does on its ARM command: the command is checked now (a refusal is
+        the reply), the computation runs in a thread and the state stays IDLE until it is ARMED (the driver
+        waits for ARMED). It takes 0.5-1.2 s of CPU on the reference rig the first time (the step's
+        frequency model), seconds on a loaded host: done on the Modbus server's loop it delayed every
+        reply of the device past the client's timeout. A trigger, abort or reset meanwhile cancels it."""
         with self._lock:
             st = self.state()
             if st is ValveState.FAULT:
@@ -218,15 +226,43 @@ class SimulatedRig:
             if seize is not None:
                 self.faults.valve_fault_after_s, self.faults.valve_fault_bits = seize
             self.instants.mark("arm", self.clock.now())
-            fault_tau = self.faults.valve_fault_after_s
-            self._armed = self._compute(0.0, self._beta, self._gamma, self._end, freeze_tau=fault_tau)
-            self._state = ValveState.ARMED
+            self._arm_gen += 1
+            self._arming = True
+            gen = self._arm_gen
+        if background:
+            threading.Thread(target=self._finish_arm, args=(gen,), name="sim-valve-arming", daemon=True).start()
+        else:
+            self._finish_arm(gen)
+
+    def _finish_arm(self, gen: int) -> None:
+        """The armed transient, computed outside the lock (the status stays readable); dropped if the arming
+        was cancelled, computed again if the manoeuvre or a pending seizure changed meanwhile."""
+        while True:
+            with self._lock:
+                if gen != self._arm_gen:
+                    return
+                args = (self._beta, self._gamma, self._end, self.faults.valve_fault_after_s)
+            armed = self._compute(0.0, *args[:3], freeze_tau=args[3])
+            with self._lock:
+                if gen != self._arm_gen:
+                    return
+                if (self._beta, self._gamma, self._end, self.faults.valve_fault_after_s) != args:
+                    continue
+                self._armed = armed
+                self._arming = False
+                self._state = ValveState.ARMED
+                return
+
+    def _cancel_arming(self) -> None:
+        self._arm_gen += 1
+        self._arming = False
 
     def trigger(self, at: float | None = None) -> float:
         with self._lock:
             if self.state() is not ValveState.ARMED or self._armed is None:
                 raise CommandRefused(f"cannot trigger while {self.state().name} (arm first)")
             t = self.clock.now() if at is None else float(at)
+            self._cancel_arming()  # a re-arm still computing (the armed transient is this manoeuvre's)
             self._tr = replace(self._armed, trigger_time=t)
             self._armed = None
             self._state = ValveState.RUNNING
@@ -242,7 +278,8 @@ class SimulatedRig:
     def abort(self, at: float | None = None) -> None:
         """Cancel an armed manoeuvre, or stop a running one where it is (ABORTED)."""
         with self._lock:
-            if self.state() is ValveState.ARMED:
+            if self.state() is ValveState.ARMED or self._arming:
+                self._cancel_arming()
                 self._armed = None
                 self._state = ValveState.ABORTED
                 self._stopped_state = None
@@ -301,6 +338,7 @@ class SimulatedRig:
             now = self.clock.now()
             self._vol_base = self.totalizer_m3(now)
             self._t_base = now
+            self._cancel_arming()
             self._tr = None
             self._armed = None
             self._stopped_state = None

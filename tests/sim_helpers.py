@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 from velab.drivers.streaming_adc import default_profile
 from velab.simulators.bench import SimulatedBench
 from velab.simulators.clock import ManualClock
@@ -21,3 +23,15 @@ def stream_profile(**kw):
     kw.setdefault("reconnect_timeout_s", 5.0)
     kw.setdefault("poll_s", 0.02)
     return default_profile(**kw)
+
+
+def wait_until(read, want, timeout_s: float = 10.0):
+    """Poll ``read()`` (e.g. the actuator's state register, as an independent client would) until it returns
+    ``want``; its last value otherwise (the caller's assertion names it). The simulated actuator answers ARM at
+    once and reports ARMED once its transient is computed (a fraction of a second, seconds on a loaded host)."""
+    deadline = time.monotonic() + timeout_s
+    got = read()
+    while got != want and time.monotonic() < deadline:
+        time.sleep(0.01)
+        got = read()
+    return got

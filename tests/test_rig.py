@@ -1,5 +1,7 @@
 """The one physical model of the simulated rig."""
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -125,3 +127,47 @@ def test_clocks():
     a = r.now()
     r.sleep(0.01)
     assert r.now() - a >= 0.009
+
+
+def _arming_finished():
+    """Join the actuator's arming computation (arm(background=True)): its end is a state of the rig's."""
+    for th in threading.enumerate():
+        if th.name == "sim-valve-arming":
+            th.join(60)
+
+
+def test_arming_in_the_background_reports_idle_until_armed(rig):
+    rig.set_manoeuvre(30.0, -5.5)
+    rig.arm(background=True)  # as the Modbus actuator does on ARM: the reply first
+    assert rig.state() is ValveState.IDLE  # the transient is being computed
+    with pytest.raises(CommandRefused, match="arm first"):
+        rig.trigger()
+    _arming_finished()
+    assert rig.state() is ValveState.ARMED
+    rig.clock.advance(1.0)
+    rig.trigger()
+    rig.clock.advance(-(-5.5) / 30.0)  # half-way in position
+    assert rig.valve_position(np.array([rig.clock.now()]))[0] == pytest.approx(50.0, abs=0.5)
+
+
+def test_abort_while_arming_cancels_it(rig):
+    rig.arm(background=True)
+    rig.abort()
+    assert rig.state() is ValveState.ABORTED
+    _arming_finished()
+    assert rig.state() is ValveState.ABORTED  # the computation's result was dropped
+    with pytest.raises(CommandRefused):
+        rig.trigger()
+    rig.reset()
+    assert rig.state() is ValveState.IDLE
+
+
+def test_a_manoeuvre_changed_while_arming_is_the_one_armed(rig):
+    rig.set_manoeuvre(30.0, -5.5)
+    rig.arm(background=True)
+    rig.set_manoeuvre(20.0, -5.0)  # still IDLE: allowed, the arming starts over with it
+    _arming_finished()
+    assert rig.state() is ValveState.ARMED
+    rig.trigger()
+    rig.clock.advance(0.25)  # -gamma / beta: half-way for 20 / -5, 83 % closed for 30 / -5.5
+    assert rig.valve_position(np.array([rig.clock.now()]))[0] == pytest.approx(50.0, abs=0.5)

@@ -43,6 +43,26 @@ def valve(t, retries=2):
                          name="valve")
 
 
+ARM = rtu(3, 0x10, bytes.fromhex("00000001"), 2, bytes.fromhex("0001"))
+ARM_ECHO = rtu(3, 0x10, bytes.fromhex("00000001"))
+
+
+def test_arm_returns_once_the_actuator_reports_armed():
+    """ARM is answered at once; the controller then prepares the profile (IDLE meanwhile): arm() polls the
+    status until ARMED and returns it."""
+    pairs = [(ARM, ARM_ECHO)] + status(ValveState.IDLE) + status(ValveState.IDLE) + status(ValveState.ARMED)
+    with expected_protocol(pairs) as t:
+        st = valve(t).arm()
+    assert st.state is ValveState.ARMED
+
+
+def test_arm_that_ends_in_fault_is_a_device_fault():
+    pairs = [(ARM, ARM_ECHO)] + status(ValveState.FAULT, faults=1)
+    with expected_protocol(pairs) as t:
+        with pytest.raises(DeviceFault, match="FAULT"):
+            valve(t).arm()
+
+
 def test_trigger_with_its_reply_started():
     with expected_protocol([(TRIGGER, TRIGGER_ECHO)]) as t:
         out = valve(t).trigger()

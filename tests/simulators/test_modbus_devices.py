@@ -11,7 +11,7 @@ from velab.config import load_rig
 from velab.drivers.base import DeviceException, Quality, pressure_to_head_m
 from velab.drivers.bench import Bench, load_bench, open_device
 from velab.drivers.modbus_device import RangeError
-from velab.drivers.valve import ValveState
+from velab.drivers.valve import Command, ValveState
 
 CONFIG = {
     "rig": "perugia", "material": "A", "seed": 3, "clock": "manual",
@@ -72,6 +72,25 @@ def test_flowmeter_refreshes_at_2_hz(sim):
         assert fm.read_flow().value != a  # next refresh: new noise draw
     finally:
         fm.close()
+
+
+@pytest.mark.parametrize("transport", ["tcp", "rtu-pty"])
+def test_valve_answers_arm_before_its_profile_is_ready(sim, transport):
+    """The actuator's reply to ARM does not wait for the profile (the simulated transient: 0.1-1.2 s of CPU,
+    seconds on a loaded host, where a client's reply timeout is 0.5 s): the status read right after the reply
+    still says IDLE, and the actuator goes on answering until it is ARMED."""
+    sim.rig.reset()
+    v = connect(sim, "valve", transport)
+    try:
+        v.set_manoeuvre(31.0, -5.5, 0.0)  # a manoeuvre of its own: its transient is not cached yet
+        v.command(Command.ARM)
+        assert v.read_state() is ValveState.IDLE
+        assert v.wait_for({ValveState.ARMED}, timeout_s=30.0).state is ValveState.ARMED
+        v.abort()
+        assert v.read_state() is ValveState.ABORTED
+    finally:
+        v.close()
+        sim.rig.reset()
 
 
 @pytest.mark.parametrize("transport", ["tcp", "rtu-pty"])

@@ -8,6 +8,7 @@ import minimalmodbus
 import pytest
 from pyModbusTCP.client import ModbusClient as PyModbusTCPClient
 
+from sim_helpers import wait_until
 from velab.simulators.bench import SimulatedBench
 from velab.simulators.clock import ManualClock
 
@@ -56,8 +57,8 @@ def test_minimalmodbus_drives_actuator_over_pty(sim):
         inst.write_float(12, -5.0)  # gamma
         assert inst.read_float(10) == 25.0 and sim.rig.manoeuvre[:2] == (25.0, -5.0)
         assert inst.read_register(1) == 0  # IDLE
-        inst.write_register(0, 1, functioncode=16)  # ARM
-        assert inst.read_register(1) == 1
+        inst.write_register(0, 1, functioncode=16)  # ARM: answered at once, ARMED once the profile is ready
+        assert wait_until(lambda: inst.read_register(1), 1) == 1
         inst.write_register(0, 4, functioncode=16)  # ABORT
         assert inst.read_register(1) == 5
         assert inst.read_float(20) == pytest.approx(100.0)  # position, % open
@@ -84,7 +85,7 @@ def test_pymodbustcp_reads_flowmeter_and_actuator(sim):
     try:
         assert c.read_holding_registers(1, 2) == [0, 0]  # IDLE, no faults
         assert c.write_multiple_registers(0, [1])  # ARM
-        assert c.read_holding_registers(1, 1) == [1]
+        assert wait_until(lambda: c.read_holding_registers(1, 1), [1]) == [1]
         assert c.read_holding_registers(99, 1) is None and c.last_except == 2  # undocumented address
     finally:
         c.close()

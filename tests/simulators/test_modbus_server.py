@@ -13,7 +13,8 @@ import pytest
 
 from velab.drivers.modbus import crc16
 from velab.drivers.profile import load_profile
-from velab.drivers.valve import Command
+from velab.drivers.valve import Command, ValveState
+from sim_helpers import wait_until
 from velab.simulators.bench import SimulatedBench
 from velab.simulators.clock import ManualClock
 
@@ -87,6 +88,7 @@ def test_a_trigger_that_arrives_with_an_earlier_request_is_carried_out_and_answe
     with socket.create_connection((host, int(port)), timeout=0.2) as sock:
         sock.sendall(_frames(transport, [_pdu_write(command, int(Command.ARM))]))
         assert len(_replies(transport, sock, 1)) == 1
+        assert wait_until(sim.rig.state, ValveState.ARMED) is ValveState.ARMED  # the profile computed
         count_before = sim.rig.trigger_count
         # a status read that (for its client) timed out, then the TRIGGER, then a read back: one read
         sock.sendall(_frames(transport, [_pdu_read(state, 1), _pdu_write(command, int(Command.TRIGGER)),

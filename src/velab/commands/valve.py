@@ -81,7 +81,6 @@ def run_command(args) -> int:
             valve.set_manoeuvre(args.beta or m.beta_per_s, m.gamma if args.gamma is None else args.gamma,
                                 args.end_position)
             valve.arm()
-            valve.wait_for({ValveState.ARMED}, timeout_s=5.0)
             try:
                 note = readback_note(trigger_manoeuvre(valve))
             except TriggerFailed as exc:  # the valve to its safe state, as a run's failed trigger

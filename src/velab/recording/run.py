@@ -191,7 +191,6 @@ class Run:
                              f"the run's time axis uses {fs:.6g} Hz")
             valve.set_manoeuvre(beta, gamma, end)
             valve.arm()
-            valve.wait_for({ValveState.ARMED}, timeout_s=5.0)
         except (DeviceFailure,) + DEVICE_ERRORS as exc:
             self.end(P.FAILED, f"arming failed: {exc}")
             raise DeviceFailure(f"arming failed: {exc}") from None
