@@ -20,6 +20,14 @@ from velab.simulators.clock import make_clock
 # requests a second (48 on the real bench); under two suites at once the host fell behind and samples were lost
 # (the run rightly flagged). At 4 x: ~190 a second, and the ring holds 3 x more host time.
 MODBUS_ADC_CLOCK = "scaled:4"
+
+
+def rate_clock(rate_hz: float) -> str:
+    """The clock of a simulated recording at ``rate_hz`` through the streaming ADC: the fast clock (12 x) up to
+    2 kHz; 4 x above. At 10 kHz and 12 x the in-process simulator sends 120,000 samples a second of host time
+    (10,000 on the real bench); under two suites at once the reader fell 50,745 samples behind and lost them, and
+    STOP's reply waited behind a second of frames ('no reply to STOP within 1 s'). At 4 x: 40,000 a second."""
+    return "fast" if rate_hz <= 2000.0 else "scaled:4"
 DEADLINE_S = 40.0  # a scenario that has not ended by then hangs (the documented bounds are seconds)
 CWF, FAILED, ABORTED = "completed-with-faults", "failed", "aborted"
 

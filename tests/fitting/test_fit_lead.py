@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from record_helpers import CWF, assert_halted_fit, fast_sim, recorder, run_bounded
+from record_helpers import CWF, assert_halted_fit, fast_sim, rate_clock, recorder, run_bounded
 from test_fit_truths import SIGMA, _record as truth_record
 from velab import fit_worker as worker
 from velab.commands.fit import fit_file
@@ -129,7 +129,7 @@ def _settings(tmp_path, rate, **kw):
 
 @pytest.mark.parametrize("rate", [1000.0, 10000.0])
 def test_the_recorder_s_lead_is_the_final_fit_s_and_velab_fit_reproduces_it(tmp_path, rate):
-    rec = Recorder.simulated(_settings(tmp_path, rate), "default", material="A", clock="fast")
+    rec = Recorder.simulated(_settings(tmp_path, rate), "default", material="A", clock=rate_clock(rate))
     fits = []
     rec.add_listener(lambda ev: fits.append(ev.data) if ev.kind == "fit" else None)
     out = run_bounded(rec, deadline_s=120)

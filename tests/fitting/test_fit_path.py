@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from record_helpers import rate_clock
 from velab.commands.fit import fit_file
 from velab.config import load_material, load_rig
 from velab.errors import DataError
@@ -30,7 +31,7 @@ def test_online_fit_is_reproduced_by_velab_fit(tmp_path, rate):
     # --duration equal to the fit window: the run must get its fit (the window closes on the boundary)
     s = RecordSettings(duration_s=WINDOW_S, fit_window_s=WINDOW_S, pretrigger_s=1.5, sample_rate_hz=rate,
                        fit_models=MODELS, out_dir=tmp_path)
-    with Recorder.simulated(s, "default", material="A", clock="fast") as rec:
+    with Recorder.simulated(s, "default", material="A", clock=rate_clock(rate)) as rec:
         summary = rec.run()
     assert summary.status == "completed", summary.reason
     assert summary.fit is not None, summary.fit_error

@@ -16,6 +16,7 @@ import h5py
 import numpy as np
 import pytest
 
+from record_helpers import rate_clock
 from velab.errors import SafetyError, VelabError
 from velab.recording import Recorder, RecordSettings, RunRefused
 from velab.runfiles.reader import read_run
@@ -148,7 +149,8 @@ def test_the_run_is_built_on_the_rate_the_adc_samples_at(tmp_path):
     time axis (and so the wave speed) is built on that rate, not the one asked for (it was: 0.03 % off)."""
     from velab.drivers.sadc_protocol import actual_rate
 
-    summary, events, _ = _run(tmp_path, "A", duration_s=1.0, fit=False, sample_rate_hz=7000.0)
+    summary, events, _ = _run(tmp_path, "A", duration_s=1.0, fit=False, sample_rate_hz=7000.0,
+                              clock=rate_clock(7000.0))
     assert summary.status == "completed", summary.reason
     fs = actual_rate(7000.0)
     assert abs(fs - 7000.0) > 1.0

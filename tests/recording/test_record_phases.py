@@ -11,6 +11,7 @@ import sys
 import h5py
 import pytest
 
+from record_helpers import rate_clock
 from velab.errors import VelabError
 from velab.recording import Recorder, RecorderEvent, RecordSettings
 from velab.runfiles.layout import read_json
@@ -178,7 +179,7 @@ def test_record_options_are_checked(tmp_path):
 def test_no_phase_event_is_lost_when_nobody_drains_the_events(tmp_path):
     """The bounded event queue drops live samples first: every phase, fault and the summary stay."""
     s = RecordSettings(duration_s=3.0, pretrigger_s=0.5, sample_rate_hz=10000, fit=False, out_dir=tmp_path)
-    with Recorder.simulated(s, clock="fast") as rec:
+    with Recorder.simulated(s, clock=rate_clock(10000)) as rec:
         for _ in range(rec.events.maxsize):  # a consumer that stopped draining: the queue is full already
             rec.events.put_nowait(RecorderEvent("samples", 0.0, None))
         summary = rec.run()

@@ -186,7 +186,9 @@ def test_slow_channel_times_are_the_right_instants(tmp_path):
 
 def test_recorded_slow_times_agree_with_the_host_clock_of_the_samples(files):
     """In a real recording, a slow reading's instant (start + time) matches the host clock of the fast
-    sample at its axis time, within the acquisition's block latency."""
+    sample at its axis time, within the acquisition's block latency: up to 0.55 s of host time under two
+    suites at once. A reading put on the wrong clock is off by seconds (the fast clock's axis runs 12 x the
+    host's: 1.8 s of axis between two polls)."""
     with h5py.File(files["recorded"], "r") as fh:
         g = fh["entry/instrument/flow"]
         t0 = dt.datetime.fromisoformat(L.to_str(g["time"].attrs["start"])).timestamp()
@@ -195,7 +197,7 @@ def test_recorded_slow_times_agree_with_the_host_clock_of_the_samples(files):
     inside = (axis >= t[0]) & (axis <= t[-1])
     assert inside.sum() >= 2
     expected = np.interp(axis[inside], t, host)
-    assert np.abs(instants[inside] - expected).max() < 0.5
+    assert np.abs(instants[inside] - expected).max() < 1.0
 
 
 KILLED = textwrap.dedent(

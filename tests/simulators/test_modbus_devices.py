@@ -243,19 +243,20 @@ def test_bench_config_sim_toml_matches_default_sim():
 
 
 def test_adc_ring_holds_the_same_host_time_on_a_fast_clock():
-    """The ring (4 s of 2 channels at 2 kHz on the profile) holds 4 s of *host* time on a clock 12 x real time as
-    far as the register space goes (65535 - 2000 registers: 15.9 s of device time, 1.3 s of host time): a recorder
-    5 s of device time behind (more than the profile's ring) loses nothing; the capacity register says so. Its read
-    of that backlog (160 Modbus reads) has the rest of the ring, 0.9 s of host time: 7 s behind left 0.74 s for
-    224 reads, and a loaded host took 0.05 s more (its oldest samples overwritten while it read, rightly dropped).
-    On the manual clock the ring is the profile's (checked by the module's fixture sim: 8000 samples)."""
+    """The ring (4 s of 2 channels at 2 kHz on the profile) holds 4 s of *host* time on a clock K x real time as
+    far as the register space goes (65535 - 2000 registers: 15.9 s of device time): a recorder 5 s of device time
+    behind (more than the profile's ring) loses nothing; the capacity register says so. At 4 x (3.97 s of host
+    time) the read of that backlog (160 Modbus reads) has the rest of the ring, 2.7 s of host time; at the fast
+    clock (12 x: 1.3 s of host time) it had 0.9 s, and under two suites at once the reads took longer (the oldest
+    588 samples overwritten while they ran, rightly dropped). On the manual clock the ring is the profile's
+    (checked by the module's fixture sim: 8000 samples)."""
     from velab.simulators.bench import SimulatedBench
     from velab.simulators.clock import make_clock
     from velab.simulators.modbus_devices import REGISTER_SPACE
 
-    config = dict(CONFIG, clock="fast", devices={"pressure_adc": dict(CONFIG["devices"]["pressure_adc"],
-                                                                      endpoints=[{"transport": "tcp"}])})
-    with SimulatedBench(config, clock=make_clock("fast"), ephemeral=True) as fast:
+    config = dict(CONFIG, clock="scaled:4", devices={"pressure_adc": dict(CONFIG["devices"]["pressure_adc"],
+                                                                          endpoints=[{"transport": "tcp"}])})
+    with SimulatedBench(config, clock=make_clock("scaled:4"), ephemeral=True) as fast:
         adc = open_device(fast.bench(prefer=("tcp",), pressure_adc={"timeout_s": 2.0, "retries": 1})
                           .devices["pressure_adc"])
         try:
