@@ -265,7 +265,9 @@ def test_second_run_on_the_same_connection_after_reset_valve(tmp_path):
         measured = [i for i, d in trigger if d["measured"]]
         assert len(measured) == 1 and measured[0] < kinds.index("done")
         assert events[measured[0]].data["trigger_time_s"] == first.trigger_time_s
-        assert [d["measured"] for _, d in trigger] == [False, True]
+        # the command's estimate first, unless the feedback measured the instant before the TRIGGER's reply came
+        # (a loaded host: its reply late, the valve already moving): then only the measured one
+        assert [d["measured"] for _, d in trigger] in ([False, True], [True])
         # arming with the valve closed is refused (nothing moves), and says what to do
         with pytest.raises(RunRefused, match="valve not open"):
             rec.arm().result(timeout=60)
