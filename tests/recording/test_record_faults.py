@@ -38,8 +38,8 @@ def _spawn(out: Path, *extra):
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
 
 
-def _samples_in(out: Path, timeout=60.0, need=0) -> tuple[Path, int]:
-    """Follow the file as a SWMR reader until it holds `need` samples."""
+def _follow(out: Path, holds, what: str, timeout=60.0) -> tuple[Path, int]:
+    """Follow the run file in ``out`` as a SWMR reader until ``holds(fh, n)`` (n: its samples so far)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         files = list(out.glob("*.h5"))
@@ -47,32 +47,25 @@ def _samples_in(out: Path, timeout=60.0, need=0) -> tuple[Path, int]:
             try:
                 with h5py.File(files[0], "r", swmr=True) as fh:
                     n = fh["entry/data/time"].shape[0]
-                if n >= need:
-                    return files[0], n
-            except (OSError, KeyError):
-                pass
-        time.sleep(0.02)
-    raise AssertionError(f"no run file with {need} samples in {out}")
-
-
-def _recorded_after_trigger(out: Path, need_s: float, timeout=60.0) -> tuple[Path, int]:
-    """Follow the file as a SWMR reader until it holds `need_s` seconds after the trigger instant (the file's
-    trigger_time stays 0 until the trigger was carried out): a state, whatever the baseline's length."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        files = list(out.glob("*.h5"))
-        if files:
-            try:
-                with h5py.File(files[0], "r", swmr=True) as fh:
-                    t = fh["entry/data/time"]
-                    n = t.shape[0]
-                    trigger = float(fh["entry/manoeuvre/trigger_time"][()])
-                    if n and trigger > 0 and float(t[n - 1]) - trigger >= need_s:
+                    if holds(fh, n):
                         return files[0], n
             except (OSError, KeyError):
                 pass
         time.sleep(0.02)
-    raise AssertionError(f"no run file with {need_s} s recorded after the trigger in {out}")
+    raise AssertionError(f"no run file with {what} in {out}")
+
+
+def _samples_in(out: Path, need=0) -> tuple[Path, int]:
+    return _follow(out, lambda fh, n: n >= need, f"{need} samples")
+
+
+def _recorded_after_trigger(out: Path, need_s: float) -> tuple[Path, int]:
+    """Until the file holds `need_s` seconds after the trigger instant (its trigger_time stays 0 until the trigger
+    was carried out): a state, whatever the baseline's length."""
+    def holds(fh, n):
+        trigger = float(fh["entry/manoeuvre/trigger_time"][()])
+        return n > 0 and trigger > 0 and float(fh["entry/data/time"][n - 1]) - trigger >= need_s
+    return _follow(out, holds, f"{need_s} s recorded after the trigger")
 
 
 def test_sigkill_keeps_every_flushed_sample(tmp_path):
