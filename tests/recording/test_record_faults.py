@@ -330,7 +330,9 @@ def test_steady_flow_off_q0_during_the_baseline_is_a_flow_mismatch(tmp_path, thr
     assert [f["kind"] for f in faults] == ["flow_mismatch"]
     f = faults[0]
     assert f["device"] == "flowmeter" and f["role"] == "flowmeter"
-    assert f["deviation"] == pytest.approx(0.10, abs=1e-4) and f["tolerance"] == pytest.approx(0.055)
+    # the mean of the baseline's readings: 10 % off, or a little less where one of them still (the meter refreshes
+    # at 2 Hz) or again (a loaded host triggered after the fault's 13 s) showed Q0 (0.0798: 4 of 5 readings)
+    assert f["tolerance"] == pytest.approx(0.055) and f["tolerance"] < f["deviation"] <= 0.10 + 1e-4
     run = read_run(out.summary.path)
     assert run.status == CWF and "flow mismatch" in run.status_reason
 
