@@ -241,17 +241,22 @@ class SimulatedRig:
             with self._lock:
                 if gen != self._arm_gen:
                     return
-                args = (self._beta, self._gamma, self._end, self.faults.valve_fault_after_s)
-            armed = self._compute(0.0, *args[:3], freeze_tau=args[3])
+                inputs = self._arm_inputs()
+            beta, gamma, end, fault_tau = inputs
+            armed = self._compute(0.0, beta, gamma, end, freeze_tau=fault_tau)
             with self._lock:
                 if gen != self._arm_gen:
                     return
-                if (self._beta, self._gamma, self._end, self.faults.valve_fault_after_s) != args:
+                if self._arm_inputs() != inputs:
                     continue
                 self._armed = armed
                 self._arming = False
                 self._state = ValveState.ARMED
                 return
+
+    def _arm_inputs(self) -> tuple:
+        """What the armed transient is computed from (under the lock): the manoeuvre and a pending seizure."""
+        return self._beta, self._gamma, self._end, self.faults.valve_fault_after_s
 
     def _cancel_arming(self) -> None:
         self._arm_gen += 1

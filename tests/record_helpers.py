@@ -27,7 +27,9 @@ def rate_clock(rate_hz: float) -> str:
     2 kHz; 4 x above. At 10 kHz and 12 x the in-process simulator sends 120,000 samples a second of host time
     (10,000 on the real bench); under two suites at once the reader fell 50,745 samples behind and lost them, and
     STOP's reply waited behind a second of frames ('no reply to STOP within 1 s'). At 4 x: 40,000 a second."""
-    return "fast" if rate_hz <= 2000.0 else "scaled:4"
+    return "fast" if rate_hz <= 2000.0 else MODBUS_ADC_CLOCK  # (the same 4 x)
+
+
 DEADLINE_S = 40.0  # a scenario that has not ended by then hangs (the documented bounds are seconds)
 CWF, FAILED, ABORTED = "completed-with-faults", "failed", "aborted"
 

@@ -11,10 +11,10 @@ import time
 
 import pytest
 
+from sim_helpers import wait_until
 from velab.drivers.modbus import crc16
 from velab.drivers.profile import load_profile
 from velab.drivers.valve import Command, ValveState
-from sim_helpers import wait_until
 from velab.simulators.bench import SimulatedBench
 from velab.simulators.clock import ManualClock
 

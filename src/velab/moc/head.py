@@ -71,21 +71,28 @@ def n_reaches(rig: Rig, dt_s: float) -> int:
     return max(2, int(round(rig.pipe.length_m / (rig.nominal_wave_speed_m_s * dt_s))))
 
 
+def _cached(cache: OrderedDict, key, make):
+    """``cache[key]``, made by ``make()`` (outside the lock: seconds of CPU) on a miss; the least recently used of
+    more than ``_STEP_CACHE_SIZE`` entries is dropped."""
+    with _STEP_LOCK:
+        value = cache.get(key)
+        if value is not None:
+            cache.move_to_end(key)
+            return value
+    value = make()
+    with _STEP_LOCK:
+        cache[key] = value
+        while len(cache) > _STEP_CACHE_SIZE:
+            cache.popitem(last=False)
+    return value
+
+
 def _step_model(rig: Rig, t: np.ndarray, position_m: float | None = None) -> ValveHeadModel:
     """Full-band frequency model of a unit flow step at the trigger on grid t, the head at the valve or at
     ``position_m`` (cached per rig, grid and position)."""
     key = (rig, float(t[0]), float(t[1] - t[0]), t.size, position_m)
-    with _STEP_LOCK:
-        model = _STEP_MODELS.get(key)
-        if model is not None:
-            _STEP_MODELS.move_to_end(key)
-            return model
-    model = ValveHeadModel(rig, t, band_hz=None, trigger_step=1.0, position_m=position_m)
-    with _STEP_LOCK:
-        _STEP_MODELS[key] = model
-        while len(_STEP_MODELS) > _STEP_CACHE_SIZE:
-            _STEP_MODELS.popitem(last=False)
-    return model
+    return _cached(_STEP_MODELS, key,
+                   lambda: ValveHeadModel(rig, t, band_hz=None, trigger_step=1.0, position_m=position_m))
 
 
 def _step_head(rig: Rig, t: np.ndarray, position_m: float | None, a: float, J_rel, tau_s) -> np.ndarray:
@@ -93,18 +100,12 @@ def _step_head(rig: Rig, t: np.ndarray, position_m: float | None, a: float, J_re
     reference rig's 20 s grid, asked again with the same wall each time a simulated actuator arms or stops."""
     J, tau = np.asarray(J_rel, dtype=float), np.asarray(tau_s, dtype=float)
     key = (rig, float(t[0]), float(t[1] - t[0]), t.size, position_m, float(a), J.tobytes(), tau.tobytes())
-    with _STEP_LOCK:
-        head = _STEP_HEADS.get(key)
-        if head is not None:
-            _STEP_HEADS.move_to_end(key)
-            return head
-    head = _step_model(rig, t, position_m).head_params(a, J, tau)
-    head.setflags(write=False)
-    with _STEP_LOCK:
-        _STEP_HEADS[key] = head
-        while len(_STEP_HEADS) > _STEP_CACHE_SIZE:
-            _STEP_HEADS.popitem(last=False)
-    return head
+
+    def make():
+        head = _step_model(rig, t, position_m).head_params(a, J, tau)
+        head.setflags(write=False)  # shared by every caller
+        return head
+    return _cached(_STEP_HEADS, key, make)
 
 
 @dataclass(frozen=True)
