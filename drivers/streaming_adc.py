@@ -41,6 +41,7 @@ from velab.drivers.base import (  # noqa: F401 - pressure_to_head_m re-exported
     pressure_to_head_m,
 )
 from velab.drivers.blocks import SampleBlock
+from velab.drivers.silence import Silence
 from velab.drivers.sadc_blocks import AcquisitionConfig, BlockAssembler, StreamStats
 from velab.drivers.sadc_profile import (  # noqa: F401 - re-exported
     ChannelProfile,
@@ -179,7 +180,7 @@ class StreamingADC(SADCLink):
         self._rejected_seen = 0
         self._streaming = True
         self._set_condition("streaming")
-        self._last_frame_mono = time.monotonic()
+        self._silence = Silence.for_wait(self.profile.poll_s)
         self._last_frame_host = time.time()
         self._seg_base_stats = (0, 0, 0, 0)
 
@@ -292,7 +293,7 @@ class StreamingADC(SADCLink):
                     continue
                 if data:
                     self._process(data, time.time())
-                if time.monotonic() - self._last_frame_mono > prof.data_timeout_s:
+                if self._silence.passed() > prof.data_timeout_s:
                     p = self._parser
                     raise StreamSilent(
                         f"{self.name}: no valid frame for {prof.data_timeout_s:g} s "
@@ -434,7 +435,7 @@ class StreamingADC(SADCLink):
                 self._emit(b)
             # after the delivery: the data timeout counts the device's silence, not the time a slow consumer
             # (the callback, a full queue) held the reader (a loaded host's run failed "no valid frame")
-            self._last_frame_mono = time.monotonic()
+            self._silence.reset()
         return stop_total
 
     def _emit(self, block: SampleBlock) -> None:

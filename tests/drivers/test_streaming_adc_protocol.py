@@ -376,6 +376,46 @@ def test_a_slow_consumer_is_not_a_silent_device():
     adc.stop()
 
 
+class HeldRead(ExpectedProtocol):
+    """A port one of whose reads during the stream ends empty ``hold_s`` after the host stopped running the
+    reader (a loaded machine): the device's next frames came meanwhile and wait in the port's buffer."""
+
+    def __init__(self, pairs, hold_s):
+        super().__init__(pairs)
+        self.hold_s, self.held, self.hold = hold_s, False, threading.Event()
+
+    def read(self, size: int = 1) -> bytes:
+        if self.hold.is_set() and not self.held and size > 0:
+            self.held = True
+            time.sleep(self.hold_s)
+            return b""
+        return super().read(size)
+
+
+def test_a_reader_held_by_its_host_is_not_a_silent_device():
+    """The data timeout counts the time the reader listened: a read that returned empty after the host had
+    held the reader 3 x the timeout, while the device sent, is not StreamSilent (a loaded pair's run failed
+    "no valid frame for 1 s", 0 bytes discarded); the frames that came meanwhile are read next."""
+    fake = HeldRead(CONFIG_2CH + [(b"START\n", b"OK START\n"), (b"STOP\n", b"OK STOP 12\n")], hold_s=1.5)
+    adc = StreamingADC(fake, profile(data_timeout_s=0.5))
+    adc.configure(10_000, ["pressure", "valve_position"], block_samples=4)
+    got, errors = [], []
+
+    def consume(block):
+        got.append(block)
+        if len(got) == 1:
+            fake.hold.set()
+            fake.feed(frame(1, 4, counts(4)) + frame(2, 8, counts(8)))  # sent while the reader is held
+
+    adc.start(callback=consume, on_error=errors.append)
+    fake.feed(frame(0, 0, counts(0)))
+    deadline = time.monotonic() + 10
+    while sum(b.n for b in got) < 12 and not errors and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert fake.held and errors == [] and sum(b.n for b in got) == 12
+    adc.stop()
+
+
 def test_the_stop_reply_read_after_a_slow_consumer_is_taken():
     """STOP's reply came while the reader was held longer than the command timeout by the consumer of the
     last frames (a loaded host): it is read and taken, not a DeviceTimeout (the time was checked before
