@@ -70,8 +70,8 @@ SLOW_TARGETS = ("valve", "flowmeter")
 SLOW_DURATION_S = 12.0  # device seconds: 1 s of host time at 12 x
 # a fault of theirs switched on after the trigger: the rest of a 12 s record (0.93 s of host time) was less than
 # a silent device's retries under two suites at once ("completed", no fault: flowmeter-timeout-mid_record); 3 s of
-# host time after it
-SLOW_AFTER_TRIGGER_DURATION_S = 36.0
+# host time after it (and for a streaming ADC's fault mid-record, below)
+AFTER_TRIGGER_DURATION_S = 36.0
 STALL_S = 1.5  # the runs' stall timeout (wall seconds without pressure samples -> failed)
 # a pressure ADC outage shorter than the stall timeout is survived (C-F); one as long is a lost device: the
 # outage must stay well inside it (reconnecting and the first read take a timeout or two), or it is a race
@@ -128,12 +128,14 @@ def inject(sim, rec, target: str, fault: str) -> None:
 def test_fault_table(tmp_path, thread_errors, source, target, fault, instant, expected):
     sim = SimulatedBench.from_config("default", ephemeral=True, clock=make_clock("fast")).start()
     bench = dataclasses.replace(sim.bench(), recorder={"pressure_source": source})
-    # a streaming ADC's fault mid-record acts on the frames it makes from then on; those of the rest of a 3 s record
-    # (0.21 s of host time) can already be in the socket's buffer on a loaded host ("completed", nothing corrupted)
-    long = target in SLOW_TARGETS or (target == "streaming_adc" and instant == "mid_record")
-    duration_s = SLOW_DURATION_S if long else 3.0
-    if target in SLOW_TARGETS and instant in ("mid_record", "at_trigger"):
-        duration_s = SLOW_AFTER_TRIGGER_DURATION_S
+    # a streaming ADC's fault mid-record acts on the frames it makes from then on; those of the rest of the record
+    # can already be in the socket's buffer when a loaded host runs the acquisition thread that switches it on
+    # ("completed", nothing corrupted: the rest of a 3 s record is 0.21 s of host time, of a 12 s one 0.93 s, and
+    # a pair of suites had link_lost-mid_record "completed" at 12 s): 3 s of host time after it
+    duration_s = SLOW_DURATION_S if target in SLOW_TARGETS else 3.0
+    if (target in SLOW_TARGETS and instant in ("mid_record", "at_trigger")) or \
+            (target == "streaming_adc" and instant == "mid_record"):
+        duration_s = AFTER_TRIGGER_DURATION_S
     s = RecordSettings(duration_s=duration_s, pretrigger_s=0.5, fit=False, out_dir=tmp_path, stall_timeout_s=STALL_S)
     rec = Recorder(bench, sim.rig.rig, s, sim=sim, owns_sim=True)
     faults, fired = [], threading.Event()
