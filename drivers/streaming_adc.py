@@ -41,7 +41,6 @@ from velab.drivers.base import (  # noqa: F401 - pressure_to_head_m re-exported
     pressure_to_head_m,
 )
 from velab.drivers.blocks import SampleBlock
-from velab.drivers.silence import Silence
 from velab.drivers.sadc_blocks import AcquisitionConfig, BlockAssembler, StreamStats
 from velab.drivers.sadc_profile import (  # noqa: F401 - re-exported
     ChannelProfile,
@@ -62,6 +61,7 @@ from velab.drivers.sadc_protocol import (
     FrameParser,
     auto_block,
 )
+from velab.drivers.silence import Silence
 
 CONDITIONS = ("idle", "streaming", "reconnecting", "stopped", "failed")
 
@@ -337,22 +337,26 @@ class StreamingADC(SADCLink):
         """In the reader thread: send STOP, keep parsing frames until ``OK STOP <n>``."""
         self._write(b"STOP\n")
         t_cmd = self.profile.command_timeout_s
-        hard = time.monotonic() + 5 * t_cmd  # frames still in flight are parsed, within bounds
-        deadline = time.monotonic() + t_cmd
+        hard = 5 * t_cmd  # frames still in flight are parsed, within bounds
+        # both in the time this thread listened (velab.drivers.silence): a pass the host held it longer than a
+        # poll counts a poll's worth (a loaded pair's unpaced simulator, in the same process, answered STOP after
+        # such a pass: "no reply to 'STOP' within 1 s")
+        quiet, since_stop = Silence.for_wait(self.profile.poll_s), Silence.for_wait(self.profile.poll_s)
         final = False
         while not final:
             # once the time is up, one more read: what came while this thread was not running (a slow consumer
             # of the last frames, a loaded host) is still the device's answer; that look is the last unless it
             # brought bytes before the hard bound
-            expired = time.monotonic() >= min(deadline, hard)
+            over = since_stop.passed() >= hard
+            expired = quiet.passed() >= t_cmd or over
             try:
                 data = self._read(self.config.frame_len)
             except DeviceDisconnected as exc:
                 self._stop_error = exc
                 return
-            final = expired and (not data or time.monotonic() >= hard)
+            final = expired and (not data or over)
             if data:
-                deadline = time.monotonic() + t_cmd
+                quiet.reset()
                 total = self._process(data, time.time(), stopping=True)
                 if total is not None:
                     tail = total - self._asm.expected
@@ -368,7 +372,9 @@ class StreamingADC(SADCLink):
                 with self._stats_lock:
                     self._stats.lost += tail
             return
-        self._stop_error = DeviceTimeout(f"{self.name}: no reply to 'STOP' within {self.profile.command_timeout_s:g} s")
+        why = (f"within {hard:g} s of frames" if since_stop.silent_s >= hard
+               else f"within {t_cmd:g} s of the device's silence")
+        self._stop_error = DeviceTimeout(f"{self.name}: no reply to 'STOP' {why}")
 
     def _reconnect(self, cause: DeviceDisconnected) -> None:
         prof = self.profile

@@ -446,6 +446,50 @@ def test_the_stop_reply_read_after_a_slow_consumer_is_taken():
     assert out["stats"].samples == 8 and out["stats"].lost == 0
 
 
+class StarvedDevice(ExpectedProtocol):
+    """A port whose first read after STOP ends empty ``hold_s`` after the host stopped running the reader, and
+    whose device, kept from running as well (a simulator in the same process), answers STOP only after the
+    reader's next read: ``reply`` is waiting from the third read after STOP on."""
+
+    def __init__(self, pairs, hold_s, reply):
+        super().__init__(pairs)
+        self.hold_s, self.reply, self.reads_after_stop = hold_s, reply, 0
+
+    def read(self, size: int = 1) -> bytes:
+        if self.written[-2:] == [b"START\n", b"STOP\n"] and size > 0:  # (configure's STOP is not this one)
+            self.reads_after_stop += 1
+            if self.reads_after_stop == 1:
+                time.sleep(self.hold_s)
+                return b""
+            if self.reads_after_stop == 3:
+                self.feed(self.reply)
+        return super().read(size)
+
+
+def test_a_stop_reply_after_the_host_held_reader_and_device_is_taken():
+    """The wait for STOP's reply counts the time the reader listened: a pass the host held it 2.5 x the command
+    timeout, then an empty read (the device had not run either), then the reply: taken, not a DeviceTimeout (a
+    loaded pair: "no reply to 'STOP' within 1 s" from an unpaced simulator in the test's process)."""
+    fake = StarvedDevice([(b"START\n", b"OK START\n"), (b"STOP\n", b"")], hold_s=2.5 * 0.3, reply=b"OK STOP 4\n")
+    fake.pairs[:0] = CONFIG_2CH
+    adc = StreamingADC(fake, profile(command_timeout_s=0.3, data_timeout_s=60.0))
+    adc.configure(10_000, ["pressure", "valve_position"], block_samples=4)
+    got = []
+    adc.start(callback=got.append)
+    fake.feed(frame(0, 0, counts(0)))
+    while not got:
+        time.sleep(0.005)
+    stats = adc.stop()
+    assert fake.reads_after_stop >= 3 and stats.samples == 4 and stats.lost == 0
+
+
+def test_a_stop_never_answered_names_the_device_s_silence():
+    fake, adc = configured([(b"START\n", b"OK START\n"), (b"STOP\n", b"")], data_timeout_s=60.0)
+    adc.start()
+    with pytest.raises(DeviceTimeout, match="no reply to 'STOP' within 0.3 s of the device's silence"):
+        adc.stop()
+
+
 class LateWaker(ExpectedProtocol):
     """A port whose reads after the first STOP time out empty, for 2 x the command timeout, just as its reply
     arrives: a reader thread kept from running while the bytes came (a loaded host)."""
