@@ -53,6 +53,13 @@ def campaign(window_s: float) -> list[CampaignRun]:
     return out
 
 
+def timed(fn):
+    """fn()'s result and its (wall, CPU) seconds: the process's CPU, both threads."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    out = fn()
+    return out, (time.perf_counter() - t0, time.process_time() - c0)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--window", type=float, default=20.0)
@@ -62,21 +69,18 @@ def main(argv=None) -> int:
     ref = runs[0]
     print(f"# {platform.machine()} {os.cpu_count()} cores, python {platform.python_version()}, numpy {np.__version__};"
           f" load {os.getloadavg()[0]:.2f}; window {args.window:g} s, {len(runs)} runs")
-    single, joint, single_cpu, joint_cpu, result = [], [], [], [], None
+    single, joint = [], []  # (wall, CPU) of each repeat
     for _ in range(args.repeat):
-        t0, c0 = time.perf_counter(), time.process_time()
-        one = fit_record(ref.time_s, ref.head_m, 0.0, ref.rig, args.window, record_rate_hz=ref.record_rate_hz)
-        single.append(time.perf_counter() - t0)
-        single_cpu.append(time.process_time() - c0)
-        t0, c0 = time.perf_counter(), time.process_time()
-        result = fit_joint(runs, args.window)
-        joint.append(time.perf_counter() - t0)
-        joint_cpu.append(time.process_time() - c0)
-    s, j = statistics.median(single), statistics.median(joint)
-    sc, jc = statistics.median(single_cpu), statistics.median(joint_cpu)
+        one, times = timed(lambda: fit_record(ref.time_s, ref.head_m, 0.0, ref.rig, args.window,
+                                              record_rate_hz=ref.record_rate_hz))
+        single.append(times)
+        result, times = timed(lambda: fit_joint(runs, args.window))
+        joint.append(times)
+    s, sc = (statistics.median(c) for c in zip(*single))
+    j, jc = (statistics.median(c) for c in zip(*joint))
     b = result.best
-    print(f"single fit of {ref.path}: {s:.2f} s, {sc:.2f} s CPU (best {one.best.name}, a = {one.best.wave_speed_m_s:.3f} "
-          f"+- {one.best.wave_speed_se_m_s:.3f} m/s)")
+    print(f"single fit of {ref.path}: {s:.2f} s, {sc:.2f} s CPU (best {one.best.name}, "
+          f"a = {one.best.wave_speed_m_s:.3f} +- {one.best.wave_speed_se_m_s:.3f} m/s)")
     print(f"joint fit of {len(runs)} runs: {j:.2f} s, {jc:.2f} s CPU (best {b.name}, a = {b.wave_speed_m_s:.3f} +- "
           f"{b.wave_speed_se_m_s:.3f} m/s; noise ratios "
           + ", ".join(f"{r['noise_ratio']:.3f}" for r in result.runs) + ")")

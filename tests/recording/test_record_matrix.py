@@ -70,7 +70,7 @@ SLOW_TARGETS = ("valve", "flowmeter")
 SLOW_DURATION_S = 12.0  # device seconds: 1 s of host time at 12 x
 # a fault of theirs switched on after the trigger: the rest of a 12 s record (0.93 s of host time) was less than
 # a silent device's retries under two suites at once ("completed", no fault: flowmeter-timeout-mid_record); 3 s of
-# host time after it (and for a streaming ADC's fault mid-record, below)
+# host time after it (and for a pressure source's fault mid-record, below)
 AFTER_TRIGGER_DURATION_S = 36.0
 STALL_S = 1.5  # the runs' stall timeout (wall seconds without pressure samples -> failed)
 # a pressure ADC outage shorter than the stall timeout is survived (C-F); one as long is a lost device: the
