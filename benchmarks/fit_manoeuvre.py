@@ -9,6 +9,9 @@ Records (material A on the reference rig, quadratic friction, sigma 0.1 m, 1 s p
 * "imposed": the rig's sigmoid imposed as the flow (the paper's valve model): the previous fit path
   names the truth there too, so the two do the same work and the ratio is the manoeuvre's price.
 
+The paths run in turn within each repeat (the drift of a virtual machine's speed shared alike), and the
+CPU ratio of each repeat is printed as well.
+
     python benchmarks/fit_manoeuvre.py [--repeat 3]
 
 Prints, per record and fit path: the median time (and each repeat), the best model, its wave speed,
@@ -76,23 +79,31 @@ def main() -> int:
         fit_record(t, h, 0.0, rig, 20.0, record_rate_hz=1000.0, models=[0], manoeuvre="rig")  # warm-up
         medians = {}
         print(f"\n{valve} record")
-        for name, opts in PATHS.items():
-            times, cpus = [], []
-            with polish(opts["polish"]):
-                for _ in range(args.repeat):
+        # the paths in turn, repeat after repeat (not each path's repeats in a row): a virtual machine's speed
+        # drifts by 10-20 % within minutes, and interleaving gives every path the same share of the drift
+        times = {name: [] for name in PATHS}
+        cpus = {name: [] for name in PATHS}
+        results = {}
+        for _ in range(args.repeat):
+            for name, opts in PATHS.items():
+                with polish(opts["polish"]):
                     t0, c0 = time.perf_counter(), time.process_time()
-                    r = fit_record(t, h, 0.0, rig, 20.0, record_rate_hz=1000.0, manoeuvre=opts["manoeuvre"])
-                    times.append(time.perf_counter() - t0)
-                    cpus.append(time.process_time() - c0)
-            medians[name] = statistics.median(times), statistics.median(cpus)
-            b = r.best
+                    results[name] = fit_record(t, h, 0.0, rig, 20.0, record_rate_hz=1000.0,
+                                               manoeuvre=opts["manoeuvre"])
+                    times[name].append(time.perf_counter() - t0)
+                    cpus[name].append(time.process_time() - c0)
+        for name in PATHS:
+            medians[name] = statistics.median(times[name]), statistics.median(cpus[name])
+            b = results[name].best
             print(f"  {name:24s} {medians[name][0]:6.2f} s wall, {medians[name][1]:6.2f} s CPU  "
-                  f"({', '.join(f'{x:.2f}' for x in times)})  best {b.name}, "
+                  f"({', '.join(f'{x:.2f}' for x in times[name])})  best {b.name}, "
                   f"a = {b.wave_speed_m_s:.3f} m/s, F/noise {b.noise_ratio:.3f}")
         base = medians["previous (rig sigmoid)"]
         for i, what in enumerate(("wall", "CPU")):
             print(f"  ratio ({what}) closure only / previous: {medians['closure only'][i] / base[i]:.2f}; "
                   f"new default / previous: {medians['new default'][i] / base[i]:.2f} (target <= 1.3)")
+        paired = [c / b for c, b in zip(cpus["new default"], cpus["previous (rig sigmoid)"])]
+        print(f"  paired CPU ratios new default / previous, repeat by repeat: {', '.join(f'{x:.2f}' for x in paired)}")
     return 0
 
 

@@ -252,7 +252,7 @@ class LMSolution:
 
 
 def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, ftol: float = 1e-7,
-                        broyden: bool = False) -> LMSolution:
+                        broyden: bool = False, predicted: bool = False) -> LMSolution:
     """A small bounded Levenberg-Marquardt (steps clipped to the box, Marquardt's diagonal scaling):
     ten parameters and a few thousand residuals, where scipy's trust-region solver spends its time in
     an SVD per iteration.
@@ -261,6 +261,12 @@ def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, f
     update along each accepted step (computed again only where a step it predicts fails): for a
     residual whose Jacobian costs one expensive model run per parameter (the time-domain model),
     started near its optimum. The returned ``jac`` is then that updated estimate.
+
+    ``predicted``: a step that the linear model of the residual (the Jacobian) predicts to gain less
+    than ``ftol`` of F is not tried: with a Jacobian computed at x the solver has converged (without it,
+    a start already at the optimum tries ever shorter steps, one residual each, until the damping reaches
+    its ceiling: ~25 runs of an expensive model to learn nothing); with a Broyden estimate the Jacobian
+    is computed again first.
 
     A variable whose bounds coincide is held: its Jacobian column is taken as zero (it neither moves nor
     shares the step with the others, and adds no variance to theirs)."""
@@ -290,6 +296,11 @@ def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, f
                 lam *= 10.0
                 continue
             xn = np.clip(x + step, lo, hi)
+            if predicted:
+                s_ = xn - x
+                gain_predicted = -(2.0 * float(g @ s_) + float(s_ @ A @ s_))  # |r + J s|^2 - |r|^2, negated
+                if gain_predicted < ftol * F:
+                    break
             rn = residual(xn)
             Fn = sumsq(rn)
             if Fn < F:

@@ -85,6 +85,11 @@ MOC_POLISH_AIC = 15.0
 MOC_POLISH_MAX = 3
 MOC_POLISH_ITERATIONS = 6
 MOC_POLISH_STEP = 1e-5  # finite-difference step in the log variables
+# the polish stops where a step gains (or the Jacobian predicts) less than this in n ln F: the AIC is
+# reported to 0.01, and a parameter left that far from the optimum is ~0.03 of its standard error off
+# (the defect correction typically stops 1e-4-1e-3 short of it: a relative 1e-9 in F made each
+# polish 30 MOC runs to gain nothing)
+MOC_POLISH_GAIN = 1e-3
 # one finite-difference Jacobian (a MOC run per parameter) at the defect correction's end, which is
 # near the optimum, then Broyden's update along the steps (velab.fitting.solvers.levenberg_marquardt)
 MOC_POLISH_BROYDEN = True
@@ -485,8 +490,8 @@ class _Sweep:
             cols = map_each(lambda i: column(x, h0, i), list(range(x.size)))
             return np.array(cols).T
 
-        sol = levenberg_marquardt(residual, jacobian, fin.sol.x, lo, hi, max_iter=MOC_POLISH_ITERATIONS, ftol=1e-9,
-                                  broyden=MOC_POLISH_BROYDEN)
+        sol = levenberg_marquardt(residual, jacobian, fin.sol.x, lo, hi, max_iter=MOC_POLISH_ITERATIONS,
+                                  ftol=MOC_POLISH_GAIN / self.d.size, broyden=MOC_POLISH_BROYDEN, predicted=True)
         F = sumsq(sol.fun) / sol.fun.size
         if not F < fin.sol.F:
             return fin
