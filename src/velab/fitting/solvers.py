@@ -297,9 +297,8 @@ def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, f
                 continue
             xn = np.clip(x + step, lo, hi)
             if predicted:
-                s_ = xn - x
-                gain_predicted = -(2.0 * float(g @ s_) + float(s_ @ A @ s_))  # |r + J s|^2 - |r|^2, negated
-                if gain_predicted < ftol * F:
+                dx = xn - x
+                if -(2.0 * float(g @ dx) + float(dx @ A @ dx)) < ftol * F:  # the decrease |r|^2 - |r + J dx|^2
                     break
             rn = residual(xn)
             Fn = sumsq(rn)

@@ -87,8 +87,8 @@ MOC_POLISH_ITERATIONS = 6
 MOC_POLISH_STEP = 1e-5  # finite-difference step in the log variables
 # the polish stops where a step gains (or the Jacobian predicts) less than this in n ln F: the AIC is
 # reported to 0.01, and a parameter left that far from the optimum is ~0.03 of its standard error off
-# (the defect correction typically stops 1e-4-1e-3 short of it: a relative 1e-9 in F made each
-# polish 30 MOC runs to gain nothing)
+# (a relative 1e-9 in F made each polish 30-36 MOC runs on the benchmark's records, where the defect
+# correction had stopped 5e-4 short of the optimum)
 MOC_POLISH_GAIN = 1e-3
 # one finite-difference Jacobian (a MOC run per parameter) at the defect correction's end, which is
 # near the optimum, then Broyden's update along the steps (velab.fitting.solvers.levenberg_marquardt)
