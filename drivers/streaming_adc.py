@@ -372,8 +372,7 @@ class StreamingADC(SADCLink):
                 with self._stats_lock:
                     self._stats.lost += tail
             return
-        why = (f"within {hard:g} s of frames" if since_stop.silent_s >= hard
-               else f"within {t_cmd:g} s of the device's silence")
+        why = f"within {hard:g} s of frames" if over else f"within {t_cmd:g} s of the device's silence"
         self._stop_error = DeviceTimeout(f"{self.name}: no reply to 'STOP' {why}")
 
     def _reconnect(self, cause: DeviceDisconnected) -> None:

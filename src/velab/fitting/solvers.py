@@ -141,7 +141,7 @@ class Stage:
                         return Sol(x, F, pm)
                 if Ft < F:
                     # predicted decrease of the linear model: -(|r + J dx|^2 - |r|^2)/n
-                    pred = -(2 * np.dot(g, dx) + dx @ A @ dx) / n
+                    pred = predicted_decrease(g, A, dx) / n
                     rel = (F - Ft) / F
                     rho = min(max((F - Ft) / max(pred, 1e-300), 0.0), 2.0)
                     lam = max(lam * max(1 / 3, 1 - (2 * rho - 1) ** 3), 1e-12)
@@ -243,6 +243,12 @@ class Stage:
         return Sol(x, self.F(pm, x), pm)
 
 
+def predicted_decrease(g: np.ndarray, A: np.ndarray, dx: np.ndarray) -> float:
+    """|r|^2 - |r + J dx|^2, the decrease of the residual's sum of squares that the linear model predicts for
+    the step dx, from g = J^T r and A = J^T J."""
+    return -(2.0 * float(g @ dx) + float(dx @ A @ dx))
+
+
 @dataclass
 class LMSolution:
     x: np.ndarray
@@ -298,7 +304,7 @@ def levenberg_marquardt(residual, jacobian, x0, lo, hi, *, max_iter: int = 40, f
             xn = np.clip(x + step, lo, hi)
             if predicted:
                 dx = xn - x
-                if -(2.0 * float(g @ dx) + float(dx @ A @ dx)) < ftol * F:  # the decrease |r|^2 - |r + J dx|^2
+                if predicted_decrease(g, A, dx) < ftol * F:
                     break
             rn = residual(xn)
             Fn = sumsq(rn)
