@@ -5,6 +5,8 @@ import numpy as np
 
 from velab.fitting.solvers import levenberg_marquardt
 
+LO, HI = np.array([0.1, 0.01, 0.5]), np.array([5.0, 5.0, 5.0])  # the box of the damped oscillation's parameters
+
 
 def _problem(seed=3):
     """A damped oscillation (three nonlinear parameters), noisy: the shape of a head record."""
@@ -30,13 +32,12 @@ def _problem(seed=3):
 
 
 def test_broyden_reaches_the_full_jacobians_optimum_with_fewer_jacobians():
-    lo, hi = np.array([0.1, 0.01, 0.5]), np.array([5.0, 5.0, 5.0])
     x0 = np.array([1.1, 0.75, 1.97])  # near the optimum, as the polish starts
     res, jac, calls, true = _problem()
-    full = levenberg_marquardt(res, jac, x0, lo, hi, max_iter=40, ftol=1e-12)
+    full = levenberg_marquardt(res, jac, x0, LO, HI, max_iter=40, ftol=1e-12)
     n_full = calls["jacobian"]
     res, jac, calls, _ = _problem()
-    quasi = levenberg_marquardt(res, jac, x0, lo, hi, max_iter=40, ftol=1e-12, broyden=True)
+    quasi = levenberg_marquardt(res, jac, x0, LO, HI, max_iter=40, ftol=1e-12, broyden=True)
     n_quasi = calls["jacobian"]
     F_full, F_quasi = np.sum(full.fun ** 2), np.sum(quasi.fun ** 2)
     assert F_quasi <= F_full * (1 + 1e-6)
@@ -47,9 +48,8 @@ def test_broyden_reaches_the_full_jacobians_optimum_with_fewer_jacobians():
 
 def test_broyden_recomputes_the_jacobian_when_its_update_stops_predicting():
     """From far away the updated Jacobian goes stale: the solver must compute it again, not stop."""
-    lo, hi = np.array([0.1, 0.01, 0.5]), np.array([5.0, 5.0, 5.0])
     res, jac, calls, true = _problem()
-    sol = levenberg_marquardt(res, jac, np.array([0.5, 0.3, 1.6]), lo, hi, max_iter=200, ftol=1e-12, broyden=True)
+    sol = levenberg_marquardt(res, jac, np.array([0.5, 0.3, 1.6]), LO, HI, max_iter=200, ftol=1e-12, broyden=True)
     assert calls["jacobian"] > 1
     assert np.allclose(sol.x, true, rtol=0.05)
 
@@ -61,7 +61,6 @@ def test_the_box_holds():
         sol = levenberg_marquardt(res, jac, np.array([1.0, 1.0, 2.0]), lo, hi, broyden=broyden)
         assert np.all(sol.x >= lo) and np.all(sol.x <= hi)
         assert sol.x[1] == 0.9  # on the bound the data push it to
-
 
 
 def _counting(res):
@@ -87,9 +86,6 @@ def _finite_differences(res, step=1e-5):
     return jac
 
 
-LO, HI = np.array([0.1, 0.01, 0.5]), np.array([5.0, 5.0, 5.0])
-
-
 def _optimum():
     res, jac, _, _ = _problem()
     sol = levenberg_marquardt(res, jac, np.array([1.1, 0.75, 1.97]), LO, HI, max_iter=100, ftol=1e-15)
@@ -99,7 +95,7 @@ def _optimum():
 def test_a_start_at_the_optimum_costs_no_trial_steps_when_the_gain_is_predicted():
     """At the optimum, with a finite-difference Jacobian, every step fails; without the prediction the solver
     tries ever shorter ones (one residual each: a run of the time-domain model in the polish)."""
-    x_opt, F_opt = _optimum()
+    x_opt, _ = _optimum()
     res, _, _, _ = _problem()
     fd = _finite_differences(res)
     blind, n_blind = _counting(res)
