@@ -107,7 +107,7 @@ def test_trigger_pressed_during_the_baseline_is_queued_and_shown(qtbot, tmp_path
     assert win.run_controls.stop_button.isEnabled() and win.run_controls.abort_button.isEnabled()
     assert "Trigger queued" in win.phase_label.text() or "armed" in win.phase_label.text()
     summary = op.wait_done(120)
-    assert summary.status == "completed" and summary.fit is not None
+    assert summary.status == "completed" and summary.fit is not None, (summary.status, summary.reason)
     queued = [st for st in op.states if st.trigger_queued]
     assert queued and all(st.countdown("baseline") is None or st.countdown("baseline") <= 3.0 for st in queued)
     assert any(t.startswith("Trigger queued: fires when the baseline is in") for t in win.log.texts())

@@ -132,7 +132,7 @@ def test_arm_without_connect_connects_and_arms(qtbot, tmp_path):
     op.press_when_enabled("arm", 60)
     op.press_when_enabled("trigger", 60)
     summary = op.wait_done(90)
-    assert summary.status == "completed" and summary.fit is not None
+    assert summary.status == "completed" and summary.fit is not None, (summary.status, summary.reason)
     assert [p for p, _ in op.presses] == ["arm", "trigger"] and win.controller.recorder.devices
     assert not win.log.texts("error") and not win.log.texts("warning")
 
