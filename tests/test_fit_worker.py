@@ -168,5 +168,5 @@ def test_the_fit_in_the_recorder_s_process_when_asked(tmp_path):
     rec = Recorder.simulated(_settings(tmp_path, fit_process=False, fit_models=(0, 1)), "default", material="A",
                              clock="fast")
     out = run_bounded(rec, deadline_s=120)
-    assert out.summary.status == "completed" and out.summary.fit is not None
+    assert out.summary.status == "completed" and out.summary.fit is not None, (out.summary.status, out.summary.reason)
     assert not [w for w in worker._live if id(w) not in before]  # no process started for it

@@ -107,14 +107,15 @@ def test_second_run_on_the_same_connection(qtbot, tmp_path):
     op.press_when_enabled("connect", 60)
     first = one_run()
     rec = win.controller.recorder
-    assert first.status == "completed" and first.fit_error == ""
+    assert first.status == "completed" and first.fit_error == "", (first.status, first.reason)
     measured = [m for m in marks if m[1]]
     assert measured and measured[0][2] and measured[0][0] == first.trigger_time_s  # during the run
     assert win.live.offset_s == first.trigger_time_s
     qtbot.waitUntil(lambda: win.run_controls.arm_button.text() == "Reopen + Arm", timeout=10000)
     assert win.run_controls.reset_valve_button.isEnabled() and win.reset_valve_action.isEnabled()
     second = one_run()
-    assert win.controller.recorder is rec and second.status == "completed" and second.path != first.path
+    assert second.status == "completed", (second.status, second.reason)
+    assert win.controller.recorder is rec and second.path != first.path
     assert rec.sim.rig.trigger_count == 2
     assert any("reopening it before arming" in t for t in win.log.texts())
     op.press_when_enabled("reset_valve", 30)

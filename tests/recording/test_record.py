@@ -70,7 +70,7 @@ def _stroke_element(fit, smaller: str) -> bool:
 
 def test_material_A_online_fit_names_S3(tmp_path):
     summary, events, _ = _run(tmp_path, "A", sim_config=_paper_friction_sim_config(tmp_path))
-    assert summary.status == "completed" and summary.exit_code == 0
+    assert summary.status == "completed" and summary.exit_code == 0, (summary.status, summary.reason)
     assert summary.lost_samples == 0 and summary.gaps == 0
     fit = summary.fit
     # AIC names the truth, S3, on most recordings (8 in 10 when measured on 25 Nov). Otherwise S4
@@ -132,7 +132,7 @@ def test_material_A_online_fit_names_S3(tmp_path):
 
 def test_s1_material_is_not_named_s3(tmp_path):
     summary, _, _ = _run(tmp_path, "hdpe_s1", sim_config=_paper_friction_sim_config(tmp_path), fit_models=(0, 1, 2, 3))
-    assert summary.status == "completed"
+    assert summary.status == "completed", (summary.status, summary.reason)
     fit = summary.fit
     s1 = fit["S1"]
     # The truth keeps support: by chance alone an extra element gains chi2 with 2 dof (P(dAIC > 7) ~ 0.4 %).
@@ -255,7 +255,7 @@ def test_second_run_on_the_same_connection_after_reset_valve(tmp_path):
         events = []
         rec.add_listener(events.append)
         first = rec.run()
-        assert first.status == "completed"
+        assert first.status == "completed", (first.status, first.reason)
         devices = dict(rec.devices)
         valve = [e.data for e in events if e.kind == "valve"]
         assert valve[-1]["open"] is False and rec.valve_open is False  # closed by the manoeuvre
@@ -280,7 +280,7 @@ def test_second_run_on_the_same_connection_after_reset_valve(tmp_path):
         path = rec.arm(settings=s.with_changes(duration_s=2.0, run_number=2)).result(timeout=60)
         assert rec.devices == devices and rec.settings.duration_s == 2.0
         second = _trigger_when_baseline_is_in(rec)
-        assert second.status == "completed" and second.path == path != first.path
+        assert second.status == "completed" and second.path == path != first.path, (second.status, second.reason)
         assert rec.sim.rig.trigger_count == 2
         # a reset is refused while a run records
         rec.reset_valve().result(timeout=60)

@@ -184,7 +184,7 @@ def test_zero_flow_after_the_closure_is_not_a_fault(tmp_path):
         events = []
         rec.add_listener(events.append)
         summary = rec.run()
-    assert summary.status == "completed"
+    assert summary.status == "completed", (summary.status, summary.reason)
     assert [str(e.data) for e in events if e.kind == "fault"] == []
     run = read_run(summary.path)
     assert "flowmeter" not in run.status_reason
@@ -298,7 +298,7 @@ def test_valve_reply_corrupted_mid_stroke_is_a_position_mismatch(tmp_path, threa
     assert out.error is None and thread_errors == []
     summary, run = out.summary, read_run(out.summary.path)
     if not xor:
-        assert summary.status == "completed" and faults == [] and gw.corrupted == 0
+        assert summary.status == "completed" and faults == [] and gw.corrupted == 0, (summary.status, summary.reason)
         assert run.status == "completed"
         return
     assert gw.corrupted >= 2  # several mid-stroke replies went through the broken gateway
@@ -350,7 +350,7 @@ def test_steady_head_off_the_rig_is_a_warning_in_the_file_not_a_fault(tmp_path, 
     faults: list = []
     out = run_bounded(rec, faults)
     assert out.error is None and thread_errors == []
-    assert out.summary.status == "completed" and faults == []
+    assert out.summary.status == "completed" and faults == [], (out.summary.status, out.summary.reason)
     warn = [m for m in messages if "head mismatch" in str(m)]
     assert len(warn) == 1 and warn[0].startswith("warning: ") and "2.00 m apart" in warn[0]
     run = read_run(out.summary.path)

@@ -47,7 +47,7 @@ def test_trigger_pressed_at_once_is_queued_and_carried_out(tmp_path):
         assert "arm" not in rec.allowed_commands()  # the manoeuvre closed the valve: reset first
     queued = [e.data for e in events if e.kind == "trigger" and e.data.get("queued")]
     assert len(queued) == 1 and queued[0]["baseline_remaining_s"] > 0
-    assert summary.status == "completed" and rec.sim is None
+    assert summary.status == "completed" and rec.sim is None, (summary.status, summary.reason)
     # carried out once the baseline was in, never before (t = 0 is the planned trigger), and not a baseline later
     # (a trigger that waited for a second baseline would be): the baseline is 1 s of host time at the fast clock,
     # room for a loaded host's thread wake-ups and the TRIGGER's round trip (measured: 45 ms under two suites,
@@ -108,7 +108,7 @@ def test_duration_equal_to_the_window_always_ends_with_its_fit(tmp_path, i):
     s = RecordSettings(duration_s=3.0, fit_window_s=3.0, pretrigger_s=0.5, fit_models=(1, 3), out_dir=tmp_path)
     with Recorder.simulated(s, clock="fast") as rec:
         summary = rec.run()
-    assert summary.status == "completed"
+    assert summary.status == "completed", (summary.status, summary.reason)
     assert summary.fit is not None, summary.fit_error
     assert summary.fit_latency_s is not None and "online" in read_run(summary.path).fit_names
 
