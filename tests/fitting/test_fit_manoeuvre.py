@@ -195,33 +195,38 @@ def test_the_first_parts_closure_of_a_late_closing_valve_follows_its_flow():
 
 def test_a_quick_valve_head_only_record_names_s3_with_margin_and_its_own_closure():
     """The knife edge (tests above: S2 named on one machine, S3 on another): a fast element (17 ms) smooths the
-    fronts as an abrupt closure does, and the closure had been refined with the lead's S2 wall, which it then
-    made up for. Now the record, and the same record changed far below its noise (1e-9 m: any change of its
-    last bits sends the solvers down other paths, as another CPU's rounding does), both name S3 with S2 more
-    than 20 AIC units behind (about 220 on seeds 11-14) and wave speeds within two standard errors of each
-    other (the closure family has more than one local optimum on this record, 31 apart in n ln F: which one
-    a fit ends in still depends on its path, docs/fitting.md); and the closure is the named model's: refined
-    again with its wall and every model continued, S3 gains less than 2 in n ln F (before: 34-290 on seeds 12
-    and 14) and its wave speed moves by less than half its standard error. (A gain g can move a by up to
-    sqrt(g) standard errors along its profile: an AMD EPYC without AVX-512 ends 0.29 of one away with a gain of
-    1.5, where the machine this test was written on stayed under a quarter; the refinement's single
-    projection, docs/fitting.md, stops within that.)"""
+    fronts as an abrupt closure does. The record changed far below its noise (1e-9 m: any change of its last bits
+    sends the solvers down other paths, as another CPU's rounding does; the record itself is the
+    [perugia-S3-quick] case above) names S3 with S2 more than 100 AIC units behind (207-278 on eight such
+    changes and other noise seeds) and wave speeds within two standard errors of each other. Change 8 ended in a
+    closure at the box's corner (power 6, loss share 0.001) that its fast element made up for, S2 only 42 behind
+    and 170 in n ln F short of the quick-opening optimum, until the refinement got a quick-opening prototype
+    (velab.fitting.refine.PROTOTYPES).
+
+    And the closure is the named model's: refined again with its wall and every model continued, S3 gains less
+    than 8 in n ln F and its wave speed moves by less than 1.5 of its standard error. A closure refined with
+    another model's wall was 34-290 short (seeds 12 and 14 before the closure was refined with the named model's
+    wall); the fit path itself ends near, not at, that fixed point: the refinement and the continuation
+    alternated converge slowly (docs/fitting.md), measured 0-5.8 in n ln F and up to 1.07 standard errors on
+    eight changes of this record, up to 3.8 and 0.48 on the five records of benchmarks/fit_joint.py (a round
+    that took the fit to the fixed point cost a continuation, ~2 s, per round and did not converge on that
+    campaign's first record: not taken)."""
     rig, t, h = valve_record(load_rig("perugia"), "S3", VALVES["quick"])
-    fits = [fit_record(t, x, 0.0, rig, 20.0, record_rate_hz=1000.0)
-            for x in (h, h + 1e-9 * np.random.default_rng(5).normal(size=h.size))]
-    for r in fits:
+    a = []
+    for seed in (8, 5):
+        x = h + 1e-9 * np.random.default_rng(seed).normal(size=h.size)
+        r = fit_record(t, x, 0.0, rig, 20.0, record_rate_hz=1000.0)
         assert r.best.name == "S3", r.report(elements=False)
-        assert r["S2"].delta_aic > 20
+        assert r["S2"].delta_aic > 100, (seed, r["S2"].delta_aic)
         assert r.settings["manoeuvre"]["refined_with"] == "S3"
-    a = [r.best.wave_speed_m_s for r in fits]
-    assert abs(a[0] - a[1]) <= 2 * max(r.best.wave_speed_se_m_s for r in fits)
-    r = fits[0]
-    rec = prepare_record(t, h, 0.0, rig, 20.0, record_rate_hz=1000.0)
-    vi = valve_input(rec.t, rec.h, rig, rec.window_s, closure=r.settings["manoeuvre"])
-    again = refine_closure(rec.t, rec.h, rig, vi, r.best, FitBounds.from_dict(r.settings["bounds"]))
-    r2 = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=again.flow, lead=r, trust_lead=False)
-    assert r.n * math.log(r.best.F / r2["S3"].F) < 2.0
-    assert abs(r2["S3"].wave_speed_m_s - r.best.wave_speed_m_s) < 0.5 * r.best.wave_speed_se_m_s
+        a.append((r.best.wave_speed_m_s, r.best.wave_speed_se_m_s))
+        rec = prepare_record(t, x, 0.0, rig, 20.0, record_rate_hz=1000.0)
+        vi = valve_input(rec.t, rec.h, rig, rec.window_s, closure=r.settings["manoeuvre"])
+        again = refine_closure(rec.t, rec.h, rig, vi, r.best, FitBounds.from_dict(r.settings["bounds"]))
+        r2 = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=again.flow, lead=r, trust_lead=False)
+        assert r.n * math.log(r.best.F / r2["S3"].F) < 8.0, seed
+        assert abs(r2["S3"].wave_speed_m_s - r.best.wave_speed_m_s) < 1.5 * r.best.wave_speed_se_m_s, seed
+    assert abs(a[0][0] - a[1][0]) <= 2 * max(se for _, se in a)
 
 
 def test_each_model_is_compared_under_its_own_closure():
