@@ -141,6 +141,32 @@ def test_a_run_ended_before_its_stroke_could_be_seen_is_not_a_feedback_fault(aft
     assert [op.t for op in ops if isinstance(op, Trigger)] == [t_est]
 
 
+def test_a_stroke_whose_samples_were_lost_is_not_called_stuck_feedback():
+    """The samples over the stroke were lost (the opening passes 90 % and 10 % 0.22 s either side of its
+    midpoint, 0.3 s after the estimate here; the gap runs from 0.05 s to 0.6 s after the estimate): the feedback
+    did close, so it is not "stuck or disconnected"; the fault says the stroke passed its band with no sample
+    inside it, and the trigger stays the command's estimate."""
+    host = ManualClock()
+    tl, rec, ops, closed, _ = make(host=host)  # beta 10, gamma 0
+    for i in range(15):
+        feed(tl, 100 * i, 100, host)
+    t_est = tl.mark_trigger()
+    assert tl.commit_trigger()
+
+    def opening(first, n):
+        t = (first + np.arange(n) - 1000) / FS
+        return 100.0 / (1.0 + np.exp(10.0 * (t - t_est - 0.3)))
+
+    feed(tl, 1500, 50, position_pct=opening(1500, 50))  # above 90 %
+    for first in range(2100, 4500, 100):  # below 10 %, 550 samples lost before
+        feed(tl, first, 100, position_pct=opening(first, 100), lost_before=550 * (first == 2100))
+    valve = [f for f in rec.faults if f[0] == "valve"]
+    assert len(valve) == 1, rec.faults
+    assert "passed its 10-90 % band with 0 sample(s) inside it" in valve[0][1] and "stuck" not in valve[0][1]
+    assert [op.t for op in ops if isinstance(op, Trigger)] == [t_est]
+    assert any(f[2] == "samples_lost" for f in rec.faults)
+
+
 def test_a_restarted_stream_is_estimated_from_its_own_blocks_only():
     """After a restart the lost count is an estimate: the blocks before it say nothing of the new
     axis, so the trigger is estimated from the blocks after it."""

@@ -147,6 +147,7 @@ class Timeline:
         self.trigger_latest: float | None = None
         self._pos_t: list = []
         self._pos_v: list = []
+        self._stroke_passed = False  # the feedback was seen past the stroke band (closed beyond its 10 %)
         self._fit = None  # the window's rows: axis, head, valve position, the other transducers' heads
         self._fit_n = 0
         self._pre_blocks: deque = deque()  # (axis time, head, others' heads) blocks before the trigger was marked
@@ -251,8 +252,16 @@ class Timeline:
             t0 = trigger_from_position(np.concatenate(self._pos_t), np.concatenate(self._pos_v), self.beta,
                                        self.gamma, self.end_pct)
         if t0 is None:
-            self.hooks.fault("valve", "valve-position feedback: no stroke seen (stuck or disconnected feedback); "
-                             "the trigger instant is the command's estimate", "quality", channel=self.vch)
+            inside = sum(p.size for p in self._pos_t)
+            if self._stroke_passed:
+                # the valve did close: the feedback is neither stuck nor disconnected, its samples over the stroke
+                # are missing (lost, or a rate too low for the stroke)
+                what = (f"the stroke passed its {STROKE_BAND_PCT[0]:g}-{STROKE_BAND_PCT[1]:g} % band with {inside} "
+                        f"sample(s) inside it (at least {MIN_STROKE_SAMPLES} time it: samples lost over the stroke?)")
+            else:
+                what = "no stroke seen (stuck or disconnected feedback)"
+            self.hooks.fault("valve", f"valve-position feedback: {what}; the trigger instant is the command's estimate",
+                             "quality", channel=self.vch)
             return
         estimate = self.trigger_time
         self.trigger_time = t0
@@ -407,6 +416,7 @@ class Timeline:
             if sel.any():
                 self._pos_t.append(t[sel])
                 self._pos_v.append(pos[sel])
+            self._stroke_passed |= bool(passed)
             if passed and self._pos_t:
                 self._measure_trigger()
         buf, n0 = self._fit, self._fit_n
