@@ -8,8 +8,9 @@ correction refreshed between the stages:
 
 1. *Basins.* The first part's closure (and its alternative, the coupling on the other side), and the
    prototypes of a butterfly discharging to air, of an imposed sigmoid and of a quick-opening valve at the same
-   flow half-closure instant (``PROTOTYPES``), each taken START_ITERATIONS steps of a joint Levenberg-Marquardt over the wall and the closure
-   (the first part does not tell these shapes apart, the whole window does); the best goes on.
+   flow half-closure instant (``PROTOTYPES``), each taken START_ITERATIONS steps of a joint Levenberg-Marquardt
+   over the wall and the closure (the first part does not tell these shapes apart, the whole window does); the
+   best goes on.
 2. *Variable projection* (Golub & Pereyra): the closure stepped by Levenberg-Marquardt on the profile
    residual -- under every closure tried, the wall solved again by the sweep's own solver
    (``Stage.lsq``, analytic Jacobian, from the best wall so far) -- with the closure's Jacobian taken
@@ -56,8 +57,8 @@ INNER_NFEV = 20  # the wall's solve under one closure (warm-started from the bes
 JOINT_ITERATIONS = 15  # then the best start's joint steps
 JOINT_PASSES = 2  # ... with the correction refreshed before each (time-domain laws)
 # the prototypes' (characteristic power, loss share): manoeuvre.STARTS and a quick-opening valve, which passes half
-# its flow until late in the stroke; from the others, a record of one ended in a closure at the box's corner (power 6,
-# loss share 0.001) that a fast element made up for, 170 in n ln F short of the quick-opening optimum
+# its flow until late in the stroke; without it, a quick-opening valve's record changed by 1e-9 m ended in a closure
+# at the box's corner (power 6, loss share 0.001) that a fast element made up for, 170 in n ln F short
 PROTOTYPES = tuple((power, share) for power, share, _ in STARTS) + ((0.5, 0.5),)
 
 
