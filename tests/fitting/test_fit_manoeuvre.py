@@ -208,9 +208,9 @@ def test_a_quick_valve_head_only_record_names_s3_with_margin_and_its_own_closure
     another model's wall was 34-290 short (seeds 12 and 14 before the closure was refined with the named model's
     wall); the fit path itself ends near, not at, that fixed point: the refinement and the continuation
     alternated converge slowly (docs/fitting.md), measured 0-5.8 in n ln F and up to 1.07 standard errors on
-    eight records of this valve (noise seeds and changes), up to 3.8 and 0.48 on the five records of benchmarks/fit_joint.py (a round
-    that took the fit to the fixed point cost a continuation, ~2 s, per round and did not converge on that
-    campaign's first record: not taken)."""
+    eight records of this valve (noise seeds and changes), up to 3.8 and 0.48 on the five records of
+    benchmarks/fit_joint.py (a round that took the fit to the fixed point cost a continuation, ~2 s, per round
+    and did not converge on that campaign's first record: not taken)."""
     rig, t, h = valve_record(load_rig("perugia"), "S3", VALVES["quick"])
     a = []
     for seed in (8, 5):

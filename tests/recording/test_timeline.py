@@ -147,7 +147,7 @@ def test_a_stroke_whose_samples_were_lost_is_not_called_stuck_feedback():
     did close, so it is not "stuck or disconnected"; the fault says the stroke passed its band with no sample
     inside it, and the trigger stays the command's estimate."""
     host = ManualClock()
-    tl, rec, ops, closed, _ = make(host=host)  # beta 10, gamma 0
+    tl, rec, ops, _, _ = make(host=host)  # beta 10, gamma 0
     for i in range(15):
         feed(tl, 100 * i, 100, host)
     t_est = tl.mark_trigger()

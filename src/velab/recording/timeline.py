@@ -252,12 +252,12 @@ class Timeline:
             t0 = trigger_from_position(np.concatenate(self._pos_t), np.concatenate(self._pos_v), self.beta,
                                        self.gamma, self.end_pct)
         if t0 is None:
-            inside = sum(p.size for p in self._pos_t)
             if self._stroke_passed:
                 # the valve did close: the feedback is neither stuck nor disconnected, its samples over the stroke
                 # are missing (lost, or a rate too low for the stroke)
-                what = (f"the stroke passed its {STROKE_BAND_PCT[0]:g}-{STROKE_BAND_PCT[1]:g} % band with {inside} "
-                        f"sample(s) inside it (at least {MIN_STROKE_SAMPLES} time it: samples lost over the stroke?)")
+                what = (f"the stroke passed its {STROKE_BAND_PCT[0]:g}-{STROKE_BAND_PCT[1]:g} % band with "
+                        f"{self._in_band_samples()} sample(s) inside it (at least {MIN_STROKE_SAMPLES} time it: "
+                        f"samples lost over the stroke?)")
             else:
                 what = "no stroke seen (stuck or disconnected feedback)"
             self.hooks.fault("valve", f"valve-position feedback: {what}; the trigger instant is the command's estimate",
@@ -278,12 +278,15 @@ class Timeline:
             self.ended = True
             if self.trigger_time is None or self.trigger_measured or not self.vch:
                 return
-            seen = sum(p.size for p in self._pos_t)
-            if seen >= MIN_STROKE_SAMPLES or self._reached(self._stroke_by() + self._stroke_s()):
+            if self._in_band_samples() >= MIN_STROKE_SAMPLES or self._reached(self._stroke_by() + self._stroke_s()):
                 self._measure_trigger()
             else:
                 self.hooks.log("trigger", "the record ended before the valve's stroke was in its samples: the "
                                           "trigger instant is the command's estimate")
+
+    def _in_band_samples(self) -> int:
+        """The feedback's samples kept inside the stroke band so far (what the trigger is measured from)."""
+        return sum(p.size for p in self._pos_t)
 
     def _stroke_s(self) -> float:
         """From the stroke's start (t0) until the commanded opening passes the band's lower end (10 %: 90 % of
