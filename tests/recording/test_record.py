@@ -74,22 +74,21 @@ def test_material_A_online_fit_names_S3(tmp_path):
     assert summary.lost_samples == 0 and summary.gaps == 0
     fit = summary.fit
     # AIC names the truth, S3, on most recordings (8 in 10 when measured on 25 Nov). Otherwise S4
-    # wins, for one of two reasons. (1) A fourth element fits a little of the noise: a chance
-    # chi-square gain on two parameters, which puts S3 more than 2 behind on 5 % of recordings
-    # and more than 10 behind on 0.2 %. (2) A fourth element with tau far beyond the window, a
-    # slow ramp, soaks up the error of the steady head. That head is the mean of the baseline (the
-    # 2 s before the trigger here, velab.fitting.window): sigma 0.012 m / sqrt(2000) = 0.27 mm (it was
-    # the last 1 s, 0.4 mm), and 0.3 mm moves S3's dAIC by about 10. S1 and S2 are ruled out every time.
-    # Both at once, with (3) below, make S5: S3 + an element at tau_min (the stroke's feedback noise) + a
-    # 200 s ramp, S3 at dAIC 6.4 (once, in a loaded pair on 27 Nov)
+    # wins: (1) a fourth element fits a little of the noise, a chance chi-square gain on two parameters
+    # that puts S3 more than 2 behind on 5 % of recordings and more than 10 behind on 0.2 %; (2) an element
+    # faster than the closure fits the stroke's feedback noise (below, S1's test). The steady head's error
+    # no longer adds a third reason: the baseline's mean (2 s here, sigma 0.012 m / sqrt(2000) = 0.27 mm) was
+    # the steady head, and a slow element (a ramp on the 200 s bound, or the slowest split in two) made up for
+    # a mean set too high -- on 166 recordings of this bench (28 Nov), one 2.3 standard errors high put S3
+    # 18.2 behind S5, one 1.6 high 10.2 behind S4. Every model now fits the steady head's offset, the baseline
+    # its prior (velab.fitting.offset): refitted, those two have S3 4.4 and 1.0 behind, and no recording of
+    # the 63 refitted (the worst 30 and 33 others) more than 6.0. S1 and S2 are ruled out every time.
     assert summary.best_model in ("S3", "S4", "S5")
     if summary.best_model == "S5":
-        taus = fit["S5"].tau_s
-        assert min(taus) < 10.0 * fit.settings["bounds"]["tau_min_s"] and max(taus) > fit.window_s, \
-            fit.report(elements=True)
-    slow_ramp = fit["S4"].tau_s[-1] > fit.window_s  # (tau_s sorted: the extra element)
-    # (3) an element faster than the closure fits the stroke's feedback noise (below, S1's test)
-    assert fit["S3"].delta_aic <= 10.0 or slow_ramp or _stroke_element(fit, "S3"), fit.report(elements=True)
+        assert _stroke_element(fit, "S4"), fit.report(elements=True)
+    assert fit["S3"].delta_aic <= 10.0 or _stroke_element(fit, "S3"), fit.report(elements=True)
+    # the steady head's offset is the baseline mean's error: a few of its standard errors at most
+    assert abs(fit.best.steady_head_offset_m) < 4 * 0.012 / np.sqrt(2000), fit.report()
     assert fit["S2"].delta_aic > 10 and fit["S1"].delta_aic > 10
     assert abs(fit["S3"].wave_speed_m_s - A_TRUE) < 0.5
     # the simulated valve is a real one (orifice law): the fit took the manoeuvre from the measured

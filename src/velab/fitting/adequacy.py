@@ -179,7 +179,8 @@ def best_residuals(t, h, rig, result, model=None, position_pct=None) -> tuple[np
     perturbation, m, at the record's rate), taken to the fit rate as the fit path does (the result's
     ``settings["record"]["decimation"]``), so that they compare with the baseline noise band; the model
     is driven by the fit's own flow at the valve (velab.fitting.manoeuvre.result_flow; ``position_pct``
-    the recorded valve position on t, if the fit took it)."""
+    the recorded valve position on t, if the fit took it). ``h`` is taken from the baseline's steady head;
+    the residual is from the model's own (its ``steady_head_offset_m`` added)."""
     from velab.fitting.friction import fitted_head
     from velab.fitting.manoeuvre import result_flow
     from velab.fitting.prepare import decimate_head  # (prepare imports this module)
@@ -192,4 +193,5 @@ def best_residuals(t, h, rig, result, model=None, position_pct=None) -> tuple[np
     f = model if model is not None else result.best
     pd = None if position_pct is None else np.asarray(position_pct, dtype=float)[::q][: td.size]
     flow = result_flow(result.settings, td, hd[: td.size], rig, pd)
-    return td, hd[: td.size] - fitted_head(td, rig, f, flow=flow)
+    # (the model's head over the steady head it fitted: the baseline's plus its offset, velab.fitting.offset)
+    return td, hd[: td.size] - fitted_head(td, rig, f, flow=flow) - f.steady_head_offset_m

@@ -75,6 +75,9 @@ class PreparedRecord:
     baseline_noise_m: float | None = None  # None: fewer than adequacy.MIN_BASELINE_SAMPLES at the fit rate
     baseline_lag1: float | None = None
     baseline_samples: int = 0
+    # the baseline's samples behind the steady head, counted at the fit rate (record samples / q): the weight
+    # of its prior when every model fits the steady head's offset (velab.fitting.offset); 0: no baseline
+    steady_samples: float = 0.0
     # the valve position (% open) on t, prepared like the head, if the record holds one
     position: np.ndarray | None = None
 
@@ -86,7 +89,8 @@ class PreparedRecord:
         """The preparation, as stored with the fit (``settings["record"]``)."""
         return {"record_rate_hz": self.record_rate_hz, "fit_rate_hz": self.fit_rate_hz, "decimation": self.decimation,
                 "anti_alias_filter": self.filter, "trigger_time_s": self.trigger_time_s,
-                "steady_head_m": self.steady_head_m, "window_s": self.window_s, "samples": int(self.h.size)}
+                "steady_head_m": self.steady_head_m, "steady_samples": self.steady_samples,
+                "window_s": self.window_s, "samples": int(self.h.size)}
 
 
 def fit_decimation(rig: Rig, record_rate_hz: float) -> int:
@@ -159,11 +163,13 @@ def prepare_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float
     hd = decimate_head(hw, q)
     td = tw[::q][: hd.size]
     # the baseline through the window's filter and decimation, so that its variance and F compare
-    base = baseline_noise(head[baseline_slice(t, head, trigger_time_s, record_rate_hz)] - steady, lambda x: decimate_head(x, q), FIR_TAPS_PER_Q // 2 if q > 1 else 0)
+    before = baseline_slice(t, head, trigger_time_s, record_rate_hz)
+    base = baseline_noise(head[before] - steady, lambda x: decimate_head(x, q), FIR_TAPS_PER_Q // 2 if q > 1 else 0)
     pos, notes = _window_position(position_pct, t, i0, i1, q, td.size)
     return PreparedRecord(td, hd[: td.size], float(window_s), float(trigger_time_s), steady, float(record_rate_hz), q,
                           anti_alias_filter(q), notes=notes, baseline_noise_m=base.std_m, baseline_lag1=base.lag1,
-                          baseline_samples=base.samples, position=pos)
+                          baseline_samples=base.samples, steady_samples=(before.stop - before.start) / q,
+                          position=pos)
 
 
 def _window_position(position_pct, t: np.ndarray, i0: int, i1: int, q: int, n: int):
@@ -202,6 +208,8 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
     # a closure still to be refined: this sweep only seeds a continuation (the lead's, or this fit's
     # own), which makes the time-domain polish
     refining = vi.source == "fitted" and closure is None
+    # every model fits the steady head's offset, the baseline its prior (velab.fitting.offset)
+    sweep_options = sweep_options | {"baseline_n": rec.steady_samples}
     # a continuation under a closure its lead refined: the lead's early-window closure had taken up
     # what a fast element does, so what vanished there is searched again
     result = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=vi.flow, time_domain_polish=not refining,

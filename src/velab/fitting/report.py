@@ -49,6 +49,19 @@ def noise_line(result) -> str:
             f"residual over its variance" + (f", chance allows the best model up to {bound:.2f}" if bound else ""))
 
 
+def steady_head_line(result) -> str:
+    """The steady head the best model took: the baseline's mean and the offset fitted with the model
+    (velab.fitting.offset), against the mean's own standard error; "" without a baseline."""
+    rec = (getattr(result, "settings", None) or {}).get("record") or {}
+    n_b, sd = rec.get("steady_samples") or 0.0, getattr(result, "baseline_noise_m", None)
+    if not (n_b > 0 and result.models and "steady_head_m" in rec):
+        return ""
+    off = result.best.steady_head_offset_m
+    se = f" ({off / (sd / math.sqrt(n_b)):+.2g} of the mean's standard error {1e3 * sd / math.sqrt(n_b):.2g} mm)" if sd else ""
+    return (f"steady head: the baseline's mean {rec['steady_head_m']:.4f} m, {result.best.name} fits it "
+            f"{1e3 * off:+.3g} mm off{se}; every model fits this offset, the baseline its prior")
+
+
 def _ratio(f) -> str:
     r = getattr(f, "noise_ratio", None)
     return f"{r:.3g}" if r is not None and math.isfinite(r) else "-"
@@ -152,5 +165,7 @@ def format_report(result, elements: bool = True) -> str:
     )
     if noise_line(result):
         lines.append(noise_line(result))
+    if steady_head_line(result):
+        lines.append(steady_head_line(result))
     lines.extend(result.notes)
     return "\n".join(lines)

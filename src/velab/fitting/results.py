@@ -126,6 +126,9 @@ class ModelFit:
     # n/n_eff; NaN rows/columns for parameters held fixed; None for fits stored before it was kept.
     # The creep band comes from it (velab.fitting.creep).
     cov_x: list | None = None
+    # what the fit added to the baseline's steady head (m): the offset fitted with the model, the baseline
+    # its prior (velab.fitting.offset); 0 without a baseline
+    steady_head_offset_m: float = 0.0
 
     @property
     def rss(self) -> float:
@@ -187,7 +190,7 @@ class ModelFit:
             "equivalent_to": self.equivalent_to or None, "split_elements": self.split_elements,
             "note": self.note or None,
             "friction": dict(self.friction),
-            "noise_ratio": self.noise_ratio,
+            "noise_ratio": self.noise_ratio, "steady_head_offset": self.steady_head_offset_m,
             "cov_x": [list(row) for row in self.cov_x] if self.cov_x is not None else None,
             "evaluations": self.evaluations, "jacobians": self.jacobians, "starts": self.starts,
         }
@@ -224,7 +227,7 @@ class ModelFit:
             at_bounds=[dict(b) for b in d.get("at_bounds") or []],
             equivalent_to=str(d.get("equivalent_to") or ""), split_elements=int(d.get("split_elements") or 0),
             friction=dict(d.get("friction") or {}),
-            noise_ratio=_optional(d.get("noise_ratio")),
+            noise_ratio=_optional(d.get("noise_ratio")), steady_head_offset_m=num("steady_head_offset", 0.0),
             cov_x=_cov_x(d.get("cov_x"), m, bool(d.get("reduced", False))) if d.get("cov_x") is not None else None,
         )
 

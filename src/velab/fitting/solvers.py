@@ -9,6 +9,7 @@ import numpy as np
 from scipy.optimize import differential_evolution, minimize
 
 from velab.fitting.engine import HeadEvaluator, dot, gram, sumsq
+from velab.fitting.offset import objective, project_gram
 from velab.fitting.params import ParamMap
 
 
@@ -31,23 +32,28 @@ class Sol:
 
 
 class Stage:
-    """One objective: an evaluator on a grid and the data on that grid."""
+    """One objective: an evaluator on a grid and the data on that grid.
 
-    def __init__(self, ev: HeadEvaluator, d: np.ndarray):
+    ``n_b``: the baseline's sample count on this grid; the steady head's offset is then fitted with
+    every model, the baseline its prior (velab.fitting.offset); 0: the steady head as the data have it.
+    """
+
+    def __init__(self, ev: HeadEvaluator, d: np.ndarray, n_b: float = 0.0):
         self.ev = ev
         self.d = d
-        self.sqn = math.sqrt(d.size)
+        self.n_b = float(n_b)
 
     def with_data(self, d: np.ndarray) -> "Stage":
         """Same evaluator, other data (e.g. corrected for the friction nonlinearity)."""
-        return Stage(self.ev, d)
+        return Stage(self.ev, d, self.n_b)
+
+    def on(self, ev: HeadEvaluator) -> "Stage":
+        """Same data (and baseline), another evaluator of the same grid."""
+        return Stage(ev, self.d, self.n_b)
 
     def F(self, pm: ParamMap, x) -> float:
         r = self.ev.head(*pm.unpack(x)) - self.d
-        return sumsq(r) / self.d.size
-
-    def residuals(self, pm: ParamMap, x) -> np.ndarray:
-        return self.ev.head(*pm.unpack(x)) - self.d
+        return objective(r, self.n_b) / self.d.size
 
     def sol(self, pm: ParamMap, x) -> Sol:
         x = pm.project(x)
@@ -89,7 +95,7 @@ class Stage:
             b = bufs[i]
             ev.head_jac_x(*pm.unpack(xe), tau_free, out=b)
             b[0] -= self.d  # row 0: residual
-            return sumsq(b[0]) / n
+            return objective(b[0], self.n_b) / n
 
         F = evaluate(cur, x)
         history = [F]  # F after each evaluation (the stall test)
@@ -98,7 +104,7 @@ class Stage:
         nfev = 1
         lo, hi = pm.bounds()
         while nfev < max_nfev:
-            M = gram(bufs[cur])
+            M = project_gram(gram(bufs[cur]), bufs[cur], self.n_b)
             g = M[1:, 0]
             A = M[1:, 1:]
             free = ~(((x <= lo + 1e-12) & (g > 0)) | ((x >= hi - 1e-12) & (g < 0)))
@@ -175,6 +181,9 @@ class Stage:
         def evaluate(xe: float):
             self.ev.head_jac_x(*pm.unpack(np.array([xe])), pm.tau_free, out=buf)
             buf[0] -= self.d
+            if self.n_b > 0:  # the offset projected out (velab.fitting.offset)
+                M = project_gram(gram(buf), buf, self.n_b)
+                return objective(buf[0], self.n_b) / n, float(M[1, 0]), float(M[1, 1])
             return sumsq(buf[0]) / n, dot(buf[1], buf[0]), dot(buf[1], buf[1])
 
         x = float(pm.project(x0)[0])

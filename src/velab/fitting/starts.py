@@ -121,7 +121,7 @@ def fan_out(stage: Stage, fn, items: list, parallel: bool) -> list:
     forks: list[Stage] = []
 
     def fork() -> Stage:
-        forks.append(Stage(stage.ev.fork(workers=1), stage.d))
+        forks.append(stage.on(stage.ev.fork(workers=1)))
         return forks[-1]
 
     out = map_pair(fn, items, fork, parallel)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from velab.rig import Rig
-from velab.fitting.engine import sumsq
+from velab.fitting.offset import augment, objective, offset
 from velab.fitting.params import FitBounds, bound_hits, creep_const
 from velab.fitting.results import ModelFit, model_name
 from velab.fitting.solvers import Sol, Stage
@@ -28,7 +28,11 @@ def summarise(stage: Stage, sol: Sol, name: str, rig: Rig, bounds: FitBounds, *,
     a, J, tau = pm.unpack(x)
     h, jac = stage.ev.head_jac_x(a, J, tau, pm.tau_free)
     res = h - stage.d
-    F = sumsq(res) / n
+    F = objective(res, stage.n_b) / n
+    # the steady head's offset fitted with the model (velab.fitting.offset): its residuals, its baseline term
+    delta = offset(res, stage.n_b)
+    res = res + delta
+    base_term = stage.n_b * delta * delta / n
     rho = lag1(res)
     # what each element buys: n ln(F without it / F), the others fixed
     lo, _ = pm.bounds()
@@ -49,7 +53,7 @@ def summarise(stage: Stage, sol: Sol, name: str, rig: Rig, bounds: FitBounds, *,
         free[1 + k] = False
         if pm.tau_free:
             free[1 + m + k] = False
-    cov = covariance(jac, F, n, rho, free)
+    cov = covariance(augment(jac, stage.n_b), F, n, rho, free)  # (the offset marginalised)
     se = standard_errors(cov, m, pm.tau_free)
     c = creep_const(rig)
     E = c * a * a / J
@@ -78,11 +82,11 @@ def summarise(stage: Stage, sol: Sol, name: str, rig: Rig, bounds: FitBounds, *,
     return ModelFit(
         name=name, m=m, k=pm.size, reduced=bool(pm.fixed_tau), n=n, F=F, wave_speed_m_s=a,
         E_pa=sel(E), eta_pa_s=sel(eta), lag1_autocorr=rho, evaluations=evaluations, jacobians=jacobians,
-        starts=starts, J_rel=sel(J), innovation_var=ar1_innovation_var(res, rho), n_eff=effective_n(n, rho),
+        starts=starts, J_rel=sel(J), innovation_var=ar1_innovation_var(res, rho) + base_term, n_eff=effective_n(n, rho),
         wave_speed_se_m_s=se["a"] * a, E_se_pa=sel([se["E"][i] * E[i] for i in range(m)]),
         eta_se_pa_s=sel([se["eta"][i] * eta[i] for i in range(m)]), tau_se_s=sel(tau_se),
         J_rel_se=sel([se["J_rel"][i] * J[i] for i in range(m)]),
         negligible=tuple(bool(negligible[i]) for i in order), element_gain=sel(gain),
         at_bounds=hits, equivalent_to=equivalent, split_elements=k_split, friction=dict(friction or {}),
-        cov_x=cov_x,
+        cov_x=cov_x, steady_head_offset_m=delta,
     )

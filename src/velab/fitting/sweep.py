@@ -41,6 +41,7 @@ from velab.rig import Rig
 from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate, prepare_window
 from velab.fitting.engine import HeadEvaluator, sumsq
+from velab.fitting.offset import augment
 from velab.fitting.friction import EquivalentFriction, TimeDomainModel, anderson, equivalent_friction, fit_rig, rms
 from velab.fitting.parallel import map_each
 from velab.fitting.params import FitBounds, ParamMap, creep_const, derive_bounds
@@ -140,8 +141,10 @@ class _Sweep:
     """State shared by the models of one sweep: stages, bounds, friction, calibrated models."""
 
     def __init__(self, t, d, rig: Rig, bounds: FitBounds, method: str, polish: bool, starts, seed: int,
-                 threads: int, initial: SweepResult | None, lead: SweepResult | None = None, flow=None):
+                 threads: int, initial: SweepResult | None, lead: SweepResult | None = None, flow=None,
+                 baseline_n: float = 0.0):
         self.t, self.d, self.rig, self.bounds = t, d, rig, bounds
+        self.n_b = baseline_n  # the steady head's offset fitted with every model (velab.fitting.offset)
         self.method, self.polish, self.seed, self.initial, self.lead = method, polish, seed, initial, lead
         self.trust_lead = True  # fit_sweep(trust_lead=): a model that vanished in the lead stays so
         self.threads = threads
@@ -151,8 +154,9 @@ class _Sweep:
         self.band = manoeuvre_band_hz(rig)
         self.q = q = max(1, int((1.0 / dt) // (3.0 * self.band)))
         # the flow at the valve (velab.fitting.manoeuvre) drives every stage, the time-domain model too
+        dc = lowpass_decimate(d, q)
         self.stage_c = Stage(HeadEvaluator(rig, t[::q], band_hz="auto", flow=None if flow is None else flow[::q]),
-                             lowpass_decimate(d, q))
+                             dc, baseline_n * dc.size / d.size)  # (the baseline counted on each grid)
         self.time_model = TimeDomainModel(rig, t, flow=flow)
         # full-band evaluations are large numpy/FFT operations that release the GIL: with two threads,
         # each is split in two halves (HeadEvaluator workers=2), or two candidates are polished at once
@@ -160,7 +164,7 @@ class _Sweep:
         workers = min(threads, 2) if SPLIT_FULL_BAND else 1
         full = (HeadEvaluator(rig, t, band_hz=None, workers=workers, flow=flow)
                 if polish or self.time_model.active else None)
-        self.stage_f = Stage(full, d) if polish else None
+        self.stage_f = Stage(full, d, baseline_n) if polish else None
         self.ev_full = full  # the full-band model the friction correction is taken against
         self.ev_pair = (full.fork(workers=1), full.fork(workers=1)) if polish and threads > 1 else None
         self._counted = (0, 0)
@@ -199,10 +203,10 @@ class _Sweep:
     def set_friction(self, eq: EquivalentFriction) -> None:
         """The frequency model's linear friction for the next model (all stages; counters carried over)."""
         self._counted = self.counts()
-        self.stage_c = Stage(self.stage_c.ev.fork(eq), self.stage_c.d)
+        self.stage_c = self.stage_c.on(self.stage_c.ev.fork(eq))
         self.ev_full = self.ev_full.fork(eq)
         if self.stage_f is not None:
-            self.stage_f = Stage(self.ev_full, self.stage_f.d)
+            self.stage_f = self.stage_f.on(self.ev_full)
         if self.ev_pair is not None:
             self.ev_pair = (self.ev_full.fork(workers=1), self.ev_full.fork(workers=1))
         self.frictions.append(eq)
@@ -325,8 +329,8 @@ class _Sweep:
                                  and np.max(np.abs(s.x - sols[0].x)) > 0.05]
             if len(pol) > 1 and self.ev_pair is not None:
                 with ThreadPoolExecutor(max_workers=1, thread_name_prefix="velab-polish") as pool:
-                    fut = pool.submit(self.local, Stage(self.ev_pair[1], fstage.d), pm, pol[1], True)
-                    fsols = [self.local(Stage(self.ev_pair[0], fstage.d), pm, pol[0], fine=True), fut.result()]
+                    fut = pool.submit(self.local, fstage.on(self.ev_pair[1]), pm, pol[1], True)
+                    fsols = [self.local(fstage.on(self.ev_pair[0]), pm, pol[0], fine=True), fut.result()]
             else:
                 fsols = [self.local(fstage, pm, x0, fine=True) for x0 in pol]
             best = min(fsols, key=lambda s: s.F)
@@ -474,14 +478,14 @@ class _Sweep:
                 cache[key] = tm.head(*pm.unpack(x))
             return cache[key]
 
-        def residual(x):
-            return head(x) - self.d
+        def residual(x):  # (with the steady head's offset projected out: velab.fitting.offset)
+            return augment(head(x) - self.d, self.n_b)
 
         def column(x, h0, i):
             xp = np.array(x, dtype=float)
             step = MOC_POLISH_STEP if xp[i] + MOC_POLISH_STEP <= hi[i] else -MOC_POLISH_STEP
             xp[i] += step
-            return (tm.head(*pm.unpack(xp)) - h0) / step
+            return augment((tm.head(*pm.unpack(xp)) - h0) / step, self.n_b)
 
         def jacobian(x):
             h0 = head(x)
@@ -492,7 +496,7 @@ class _Sweep:
 
         sol = levenberg_marquardt(residual, jacobian, fin.sol.x, lo, hi, max_iter=MOC_POLISH_ITERATIONS,
                                   ftol=MOC_POLISH_GAIN / self.d.size, broyden=MOC_POLISH_BROYDEN, predicted=True)
-        F = sumsq(sol.fun) / sol.fun.size
+        F = sumsq(sol.fun) / self.d.size
         if not F < fin.sol.F:
             return fin
         out = self.with_time_head(pm, sol.x, head(sol.x))
@@ -549,6 +553,7 @@ def fit_sweep(
     time_domain_polish: bool = True,
     marginalise: Callable | None = None,
     trust_lead: bool = True,
+    baseline_n: float = 0.0,
 ) -> SweepResult:
     """Calibrate EL/Sm models on a head record and rank them.
 
@@ -577,6 +582,9 @@ def fit_sweep(
     closure had taken up what a fast element does).
     ``marginalise``: f, stage, sol -> f, applied to each model's summary (velab.fitting.nuisance:
     the covariance marginalised over a closure fitted from the same record).
+    ``baseline_n``: the samples before the trigger that set the steady head (``h_m``'s zero), counted at
+    the window's rate; then every model also fits the steady head's offset, the baseline its prior
+    (velab.fitting.offset). 0: the steady head as ``h_m`` has it.
     Pure computation: no I/O, no shared state; safe to call from worker threads.
     """
     if method not in METHODS:
@@ -599,7 +607,7 @@ def fit_sweep(
     bounds = derive_bounds(rig, dt, window, tau_min_s=tau_min_s, tau_max_s=tau_max_s)
     if threads is None:
         threads = min(2, os.cpu_count() or 1)
-    sw = _Sweep(t, d, rig, bounds, method, polish, starts, seed, threads, initial, lead, flow)
+    sw = _Sweep(t, d, rig, bounds, method, polish, starts, seed, threads, initial, lead, flow, baseline_n)
     sw.trust_lead = trust_lead
 
     jobs = [(m, False) for m in ms]
