@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from velab.fitting.engine import gram, sumsq
-from velab.fitting.offset import augment, fitted, objective, offset, project_gram
+from velab.fitting.offset import fitted, objective, offset, project, project_gram
 
 
 def test_the_projection_is_the_minimum_over_the_offset():
@@ -18,14 +18,28 @@ def test_the_projection_is_the_minimum_over_the_offset():
     i = int(np.argmin(brute))
     assert offset(r, n_b) == pytest.approx(deltas[i], abs=1e-6)
     assert objective(r, n_b) == pytest.approx(min(brute), rel=1e-6)
-    assert sumsq(augment(r, n_b)) == pytest.approx(objective(r, n_b), rel=1e-12)
+    assert sumsq(project(r, n_b)) == pytest.approx(objective(r, n_b), rel=1e-12)
     assert np.allclose(fitted(r, n_b), r + offset(r, n_b))
     # the Jacobian through the same linear map: the rank-one update of [r; J]'s Gram matrix
     rows = rng.standard_normal((4, 500))
-    assert np.allclose(project_gram(gram(rows), rows, n_b), gram(augment(rows, n_b)))
+    assert np.allclose(project_gram(gram(rows), rows, n_b), gram(project(rows, n_b)))
     # no baseline: the objective as it was
-    assert objective(r, 0.0) == sumsq(r) and offset(r, 0.0) == 0.0 and augment(r, 0.0) is r
+    assert objective(r, 0.0) == sumsq(r) and offset(r, 0.0) == 0.0 and project(r, 0.0) is r
 
+
+def test_a_stacked_fit_has_one_offset_per_part_and_weighted_rows_change_nothing():
+    """Blocks (start, stop, n_b): each part's offset and baseline its own; a part's rows weighted by w (a joint
+    fit's stacking) give w^2 times its objective."""
+    rng = np.random.default_rng(4)
+    r1, r2 = 0.01 * rng.standard_normal(300) + 0.003, 0.02 * rng.standard_normal(200) - 0.005
+    w = 3.0
+    v = np.concatenate([r1, w * r2])
+    blocks = ((0, 300, 50.0), (300, 500, 80.0))
+    assert objective(v, blocks) == pytest.approx(objective(r1, 50.0) + w * w * objective(r2, 80.0), rel=1e-12)
+    assert np.allclose(fitted(v, blocks), np.concatenate([fitted(r1, 50.0), w * fitted(r2, 80.0)]))
+    rows = rng.standard_normal((3, 500))
+    assert np.allclose(project_gram(gram(rows), rows, blocks), gram(project(rows, blocks)))
+    assert sumsq(project(v, blocks)) == pytest.approx(objective(v, blocks), rel=1e-12)
 
 def _record(shift_m: float, seed: int = 6):
     """Material A (S3) on the simulated rig's physics (MOC, orifice law through the butterfly, linear
@@ -79,3 +93,23 @@ def test_a_baseline_four_standard_errors_high_leaves_the_truth_named_and_the_off
     _, res = best_residuals(t[w] - trigger, h[w] - r.settings["record"]["steady_head_m"], rig, r,
                             position_pct=position[w])
     assert abs(res.mean()) < 0.15e-3
+
+
+@pytest.mark.slow
+def test_a_joint_fit_takes_each_runs_steady_head_offset():
+    """Two runs of one pipe, one with its baseline 4 standard errors high: each run's offset is its own
+    baseline mean's error (runs[].steady_head_offset), the joint wall names S3 without a ramp."""
+    from velab.fitting.campaignrun import CampaignRun, head_sha256
+    from velab.fitting.joint import fit_joint
+
+    sources, errors = [], []
+    for seed, k in ((6, 4.0), (7, 0.0)):
+        rig, t, h, trigger, position = _record(k * 0.012 / np.sqrt(2000), seed)
+        base = (t >= trigger - 2.0 - 0.5e-3) & (t < trigger - 0.5e-3)
+        errors.append(float(h[base].mean()) - rig.steady_head_m)
+        sources.append(CampaignRun(f"run{seed}", t, h, trigger, rig, 1000.0, position, head_sha256(t, h)))
+    r = fit_joint(sources, 20.0, models=[3, 4])
+    assert r.best.name == "S3" and r["S4"].tau_s[-1] < r.window_s, r.report()
+    for run, error in zip(r.runs, errors):
+        assert run["steady_head_offset"] == pytest.approx(-error * 20000 / 22000, abs=0.25e-3), (run["path"], error)
+    assert abs(r.runs[0]["steady_head_offset"]) > 3 * 0.012 / np.sqrt(2000)

@@ -38,6 +38,7 @@ from velab.fitting.creep import creep_curve
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import sumsq
 from velab.fitting.nuisance import marginalised
+from velab.fitting.offset import fitted, objective, offset, project
 # (each run's own work, closure fits and time-domain heads, touches only that run's objects: map_each)
 from velab.fitting.parallel import map_each
 from velab.fitting.jointresult import JointResult
@@ -71,11 +72,17 @@ class _Model:
         return float(sum(r.n * math.log(F) for r, F in zip(runs, self.F_runs)))
 
 
+def baseline_blocks(parts, st: StackedEvaluator) -> tuple:
+    """Each part's steady head offset fitted with the wall, its baseline the prior (velab.fitting.offset): the
+    blocks (start, stop, n_b) of the stacked grid, each part's baseline counted on its grid there."""
+    return tuple((sl.start, sl.stop, p.steady_n * (sl.stop - sl.start) / p.n) for p, sl in zip(parts, st.slices()))
+
+
 def assess_part(best: ModelFit, part, head, F: float, method: str) -> SweepResult:
     """The single fit's adequacy (velab.fitting.adequacy.assess: noise ratio, misfit rule) on one part of a
     stacked fit -- a run of a campaign, a section of a record -- under the shared wall: ``part`` has
     ``n``, ``rec`` (its PreparedRecord) and ``rig``; ``head`` its model head, ``F`` its mean square."""
-    one = replace(best, n=part.n, F=F, lag1_autocorr=lag1(head - part.rec.h), at_bounds=[])
+    one = replace(best, n=part.n, F=F, lag1_autocorr=lag1(fitted(head - part.rec.h, part.steady_n)), at_bounds=[])
     sr = SweepResult(n=part.n, window_s=part.rec.window_s, sample_rate_hz=part.rec.fit_rate_hz, method=method,
                      settings={}, models=[one])
     assess(sr, part.rec, part.rig)
@@ -118,13 +125,13 @@ class _JointSweep:
                 dcorr = r.rec.h - base.heads[i]
                 parts.append((lowpass_decimate(dcorr, q) if q > 1 else dcorr) + ev.head(*p))
         st = StackedEvaluator(evs, self.weights())
-        return Stage(st, st.stack(parts))
+        return Stage(st, st.stack(parts), baseline_blocks(self.runs, st))
 
     def evaluate(self, sol: Sol) -> _Model:
         """Each run's model head at ``sol`` (time-domain with a nonlinear friction) and its F."""
         p = sol.pm.unpack(sol.x)
         heads = map_each(lambda r: r.model_head(p), self.runs)
-        F = np.array([sumsq(h - r.rec.h) / r.n for h, r in zip(heads, self.runs)])
+        F = np.array([objective(h - r.rec.h, r.steady_n) / r.n for h, r in zip(heads, self.runs)])
         return _Model(sol, heads, F)
 
     # ------------------------------------------------------------ models
@@ -237,24 +244,28 @@ class _JointSweep:
         for idx, rows in nuisance or ():
             if any(b.size for b in rows):
                 sl = st.ev.slices()
-                blocks.append(np.concatenate([st.ev.weights[i] * b for i, b in zip(idx, rows)], axis=1))
-                slices.append(slice(sl[idx[0]].start, sl[idx[-1]].stop))
+                s0, s1 = sl[idx[0]].start, sl[idx[-1]].stop
+                # the record's closure columns, its parts' offsets projected out as from the wall's
+                own = tuple((i - s0, j - s0, nb) for i, j, nb in st.baseline if s0 <= i and j <= s1)
+                blocks.append(project(np.concatenate([st.ev.weights[i] * b for i, b in zip(idx, rows)], axis=1), own))
+                slices.append(slice(s0, s1))
         if blocks:
             h, jac = st.ev.head_jac_x(*fin.sol.pm.unpack(fin.sol.x), fin.sol.pm.tau_free)
             res = h - st.d
-            f = marginalised(f, fin.sol.pm, fin.sol.x, jac, blocks, slices, [1.0] * len(blocks),
-                             sumsq(res) / res.size, lag1(res), self.runs[0].rig)
+            f = marginalised(f, fin.sol.pm, fin.sol.x, project(jac, st.baseline), blocks, slices, [1.0] * len(blocks),
+                             objective(res, st.baseline) / res.size, lag1(fitted(res, st.baseline)), self.runs[0].rig)
         for r, v in zip(self.runs, saved):
             r.var = v
         # per run: its residual's lag-1 and AR(1) innovation variance; pooled so that apply_criteria's
         # N ln s_e^2 - ln(1 - rho^2) is the sum of the runs' AR(1) terms
         ar, rhos = 0.0, []
         for r, h in zip(self.runs, fin.heads):
-            res = h - r.rec.h
+            res = fitted(h - r.rec.h, r.steady_n)  # (with the part's steady head offset, velab.fitting.offset)
             rho = lag1(res)
             rhos.append(rho)
             rho_c = float(np.clip(rho, -0.999, 0.999))
-            ar += r.n * math.log(ar1_innovation_var(res, rho)) - math.log(1 - rho_c * rho_c)
+            base_term = (objective(h - r.rec.h, r.steady_n) - sumsq(res)) / r.n
+            ar += r.n * math.log(ar1_innovation_var(res, rho) + base_term) - math.log(1 - rho_c * rho_c)
         rho_p = float(np.clip(np.average(rhos, weights=[r.n for r in self.runs]), -0.999, 0.999))
         F = math.exp(fin.loglik(self.runs) / n_tot)
         ratio = None
@@ -394,7 +405,9 @@ def assess_parts(best: ModelFit, parts, fin: _Model, first: int, method: str):
         sr = assess_part(best, part, fin.heads[i], float(fin.F_runs[i]), method)
         out.append(({"name": part.name, "position_m": part.position_m, "n": part.n, "F": float(fin.F_runs[i]),
                      "noise_ratio": sr.models[0].noise_ratio, "baseline_noise_m": part.rec.baseline_noise_m,
-                     "steady_head_m": part.rec.steady_head_m, "misfit_bound": sr.adequacy.get("misfit_bound"),
+                     "steady_head_m": part.rec.steady_head_m,
+                     "steady_head_offset": offset(fin.heads[i] - part.rec.h, part.steady_n),
+                     "misfit_bound": sr.adequacy.get("misfit_bound"),
                      "disagrees": any(w["code"] == "misfit" for w in sr.warnings)}, sr.warnings))
     return out
 
@@ -425,6 +438,7 @@ def _per_run(records, sources, sw: _JointSweep, fin: _Model, best: ModelFit, bou
             "sample_rate_hz": valve.fit_rate_hz, "record_rate_hz": valve.record_rate_hz,
             "anti_alias_filter": valve.filter, "steady_flow_m3_s": rec.rig.steady_flow_m3_s,
             "steady_head_m": valve.steady_head_m,
+            "steady_head_offset": secs[rec.parts.index(rec.valve)][0]["steady_head_offset"],
             "F": math.exp(sum(s["n"] * math.log(s["F"]) for s, _ in secs) / n),
             "noise_ratio": _pooled_ratio([s for s, _ in secs]),
             "baseline_noise_m": valve.baseline_noise_m,
@@ -472,11 +486,13 @@ def _own_wall(sw: _JointSweep, idx: list[int], fin: _Model, m: int, bounds) -> M
 
     for _ in range(2):
         st = StackedEvaluator([r.ev_m for r in parts], weights)
-        x = Stage(st, st.stack(data("m", heads, x))).lsq(pm, x, max_nfev=30, ftol=1e-10).x
+        x = Stage(st, st.stack(data("m", heads, x)), baseline_blocks(parts, st)).lsq(pm, x, max_nfev=30, ftol=1e-10).x
         heads = [r.model_head(pm.unpack(x)) for r in parts]
     st = StackedEvaluator([r.ev_f for r in parts], weights)
-    f = summarise(Stage(st, st.stack(data("f", heads, x))), Sol(x, math.nan, pm), model_name(m), parts[0].rig, bounds)
+    f = summarise(Stage(st, st.stack(data("f", heads, x)), baseline_blocks(parts, st)), Sol(x, math.nan, pm),
+                  model_name(m), parts[0].rig, bounds)
     if len(parts) == 1:
         return f
     n = sum(r.n for r in parts)
-    return replace(f, n=n, F=math.exp(sum(r.n * math.log(sumsq(h - r.rec.h) / r.n) for r, h in zip(parts, heads)) / n))
+    return replace(f, n=n, F=math.exp(sum(r.n * math.log(objective(h - r.rec.h, r.steady_n) / r.n)
+                                          for r, h in zip(parts, heads)) / n))

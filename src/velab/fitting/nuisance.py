@@ -22,7 +22,7 @@ from dataclasses import replace
 import numpy as np
 
 from velab.fitting.engine import HeadEvaluator, gram
-from velab.fitting.offset import augment, fitted, objective
+from velab.fitting.offset import project, fitted, objective
 from velab.fitting.manoeuvre import PARAM_NAMES, closure_bounds, closure_coupling, closure_flow, from_solver, to_solver
 from velab.fitting.params import ParamMap, creep_const
 from velab.model import ValveHeadModel
@@ -151,8 +151,8 @@ def marginalise_single(rig, t, d, vi):
             return f
         h, jac = stage.ev.head_jac_x(*params, sol.pm.tau_free)
         res = h - stage.d
-        nb = stage.n_b  # the steady head's offset marginalised too (velab.fitting.offset)
-        return marginalised(f, sol.pm, sol.x, augment(jac, nb), [augment(rows, nb)], [slice(None)], [1.0],
+        nb = stage.baseline  # the steady head's offset marginalised too (velab.fitting.offset)
+        return marginalised(f, sol.pm, sol.x, project(jac, nb), [project(rows, nb)], [slice(None)], [1.0],
                             objective(res, nb) / res.size, lag1(fitted(res, nb)), rig)
 
     return apply

@@ -100,6 +100,11 @@ class Part:
         return int(self.rec.h.size)
 
     @property
+    def steady_n(self) -> float:
+        """The baseline's samples behind its steady head at the fit rate (velab.fitting.offset's prior)."""
+        return self.rec.steady_samples
+
+    @property
     def vi(self):
         return self.record.vi
 

@@ -34,26 +34,27 @@ class Sol:
 class Stage:
     """One objective: an evaluator on a grid and the data on that grid.
 
-    ``n_b``: the baseline's sample count on this grid; the steady head's offset is then fitted with
-    every model, the baseline its prior (velab.fitting.offset); 0: the steady head as the data have it.
+    ``baseline``: the baseline's sample count on this grid (or, stacked, its blocks: velab.fitting.offset);
+    the steady head's offset is then fitted with every model, the baseline its prior; 0: the steady head
+    as the data have it.
     """
 
-    def __init__(self, ev: HeadEvaluator, d: np.ndarray, n_b: float = 0.0):
+    def __init__(self, ev: HeadEvaluator, d: np.ndarray, baseline=0.0):
         self.ev = ev
         self.d = d
-        self.n_b = float(n_b)
+        self.baseline = baseline
 
     def with_data(self, d: np.ndarray) -> "Stage":
         """Same evaluator, other data (e.g. corrected for the friction nonlinearity)."""
-        return Stage(self.ev, d, self.n_b)
+        return Stage(self.ev, d, self.baseline)
 
     def on(self, ev: HeadEvaluator) -> "Stage":
         """Same data (and baseline), another evaluator of the same grid."""
-        return Stage(ev, self.d, self.n_b)
+        return Stage(ev, self.d, self.baseline)
 
     def F(self, pm: ParamMap, x) -> float:
         r = self.ev.head(*pm.unpack(x)) - self.d
-        return objective(r, self.n_b) / self.d.size
+        return objective(r, self.baseline) / self.d.size
 
     def sol(self, pm: ParamMap, x) -> Sol:
         x = pm.project(x)
@@ -95,7 +96,7 @@ class Stage:
             b = bufs[i]
             ev.head_jac_x(*pm.unpack(xe), tau_free, out=b)
             b[0] -= self.d  # row 0: residual
-            return objective(b[0], self.n_b) / n
+            return objective(b[0], self.baseline) / n
 
         F = evaluate(cur, x)
         history = [F]  # F after each evaluation (the stall test)
@@ -104,7 +105,7 @@ class Stage:
         nfev = 1
         lo, hi = pm.bounds()
         while nfev < max_nfev:
-            M = project_gram(gram(bufs[cur]), bufs[cur], self.n_b)
+            M = project_gram(gram(bufs[cur]), bufs[cur], self.baseline)
             g = M[1:, 0]
             A = M[1:, 1:]
             free = ~(((x <= lo + 1e-12) & (g > 0)) | ((x >= hi - 1e-12) & (g < 0)))
@@ -181,9 +182,9 @@ class Stage:
         def evaluate(xe: float):
             self.ev.head_jac_x(*pm.unpack(np.array([xe])), pm.tau_free, out=buf)
             buf[0] -= self.d
-            if self.n_b > 0:  # the offset projected out (velab.fitting.offset)
-                M = project_gram(gram(buf), buf, self.n_b)
-                return objective(buf[0], self.n_b) / n, float(M[1, 0]), float(M[1, 1])
+            if self.baseline:  # the offset projected out (velab.fitting.offset)
+                M = project_gram(gram(buf), buf, self.baseline)
+                return objective(buf[0], self.baseline) / n, float(M[1, 0]), float(M[1, 1])
             return sumsq(buf[0]) / n, dot(buf[1], buf[0]), dot(buf[1], buf[1])
 
         x = float(pm.project(x0)[0])

@@ -8,7 +8,8 @@ import math
 import numpy as np
 
 from velab.rig import Rig
-from velab.fitting.offset import augment, objective, offset
+from velab.fitting.engine import sumsq
+from velab.fitting.offset import fitted, objective, offset, project
 from velab.fitting.params import FitBounds, bound_hits, creep_const
 from velab.fitting.results import ModelFit, model_name
 from velab.fitting.solvers import Sol, Stage
@@ -28,11 +29,13 @@ def summarise(stage: Stage, sol: Sol, name: str, rig: Rig, bounds: FitBounds, *,
     a, J, tau = pm.unpack(x)
     h, jac = stage.ev.head_jac_x(a, J, tau, pm.tau_free)
     res = h - stage.d
-    F = objective(res, stage.n_b) / n
-    # the steady head's offset fitted with the model (velab.fitting.offset): its residuals, its baseline term
-    delta = offset(res, stage.n_b)
-    res = res + delta
-    base_term = stage.n_b * delta * delta / n
+    b = stage.baseline
+    F = objective(res, b) / n
+    # the steady head's offset fitted with the model (velab.fitting.offset): its residuals, the baseline's term
+    res_b = fitted(res, b)
+    base_term = F - sumsq(res_b) / n
+    delta = offset(res, b) if isinstance(b, (int, float)) else 0.0  # (a stacked fit's parts: in its runs)
+    res = res_b
     rho = lag1(res)
     # what each element buys: n ln(F without it / F), the others fixed
     lo, _ = pm.bounds()
@@ -53,7 +56,7 @@ def summarise(stage: Stage, sol: Sol, name: str, rig: Rig, bounds: FitBounds, *,
         free[1 + k] = False
         if pm.tau_free:
             free[1 + m + k] = False
-    cov = covariance(augment(jac, stage.n_b), F, n, rho, free)  # (the offset marginalised)
+    cov = covariance(project(jac, b), F, n, rho, free)  # (the offset marginalised)
     se = standard_errors(cov, m, pm.tau_free)
     c = creep_const(rig)
     E = c * a * a / J

@@ -41,7 +41,7 @@ from velab.rig import Rig
 from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate, prepare_window
 from velab.fitting.engine import HeadEvaluator, sumsq
-from velab.fitting.offset import augment
+from velab.fitting.offset import project
 from velab.fitting.friction import EquivalentFriction, TimeDomainModel, anderson, equivalent_friction, fit_rig, rms
 from velab.fitting.parallel import map_each
 from velab.fitting.params import FitBounds, ParamMap, creep_const, derive_bounds
@@ -479,13 +479,13 @@ class _Sweep:
             return cache[key]
 
         def residual(x):  # (with the steady head's offset projected out: velab.fitting.offset)
-            return augment(head(x) - self.d, self.n_b)
+            return project(head(x) - self.d, self.n_b)
 
         def column(x, h0, i):
             xp = np.array(x, dtype=float)
             step = MOC_POLISH_STEP if xp[i] + MOC_POLISH_STEP <= hi[i] else -MOC_POLISH_STEP
             xp[i] += step
-            return augment((tm.head(*pm.unpack(xp)) - h0) / step, self.n_b)
+            return project((tm.head(*pm.unpack(xp)) - h0) / step, self.n_b)
 
         def jacobian(x):
             h0 = head(x)
