@@ -1,4 +1,5 @@
-"""Shared by the device-layer tests: the simulated bench on a manual clock, a quick streaming-ADC profile."""
+"""Shared by the device-layer tests: the simulated bench on a manual clock, a quick streaming-ADC profile;
+the simulated rig's physics alone (records the fitter did not make)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,18 @@ def manual_sim(config: dict):
     ephemeral endpoints, stopped at the end."""
     with SimulatedBench(config, clock=ManualClock(), ephemeral=True) as s:
         yield s
+
+
+def rig_physics(rig, material: str):
+    """The simulated rig's physics alone, no device and no noise: a SimulatedRig on a manual clock, armed with
+    the rig's manoeuvre (MOC, the rig's friction and valve laws) -- ``trigger(at=...)`` it, then sample
+    ``head_m(t)`` and ``valve_position(t)``."""
+    from velab.config import load_material
+    from velab.simulators.rig import SimulatedRig
+
+    sim = SimulatedRig(rig, load_material(material), ManualClock(), pressure_noise_fs=0.0, position_noise_pct=0.0)
+    sim.arm()
+    return sim
 
 
 def stream_profile(**kw):

@@ -237,16 +237,12 @@ def _stroke_record(exact_position: bool):
     """The simulated rig's physics (MOC, orifice law through the butterfly, linear friction), material
     hdpe_s1, head noise 12.3 mm and position feedback noise 0.02 % at 1 kHz: the 14th draw of seed 1, a
     record on which the position's noise during the stroke leaves S1 16 behind S2 (docs/fitting.md)."""
-    from velab.config import load_material, load_rig
-    from velab.simulators.rig import SimulatedRig
+    from velab.config import load_rig
 
-    class Clock:
-        def now(self):
-            return 0.0
+    from sim_helpers import rig_physics
 
     rig = load_rig("perugia").with_changes(friction="linear")
-    sim = SimulatedRig(rig, load_material("hdpe_s1"), Clock(), pressure_noise_fs=0.0, position_noise_pct=0.0)
-    sim.arm()
+    sim = rig_physics(rig, "hdpe_s1")
     t = np.arange(-2.2, 21.0, 1e-3)
     rng = np.random.default_rng(1)
     for _ in range(14):

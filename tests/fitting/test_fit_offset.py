@@ -45,16 +45,12 @@ def _record(shift_m: float, seed: int = 6):
     """Material A (S3) on the simulated rig's physics (MOC, orifice law through the butterfly, linear
     friction), 12 mm of head noise at 1 kHz, the valve position exact, 2 s of baseline; its baseline's
     head raised by ``shift_m`` (what a draw of its noise that many standard errors high does to its mean)."""
-    from velab.config import load_material, load_rig
-    from velab.simulators.rig import SimulatedRig
+    from velab.config import load_rig
 
-    class Clock:
-        def now(self):
-            return 0.0
+    from sim_helpers import rig_physics
 
     rig = load_rig("perugia").with_changes(friction="linear")
-    sim = SimulatedRig(rig, load_material("A"), Clock(), pressure_noise_fs=0.0, position_noise_pct=0.0)
-    sim.arm()
+    sim = rig_physics(rig, "A")
     t = np.arange(-2.0, 20.5, 1e-3)
     rng = np.random.default_rng(seed)
     trigger = rng.uniform(0, 1e-3)
