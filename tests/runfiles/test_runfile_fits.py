@@ -65,6 +65,28 @@ def test_fields_the_fitter_adds_are_stored_without_the_store_knowing_them(run_fi
     assert sweep["S1"].wave_speed_m_s == 352.9
 
 
+def test_the_steady_head_offset_is_stored_and_said_by_info(run_file, tmp_path, capsys):
+    """ModelFit.steady_head_offset_m (velab.fitting.offset) round-trips, and `velab info` says the best
+    model's; a fit stored before it has none (0: the baseline's mean was the steady head) and no line."""
+    p = tmp_path / "a.h5"
+    shutil.copy(run_file, p)
+    r = _result()
+    r.models[1].steady_head_offset_m = -6.64e-4
+    save_fit(p, r, "new")
+    old = _result().to_dict()
+    for m in old["models"]:
+        del m["steady_head_offset"]
+    save_fit(p, old, "old")
+    with open_run_file(p) as fh:
+        assert read_fit_group(fh["entry/fits/new"])["S1"].steady_head_offset_m == -6.64e-4
+        assert read_fit_group(fh["entry/fits/old"])["S1"].steady_head_offset_m == 0.0
+    capsys.readouterr()
+    assert main(["info", str(p)]) == 0
+    lines = [x for x in capsys.readouterr().out.splitlines() if "steady head:" in x]
+    assert lines == ["    steady head: S1 fits the baseline's mean -0.664 mm off (every model fits this offset, "
+                     "the baseline its prior)"]
+
+
 def test_missing_fields_take_defaults(run_file, tmp_path):
     p = tmp_path / "a.h5"
     shutil.copy(run_file, p)

@@ -133,4 +133,10 @@ def describe_fits(path) -> list[str]:
             out.append(f"    {str(m.get('name', '?')):<6}{int(num('k')) if math.isfinite(num('k')) else 0:>3}"
                        f"{num('F'):>13.5g}{num('noise_ratio'):>9.3g}{num('aic'):>14.2f}{num('delta_aic'):>12.2f}{num('weight'):>8.3f}  "
                        f"{num('wave_speed'):>8.2f}  {m.get('support', '')}")
+        best = next((m for m in d.get("models", []) if m.get("name") == d.get("best")), {})
+        offset = best.get("steady_head_offset")
+        if isinstance(offset, (int, float)) and offset != 0.0 and math.isfinite(offset):
+            # (fits stored before velab.fitting.offset have none: the baseline's mean was the steady head)
+            out.append(f"    steady head: {best['name']} fits the baseline's mean {1e3 * offset:+.3g} mm off "
+                       "(every model fits this offset, the baseline its prior)")
     return out
