@@ -38,7 +38,7 @@ from velab.fitting.creep import creep_curve
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import sumsq
 from velab.fitting.nuisance import marginalised
-from velab.fitting.offset import fitted, objective, offset, project
+from velab.fitting.offset import counted_on, fitted, objective, offset, project
 # (each run's own work, closure fits and time-domain heads, touches only that run's objects: map_each)
 from velab.fitting.parallel import map_each
 from velab.fitting.jointresult import JointResult
@@ -75,7 +75,8 @@ class _Model:
 def baseline_blocks(parts, st: StackedEvaluator) -> tuple:
     """Each part's steady head offset fitted with the wall, its baseline the prior (velab.fitting.offset): the
     blocks (start, stop, n_b) of the stacked grid, each part's baseline counted on its grid there."""
-    return tuple((sl.start, sl.stop, p.steady_n * (sl.stop - sl.start) / p.n) for p, sl in zip(parts, st.slices()))
+    return tuple((sl.start, sl.stop, counted_on(p.steady_n, p.n, sl.stop - sl.start))
+                 for p, sl in zip(parts, st.slices()))
 
 
 def assess_part(best: ModelFit, part, head, F: float, method: str) -> SweepResult:
@@ -260,11 +261,12 @@ class _JointSweep:
         # N ln s_e^2 - ln(1 - rho^2) is the sum of the runs' AR(1) terms
         ar, rhos = 0.0, []
         for r, h in zip(self.runs, fin.heads):
-            res = fitted(h - r.rec.h, r.steady_n)  # (with the part's steady head offset, velab.fitting.offset)
+            raw = h - r.rec.h
+            res = fitted(raw, r.steady_n)  # (with the part's steady head offset, velab.fitting.offset)
             rho = lag1(res)
             rhos.append(rho)
             rho_c = float(np.clip(rho, -0.999, 0.999))
-            base_term = (objective(h - r.rec.h, r.steady_n) - sumsq(res)) / r.n
+            base_term = (objective(raw, r.steady_n) - sumsq(res)) / r.n
             ar += r.n * math.log(ar1_innovation_var(res, rho) + base_term) - math.log(1 - rho_c * rho_c)
         rho_p = float(np.clip(np.average(rhos, weights=[r.n for r in self.runs]), -0.999, 0.999))
         F = math.exp(fin.loglik(self.runs) / n_tot)

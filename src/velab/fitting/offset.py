@@ -39,6 +39,12 @@ def _blocks(size: int, b) -> list[tuple[int, int, float]]:
     return [(0, size, float(b))] if b and b > 0 else []
 
 
+def counted_on(n_b: float, n: int, size: int) -> float:
+    """A baseline of ``n_b`` samples at the fit rate, counted on a grid that holds ``size`` of the window's
+    ``n`` samples (a decimated stage): its prior weighs the same against the window there."""
+    return n_b * size / n
+
+
 def offset(r: np.ndarray, n_b: float) -> float:
     """delta of the residuals ``r`` (model minus data, one record's window): what the model adds to the
     baseline's steady head (m); 0 without a baseline."""

@@ -41,7 +41,7 @@ from velab.rig import Rig
 from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate, prepare_window
 from velab.fitting.engine import HeadEvaluator, sumsq
-from velab.fitting.offset import project
+from velab.fitting.offset import counted_on, project
 from velab.fitting.friction import EquivalentFriction, TimeDomainModel, anderson, equivalent_friction, fit_rig, rms
 from velab.fitting.parallel import map_each
 from velab.fitting.params import FitBounds, ParamMap, creep_const, derive_bounds
@@ -156,7 +156,7 @@ class _Sweep:
         # the flow at the valve (velab.fitting.manoeuvre) drives every stage, the time-domain model too
         dc = lowpass_decimate(d, q)
         self.stage_c = Stage(HeadEvaluator(rig, t[::q], band_hz="auto", flow=None if flow is None else flow[::q]),
-                             dc, baseline_n * dc.size / d.size)  # (the baseline counted on each grid)
+                             dc, counted_on(baseline_n, d.size, dc.size))
         self.time_model = TimeDomainModel(rig, t, flow=flow)
         # full-band evaluations are large numpy/FFT operations that release the GIL: with two threads,
         # each is split in two halves (HeadEvaluator workers=2), or two candidates are polished at once
