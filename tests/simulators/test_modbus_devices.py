@@ -81,15 +81,21 @@ def test_valve_answers_arm_before_its_profile_is_ready(sim, transport):
     still says IDLE, and the actuator goes on answering until it is ARMED."""
     sim.rig.reset()
     v = connect(sim, "valve", transport)
+    # a transient of 300 s (1.5 million grid points: a second or more of CPU, where one status read takes
+    # milliseconds): on a fast host the usual 20 s one (tens of ms, its step model cached per manoeuvre) could
+    # be ready before the status read's reply
+    short = sim.rig.transient_s
+    sim.rig.transient_s = 300.0
     try:
-        v.set_manoeuvre(31.0, -5.5, 0.0)  # a manoeuvre of its own: its transient is not cached yet
+        v.set_manoeuvre(31.0 if transport == "tcp" else 31.5, -5.5, 0.0)  # a manoeuvre of its own: not cached
         v.command(Command.ARM)
         assert v.read_state() is ValveState.IDLE
-        assert v.wait_for({ValveState.ARMED}, timeout_s=30.0).state is ValveState.ARMED
+        assert v.wait_for({ValveState.ARMED}, timeout_s=60.0).state is ValveState.ARMED
         v.abort()
         assert v.read_state() is ValveState.ABORTED
     finally:
         v.close()
+        sim.rig.transient_s = short
         sim.rig.reset()
 
 

@@ -21,13 +21,14 @@ SAME_TAU = 1e-3
 
 
 def summarise(stage: Stage, sol: Sol, name: str, rig: Rig, bounds: FitBounds, *, evaluations: int = 0,
-              jacobians: int = 0, starts: int = 0, friction: dict | None = None) -> ModelFit:
-    """The ModelFit of ``sol`` on ``stage`` (the final stage: its data include the friction correction)."""
+              jacobians: int = 0, starts: int = 0, friction: dict | None = None, head_jac=None) -> ModelFit:
+    """The ModelFit of ``sol`` on ``stage`` (the final stage: its data include the friction correction);
+    ``head_jac``: the stage's (head, Jacobian rows) at ``sol`` if the caller has them (not computed again)."""
     pm, x = sol.pm, np.asarray(sol.x, dtype=float)
     m = pm.m
     n = stage.d.size
     a, J, tau = pm.unpack(x)
-    h, jac = stage.ev.head_jac_x(a, J, tau, pm.tau_free)
+    h, jac = head_jac if head_jac is not None else stage.ev.head_jac_x(a, J, tau, pm.tau_free)
     res = h - stage.d
     b = stage.baseline
     F = objective(res, b) / n
