@@ -97,6 +97,7 @@ def test_a_joint_fit_takes_each_runs_steady_head_offset():
     baseline mean's error (runs[].steady_head_offset), the joint wall names S3 without a ramp."""
     from velab.fitting.campaignrun import CampaignRun, head_sha256
     from velab.fitting.joint import fit_joint
+    from velab.fitting.jointresult import runs_report
 
     sources, errors = [], []
     for seed, k in ((6, 4.0), (7, 0.0)):
@@ -109,3 +110,9 @@ def test_a_joint_fit_takes_each_runs_steady_head_offset():
     for run, error in zip(r.runs, errors):
         assert run["steady_head_offset"] == pytest.approx(-error * 20000 / 22000, abs=0.25e-3), (run["path"], error)
     assert abs(r.runs[0]["steady_head_offset"]) > 3 * 0.012 / np.sqrt(2000)
+    # the runs' table (velab fit --joint) prints each run's offset, in mm, on the run's row
+    table = runs_report(r).splitlines()
+    assert "offset (mm)" in table[1]
+    for run in r.runs:
+        row = next(line for line in table if line.strip().startswith(run["path"]))
+        assert f"{1e3 * run['steady_head_offset']:+.3g}" in row.split(), row
