@@ -238,9 +238,11 @@ class _JointSweep:
         for r, F in zip(self.runs, fin.F_runs):
             r.var = float(F)
         st = self.stage("f", fin)
-        h, jac = st.ev.head_jac_x(*fin.sol.pm.unpack(fin.sol.x), fin.sol.pm.tau_free)  # (the summary's and the closures')
+        evaluations, jacobians = st.ev.evaluations, st.ev.jacobians  # (before the summary's own evaluation)
+        # the stacked head and Jacobian at the fit rate, once: the summary's and the closures' marginalisation
+        st_head, st_jac = st.ev.head_jac_x(*fin.sol.pm.unpack(fin.sol.x), fin.sol.pm.tau_free)
         f = summarise(st, fin.sol, model_name(m), self.runs[0].rig, self.bounds,
-                      evaluations=st.ev.evaluations, jacobians=st.ev.jacobians, head_jac=(h, jac))
+                      evaluations=evaluations, jacobians=jacobians, head_jac=(st_head, st_jac))
         n_tot = sum(r.n for r in self.runs)
         blocks, slices = [], []
         for idx, rows in nuisance or ():
@@ -252,8 +254,8 @@ class _JointSweep:
                 blocks.append(project(np.concatenate([st.ev.weights[i] * b for i, b in zip(idx, rows)], axis=1), own))
                 slices.append(slice(s0, s1))
         if blocks:
-            res = h - st.d
-            f = marginalised(f, fin.sol.pm, fin.sol.x, project(jac, st.baseline), blocks, slices, [1.0] * len(blocks),
+            res = st_head - st.d
+            f = marginalised(f, fin.sol.pm, fin.sol.x, project(st_jac, st.baseline), blocks, slices, [1.0] * len(blocks),
                              objective(res, st.baseline) / res.size, lag1(fitted(res, st.baseline)), self.runs[0].rig)
         for r, v in zip(self.runs, saved):
             r.var = v

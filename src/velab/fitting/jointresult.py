@@ -45,13 +45,15 @@ def runs_report(result: JointResult) -> str:
         lines.append(f"  {str(r.get('path', '?'))[-32:]:<32}{int(r.get('n', 0)):>7}"
                      f"{1e3 * float(r.get('steady_flow_m3_s', math.nan)):>10.3g}"
                      f"{ratio if ratio is not None else math.nan:>9.3g}{bound if bound is not None else math.nan:>7.3g}"
-                     f"{_mm(r.get('steady_head_offset')):>12}  {a:>9.2f} +- {se:<6.2g}  {'YES' if r.get('disagrees') else 'no'}")
+                     f"{_mm(r.get('steady_head_offset')):>12}  {a:>9.2f} +- {se:<6.2g}"
+                     f"  {'YES' if r.get('disagrees') else 'no'}")
         for sec in r.get("sections") or ():  # a run with several transducers: each section under the joint wall
             ratio, bound = sec.get("noise_ratio"), sec.get("misfit_bound")
             where = f"section {sec.get('name', '?')} at {float(sec.get('position_m', math.nan)):g} m"
             lines.append(f"    {where:<30}{int(sec.get('n', 0)):>7}{'':>10}"
                          f"{ratio if ratio is not None else math.nan:>9.3g}{bound if bound is not None else math.nan:>7.3g}"
-                         f"{_mm(sec.get('steady_head_offset')):>12}{'':>22}{'YES' if sec.get('disagrees') else 'no'}")
+                         f"{_mm(sec.get('steady_head_offset')):>12}{'':>22}"
+                         f"{'YES' if sec.get('disagrees') else 'no'}")
     return "\n".join(lines)
 
 
