@@ -36,6 +36,7 @@ class PtyPair:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.bytes_copied = {d: 0 for d in DIRECTIONS}
+        self.bytes_dropped = {d: 0 for d in DIRECTIONS}  # read from one end, not forwarded: paused, or by a fault
         self._dev_master, self._dev_slave = os.openpty()
         self._host_master, self._host_slave = os.openpty()
         for fd in (self._dev_slave, self._host_slave):
@@ -70,13 +71,18 @@ class PtyPair:
             except OSError:  # the other side closed: wait for a reopen
                 time.sleep(0.01)
                 continue
-            if not data or self._paused:
+            if not data:
+                continue
+            if self._paused:
+                self.bytes_dropped[direction] += len(data)
                 continue
             if self.char_time_s:
                 time.sleep(len(data) * self.char_time_s)
             fn = self._faults[direction]
             if fn is not None:
+                n = len(data)
                 data = fn(data)
+                self.bytes_dropped[direction] += max(0, n - len(data))
             if data:
                 try:
                     os.write(dst, data)

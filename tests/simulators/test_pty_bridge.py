@@ -1,6 +1,5 @@
 """The null-modem pty bridge: bytes both ways, fault hook, wire time, pause."""
 
-import os
 import time
 
 import pytest
@@ -11,6 +10,16 @@ from velab.simulators.pty_bridge import PtyPair
 
 def open_port(path):
     return serial.Serial(path, 115200, timeout=0.5)
+
+
+def dropped(pair, n: int, direction: str = "to_host", limit_s: float = 5.0) -> int:
+    """The bridge's count of bytes dropped on ``direction`` once it reaches ``n`` (or at ``limit_s``): the bytes
+    written into a faulted or paused line are gone before the line is restored (on a loaded host the bridge's
+    thread could read them only after, and forward them)."""
+    end = time.monotonic() + limit_s
+    while pair.bytes_dropped[direction] < n and time.monotonic() < end:
+        time.sleep(0.005)
+    return pair.bytes_dropped[direction]
 
 
 def test_bytes_flow_both_ways_and_fault_hook():
@@ -24,6 +33,7 @@ def test_bytes_flow_both_ways_and_fault_hook():
             assert host.read(3) == b"BBB"
             pair.fault("to_host", lambda b: b"")
             dev.write(b"lost")
+            assert dropped(pair, 4) == 4
             host.timeout = 0.1
             assert host.read(4) == b""
             pair.fault("to_host", None)
@@ -55,11 +65,13 @@ def test_pause_and_stop():
     host.timeout = 0.1
     pair.pause(True)
     dev.write(b"x")
+    assert dropped(pair, 1) == 1
     assert host.read(1) == b""
     pair.pause(False)
     dev.write(b"y")
+    host.timeout = 5.0  # (a loaded host: the bridge's thread may wait its turn)
     assert host.read(1) == b"y"
+    assert pair.bytes_dropped == {"to_host": 1, "to_device": 0}
     dev.close()
     host.close()
     pair.stop()
-    assert not os.path.exists(pair.device_path) or True  # pts nodes vanish once every fd is closed
