@@ -9,7 +9,7 @@ from velab.simulators.pty_bridge import PtyPair
 
 
 def open_port(path):
-    return serial.Serial(path, 115200, timeout=0.5)
+    return serial.Serial(path, 115200, timeout=5.0)  # (a read returns once its bytes are there)
 
 
 def dropped(pair, n: int, direction: str = "to_host", limit_s: float = 5.0) -> int:
@@ -38,6 +38,7 @@ def test_bytes_flow_both_ways_and_fault_hook():
             assert host.read(4) == b""
             pair.fault("to_host", None)
             dev.write(b"ok")
+            host.timeout = 5.0  # (a loaded host: the bridge's thread may wait its turn)
             assert host.read(2) == b"ok"
             with pytest.raises(ValueError):
                 pair.fault("sideways", None)
