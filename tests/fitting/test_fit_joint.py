@@ -116,6 +116,20 @@ def test_three_runs_of_one_pipe_give_its_wall(joint):
     assert best["n"] == 24000
 
 
+def test_models_far_behind_are_not_polished_again_and_say_so(joint):
+    """After the closures' refinement only the models within CONTINUE_MARGIN of the best are polished again (the
+    continuation's cost); the others keep their first-pass wall under the refined closures and are named."""
+    from velab.fitting.joint import CONTINUE_MARGIN, CONTINUE_MARGIN_PER_SAMPLE
+
+    doc, _, _ = joint
+    skipped = doc["settings"]["not_continued"]
+    aic = {m["name"]: m["aic"] for m in doc["models"]}
+    assert "EL" in skipped and doc["best"] not in skipped, skipped
+    margin = max(CONTINUE_MARGIN, CONTINUE_MARGIN_PER_SAMPLE * doc["n"])
+    assert all(aic[name] - aic[doc["best"]] > margin for name in skipped), (skipped, aic)
+    assert any(note.startswith(", ".join(skipped) + ": not polished again") for note in doc["notes"]), doc["notes"]
+
+
 def test_the_joint_wave_speed_is_more_precise_than_any_single_run(joint, campaign, capsys):
     doc, _, _ = joint
     _, runs, _ = campaign

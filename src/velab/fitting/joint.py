@@ -46,7 +46,8 @@ from velab.fitting.params import ParamMap, derive_bounds
 from velab.fitting.parts import Part, Record
 from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
 from velab.fitting.solvers import Sol, Stage
-from velab.fitting.starts import nested_starts, race_starts, reduced_then_full, scan_wave_speed, tau_grids
+from velab.fitting.starts import (RACE_KEEP, distinct, nested_starts, race_starts, reduced_then_full, scan_wave_speed,
+                                  tau_grids)
 from velab.fitting.stacked import StackedEvaluator
 from velab.fitting.stats import ar1_innovation_var, lag1
 from velab.fitting.summary import summarise
@@ -57,6 +58,16 @@ REFRESH_GAIN = 0.05
 # closure refinements (each run's, with the joint wall) followed by a continuation of every model; a
 # second pass was measured to change nothing that matters (J(0.05 s) moved 0.1 %, a 0.003 m/s) for 1.5 x the time
 REFINE_PASSES = 1  # ... stopped when one gains less than this in sum n ln F
+# a model's basins are searched on this many parts, those the model below describes best (relative to their own
+# noise): the wall is one, so a few runs find its basin; the search's best starts are then ranked and solved on
+# every part (the search on all five runs of a campaign was a sixth of the joint fit)
+SEARCH_PARTS = 2
+# after the closures' refinement, a model whose white AIC (at its first-pass wall, under the refined closures) is
+# behind the best's by more than this, or by more than this share of the samples if that is more, is not polished
+# again: no polish closes such a gap (on benchmarks/fit_joint.py's five runs, 100,000 samples, polishing S1 and S2
+# again gained 27 and 87, against gaps of 200,000 and 12,000), and their polishes were a third of the continuation
+CONTINUE_MARGIN = 200.0
+CONTINUE_MARGIN_PER_SAMPLE = 0.005
 
 
 @dataclass
@@ -98,6 +109,7 @@ class _JointSweep:
         self.runs, self.bounds, self.selection, self.progress = runs, bounds, selection, progress
         self.final: dict[int, _Model] = {}
         self.not_searched: list[int] = []
+        self.not_continued: list[int] = []  # models not polished after the closures' refinement (refine_closures)
         dt = min(float(r.rec.t[1] - r.rec.t[0]) * r.qc for r in runs)
         window = max(r.rec.window_s for r in runs)
         self.tau_lo = max(2 * dt, bounds.tau_min_s)
@@ -111,12 +123,14 @@ class _JointSweep:
         fallback = float(np.median(known)) if known else 1.0
         return np.array([1.0 / math.sqrt(r.var or fallback) for r in self.runs])
 
-    def stage(self, grid: str, base: _Model | None) -> Stage:
+    def stage(self, grid: str, base: _Model | None, idx=None) -> Stage:
         """The stacked stage on ``grid`` ("c", "m", "f"), its data defect-corrected at ``base``: each run's
         data minus its time-domain head at ``base`` plus its frequency model there (the frequency model
-        then fits the time-domain model's head near ``base``)."""
+        then fits the time-domain model's head near ``base``). ``idx``: only these parts (all if None)."""
+        idx = range(len(self.runs)) if idx is None else idx
         evs, parts = [], []
-        for i, r in enumerate(self.runs):
+        for i in idx:
+            r = self.runs[i]
             ev, q = {"c": (r.ev_c, r.qc), "m": (r.ev_m, r.qm), "f": (r.ev_f, 1)}[grid]
             evs.append(ev)
             if base is None or not r.tm.active:
@@ -125,8 +139,16 @@ class _JointSweep:
                 p = base.sol.pm.unpack(base.sol.x)
                 dcorr = r.rec.h - base.heads[i]
                 parts.append((lowpass_decimate(dcorr, q) if q > 1 else dcorr) + ev.head(*p))
-        st = StackedEvaluator(evs, self.weights())
-        return Stage(st, st.stack(parts), baseline_blocks(self.runs, st))
+        st = StackedEvaluator(evs, self.weights()[list(idx)])
+        return Stage(st, st.stack(parts), baseline_blocks([self.runs[i] for i in idx], st))
+
+    def search_parts(self, base: _Model) -> list[int]:
+        """The SEARCH_PARTS parts that ``base`` describes best, by F over their baseline's noise (a run that
+        does not belong to the pipe is the worst described), in their order."""
+        if len(self.runs) <= SEARCH_PARTS:
+            return list(range(len(self.runs)))
+        ratio = [F / (r.noise_var or F) for r, F in zip(self.runs, base.F_runs)]
+        return sorted(np.argsort(ratio, kind="stable")[:SEARCH_PARTS].tolist())
 
     def evaluate(self, sol: Sol) -> _Model:
         """Each run's model head at ``sol`` (time-domain with a nonlinear friction) and its F."""
@@ -167,12 +189,19 @@ class _JointSweep:
             for r in self.runs:
                 r.set_friction(base.sol.pm.unpack(base.sol.x))
         coarse = self.stage("c", base)
+        search = coarse
+        idx = self.search_parts(base)
+        if len(idx) < len(self.runs):
+            search = self.stage("c", base, idx)
         a_base = base.sol.pm.unpack(base.sol.x)[0]
         cands = nested_starts(base.sol, pm, self.bounds, self.tau_lo, self.tau_hi)[:-1] if base.sol.pm.m else []
         if m <= 3 and not (m == 3 and self.saturated(m)):
-            cands += [reduced_then_full(coarse, pm, g, a_base, "auto") for g in tau_grids(m, self.tau_lo, self.tau_hi)]
-        sols = race_starts(coarse, pm, cands, 60)
+            cands += [reduced_then_full(search, pm, g, a_base, "auto") for g in tau_grids(m, self.tau_lo, self.tau_hi)]
+        sols = race_starts(search, pm, cands, 60)
         sols.sort(key=lambda s: s.F)
+        if search is not coarse:  # the search's best distinct solutions ranked on every part
+            kept = distinct([s.x for s in sols], RACE_KEEP)
+            sols = sorted((coarse.sol(pm, x) for x in kept), key=lambda s: s.F)
         x = coarse.lsq(pm, sols[0].x, max_nfev=150, ftol=1e-12).x
         fin = self.polish(pm, x, base)
         if ref is not None and fin.loglik(self.runs) > ref.loglik(self.runs):
@@ -199,13 +228,14 @@ class _JointSweep:
                 break
         return best
 
-    def continue_model(self, m: int, old: _Model) -> _Model:
+    def continue_model(self, m: int, old: _Model, start: _Model | None = None) -> _Model:
         """After the runs' closures were refined: the model polished from its previous optimum (no search),
-        not above the model it contains."""
+        not above the model it contains. ``start``: ``old``'s wall evaluated under the refined closures."""
         pm = old.sol.pm
         if m in self.not_searched:
             return self.embedded(pm, self.final[m - 1])
-        start = self.evaluate(old.sol)
+        start = start if start is not None else self.evaluate(old.sol)
+        self.reweight(start)  # (its own weights: the polish's result does not depend on the model polished before)
         fin = self.polish(pm, old.sol.x, start, first_nfev=25)
         if start.loglik(self.runs) < fin.loglik(self.runs):
             fin = start  # (a polish accepts only steps that lower its objective, whose weights moved)
@@ -341,6 +371,10 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
         result.notes.append(", ".join(model_name(m) for m in sw.not_searched)
                             + ": not searched, the model below plus vanished elements (its element did not pay "
                               "its AIC price)")
+    if sw.not_continued:
+        result.notes.append(", ".join(model_name(m) for m in sw.not_continued)
+                            + f": not polished again after the closures' refinement (behind the best by more than "
+                              f"{continue_margin(parts):.0f} in AIC): the first pass's wall under the refined closures")
     result.duration_s = time.perf_counter() - t0
     result.evaluations = 0
     return result
@@ -349,13 +383,35 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
 def refine_closures(sw: _JointSweep, records: list[Record], ms) -> None:
     """The fitted closures refined on each record's whole window with the first pass's best wall (every wave
     front carries the closure's shape; from its early window alone a slow element takes up a wrong shape),
-    then every model continued from its optimum under them."""
+    then every model within CONTINUE_MARGIN of the best continued from its optimum under them (the others
+    evaluated there: ``sw.not_continued``)."""
     for _ in range(REFINE_PASSES if any(r.vi.source == "fitted" for r in records) else 0):
         first = _first_pass_best(sw, ms)
         p = first.sol.pm.unpack(first.sol.x)
         map_each(lambda r: r.refine(p, sw.bounds), records)
-        for m in range(0, max(ms) + 1):
-            sw.final[m] = sw.continue_model(m, sw.final[m])
+        top = max(ms)
+        at = {m: sw.evaluate(sw.final[m].sol) for m in range(top + 1) if m not in sw.not_searched}
+        best = min(at[m].loglik(sw.runs) + 2 * at[m].sol.pm.size for m in at)
+        margin = continue_margin(sw.runs)
+        for m in range(0, top + 1):
+            if m in at and at[m].loglik(sw.runs) + 2 * at[m].sol.pm.size > best + margin:
+                sw.not_continued.append(m)
+                sw.final[m] = _guarded(sw, m, at[m])
+            else:
+                sw.final[m] = sw.continue_model(m, sw.final[m], at.get(m))
+
+
+def continue_margin(parts) -> float:
+    """The AIC gap beyond which a model is not polished again after the closures' refinement (CONTINUE_MARGIN)."""
+    return max(CONTINUE_MARGIN, CONTINUE_MARGIN_PER_SAMPLE * sum(p.n for p in parts))
+
+
+def _guarded(sw: _JointSweep, m: int, fin: _Model) -> _Model:
+    """``fin``, or the model below with a vanished element if that fits better (S(m) contains S(m-1))."""
+    ref = sw.final.get(m - 1)
+    if ref is not None and fin.loglik(sw.runs) > ref.loglik(sw.runs):
+        return sw.embedded(fin.sol.pm, ref)
+    return fin
 
 
 def closure_groups(parts, records: list[Record], top: _Model) -> list:
@@ -390,6 +446,7 @@ def _settings(records, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s) 
     return {"models": ms, "reduced": False, "polish": True, "selection": selection, "joint": True,
             "bounds": bounds.to_dict(), "tau_min_s": tau_min_s, "tau_max_s": tau_max_s,
             "tau_start_range_s": [sw.tau_lo, sw.tau_hi], "not_searched": [model_name(m) for m in sw.not_searched],
+            "not_continued": [model_name(m) for m in sw.not_continued],
             "k_shared": "2m + 1", "k_nuisance": k_nuis, "sections": sum(len(r.parts) for r in records),
             "likelihood": "sum over runs (and their sections) of n_r ln F_r (Gaussian, each one's own variance "
                           "profiled out)",

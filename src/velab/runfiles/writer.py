@@ -393,6 +393,12 @@ class RunWriter:
         L.set_str(e, "status_reason", reason)
 
     def flush(self) -> None:
+        # every fast channel's data and extent first, time's last (H5Dflush, one after the other): a file-level flush
+        # writes the datasets' metadata in the library's own order, and a process killed inside it left time's extent
+        # 540 samples ahead of the channels' -- a SWMR reader following time saw samples the file never held
+        for name in self.channels:
+            self._ds[name].flush()
+        self._ds["time"].flush()
         self._fh.flush()
 
     def close(self, status: str = "completed", reason: str = "") -> None:
