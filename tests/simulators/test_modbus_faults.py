@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from sim_helpers import manual_sim
+from sim_helpers import manual_sim, wait_until
 
 from velab.drivers.base import (DeviceDisconnected, DeviceException, DeviceFault, DeviceReset, DeviceTimeout,
                                 ProtocolError, Quality)
@@ -161,10 +161,8 @@ def test_silent_line_then_back(sim):
         bounded(fm.read_flow, DeviceTimeout)
         # the request is gone before the line comes back (a bridge thread that read it only then would carry it to
         # the device, whose reply would meet the next read)
-        end = time.monotonic() + 5.0
-        while pair.bytes_dropped["to_device"] < before + 8 and time.monotonic() < end:
-            time.sleep(0.005)
-        assert pair.bytes_dropped["to_device"] == before + 8  # one read request of 8 bytes, dropped
+        # one read request of 8 bytes, dropped
+        assert wait_until(lambda: pair.bytes_dropped["to_device"], before + 8, timeout_s=5.0) == before + 8
         pair.pause(False)
         fm.bus.timeout_s, fm.bus.retries = SOUND_TIMEOUT, 1  # the line back: its reply, however late
         assert fm.read_flow().quality is Quality.OK

@@ -5,6 +5,8 @@ import time
 import pytest
 import serial
 
+from sim_helpers import wait_until
+
 from velab.simulators.pty_bridge import PtyPair
 
 
@@ -12,14 +14,11 @@ def open_port(path):
     return serial.Serial(path, 115200, timeout=5.0)  # (a read returns once its bytes are there)
 
 
-def dropped(pair, n: int, direction: str = "to_host", limit_s: float = 5.0) -> int:
-    """The bridge's count of bytes dropped on ``direction`` once it reaches ``n`` (or at ``limit_s``): the bytes
+def dropped(pair, n: int) -> int:
+    """The bridge's count of bytes dropped towards the host once it is ``n`` (its last value after 5 s): the bytes
     written into a faulted or paused line are gone before the line is restored (on a loaded host the bridge's
     thread could read them only after, and forward them)."""
-    end = time.monotonic() + limit_s
-    while pair.bytes_dropped[direction] < n and time.monotonic() < end:
-        time.sleep(0.005)
-    return pair.bytes_dropped[direction]
+    return wait_until(lambda: pair.bytes_dropped["to_host"], n, timeout_s=5.0)
 
 
 def test_bytes_flow_both_ways_and_fault_hook():

@@ -82,6 +82,10 @@ class _Model:
         """sum_r n_r ln F_r (-2 ln L up to a constant)."""
         return float(sum(r.n * math.log(F) for r, F in zip(runs, self.F_runs)))
 
+    def white_aic(self, runs) -> float:
+        """sum_r n_r ln F_r + 2 (2m + 1): the wall's AIC with white residuals (the runs' nuisance is common)."""
+        return self.loglik(runs) + 2 * self.sol.pm.size
+
 
 def baseline_blocks(parts, st: StackedEvaluator) -> tuple:
     """Each part's steady head offset fitted with the wall, its baseline the prior (velab.fitting.offset): the
@@ -239,9 +243,13 @@ class _JointSweep:
         fin = self.polish(pm, old.sol.x, start, first_nfev=25)
         if start.loglik(self.runs) < fin.loglik(self.runs):
             fin = start  # (a polish accepts only steps that lower its objective, whose weights moved)
+        return self.guarded(m, fin)
+
+    def guarded(self, m: int, fin: _Model) -> _Model:
+        """``fin``, or the model below with a vanished element if that fits better (S(m) contains S(m-1))."""
         ref = self.final.get(m - 1)
         if ref is not None and fin.loglik(self.runs) > ref.loglik(self.runs):
-            fin = self.embedded(pm, ref)
+            return self.embedded(fin.sol.pm, ref)
         return fin
 
     def embedded(self, pm: ParamMap, ref: _Model) -> _Model:
@@ -391,12 +399,12 @@ def refine_closures(sw: _JointSweep, records: list[Record], ms) -> None:
         map_each(lambda r: r.refine(p, sw.bounds), records)
         top = max(ms)
         at = {m: sw.evaluate(sw.final[m].sol) for m in range(top + 1) if m not in sw.not_searched}
-        best = min(at[m].loglik(sw.runs) + 2 * at[m].sol.pm.size for m in at)
+        best = min(f.white_aic(sw.runs) for f in at.values())
         margin = continue_margin(sw.runs)
         for m in range(0, top + 1):
-            if m in at and at[m].loglik(sw.runs) + 2 * at[m].sol.pm.size > best + margin:
+            if m in at and at[m].white_aic(sw.runs) > best + margin:
                 sw.not_continued.append(m)
-                sw.final[m] = _guarded(sw, m, at[m])
+                sw.final[m] = sw.guarded(m, at[m])
             else:
                 sw.final[m] = sw.continue_model(m, sw.final[m], at.get(m))
 
@@ -404,14 +412,6 @@ def refine_closures(sw: _JointSweep, records: list[Record], ms) -> None:
 def continue_margin(parts) -> float:
     """The AIC gap beyond which a model is not polished again after the closures' refinement (CONTINUE_MARGIN)."""
     return max(CONTINUE_MARGIN, CONTINUE_MARGIN_PER_SAMPLE * sum(p.n for p in parts))
-
-
-def _guarded(sw: _JointSweep, m: int, fin: _Model) -> _Model:
-    """``fin``, or the model below with a vanished element if that fits better (S(m) contains S(m-1))."""
-    ref = sw.final.get(m - 1)
-    if ref is not None and fin.loglik(sw.runs) > ref.loglik(sw.runs):
-        return sw.embedded(fin.sol.pm, ref)
-    return fin
 
 
 def closure_groups(parts, records: list[Record], top: _Model) -> list:
@@ -438,7 +438,7 @@ def pool_baseline(result: SweepResult, parts) -> None:
 
 def _first_pass_best(sw: _JointSweep, ms) -> _Model:
     """The model of the first pass with the least white AIC (sum n_r ln F_r + 2 (2m + 1))."""
-    return min((sw.final[m] for m in ms), key=lambda f: f.loglik(sw.runs) + 2 * f.sol.pm.size)
+    return min((sw.final[m] for m in ms), key=lambda f: f.white_aic(sw.runs))
 
 
 def _settings(records, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s) -> dict:
