@@ -134,12 +134,19 @@ def test_s1_material_is_not_named_s3(tmp_path):
     assert summary.status == "completed", (summary.status, summary.reason)
     fit = summary.fit
     s1 = fit["S1"]
-    # The truth keeps support: by chance alone an extra element gains chi2 with 2 dof (P(dAIC > 7) ~ 0.4 %).
+    # The truth keeps support. By chance alone an extra element gains n ln F, and its retardation time is free
+    # over [tau_min, tau_max] where the truth has no element: under S1 that time is not identified, so the gain
+    # is the largest of many chi2(2) tries and has a heavier tail than chi2(2) (Davies, Biometrika 1987).
+    # Measured on 140 recordings of this bench (29 Nov, 60 alone and 80 beside two suites): S1's dAIC mean
+    # -2.1 (chi2(2) - 4 gives -2), sd 3.2 (chi2(2): 2); beyond 5.8 in 6, of which 2 by an element that is not
+    # the stroke's (a ramp on the 200 s bound at 6.97, a split of S1's element at 5.85); the suite saw 8.5 once
+    # (2 of ~18 runs with two suites at once failed the old bound, 7). 12 is chi2(2)'s 0.03 % point.
     # The recorded valve position adds one more way: its feedback noise (0.02 %) during the stroke enters the
     # flow at the valve, and the wavefront error it leaves repeats every period; in 2 of 100 simulated records
     # an element faster than the closure fitted it, S1 16-21 behind (docs/fitting.md, "position"). That
     # element holds ~1e-4 of the compliance: the creep function is S1's either way, and nothing else may win.
-    assert s1.delta_aic < 7.0 or _stroke_element(fit, "S1"), fit.report(elements=True)
+    assert summary.best_model in ("S1", "S2"), fit.report(elements=True)
+    assert s1.delta_aic < 12.0 or _stroke_element(fit, "S1"), fit.report(elements=True)
     assert fit["EL"].delta_aic > 10
     assert abs(s1.wave_speed_m_s - A_TRUE) < 0.5
 
