@@ -110,8 +110,12 @@ def test_three_runs_of_one_pipe_give_its_wall(joint):
         assert {"path", "n", "noise_ratio", "disagrees", "head_sha256", "steady_flow_m3_s"} <= set(r)
         assert r["disagrees"] is False and 0.8 < r["noise_ratio"] < 1.2 and r["n"] == 8000, r
     assert sorted(round(r["steady_flow_m3_s"] * 1e3, 2) for r in doc["runs"]) == [2.5, 3.64, 4.5]
-    # k counts the shared wall and every run's closure (five each: the coupling is the rig's valve law's)
-    assert best["k"] == 7 + 3 * 5 and doc["settings"]["k_nuisance"] == 15
+    # k counts the shared wall and every run's closure: five each (the coupling is the rig's valve law's), two
+    # where its shape is held at the rig's valve (manoeuvre.choose_closure: these records are of that valve)
+    closures = [r["manoeuvre"] for r in doc["runs"]]
+    assert all(c["nuisance_parameters"] == (2 if c["shape"] == "rig" else 5) for c in closures), closures
+    assert doc["settings"]["k_nuisance"] == sum(c["nuisance_parameters"] for c in closures)
+    assert best["k"] == 7 + doc["settings"]["k_nuisance"]
     # the likelihood is the runs' n_r ln F_r summed: N ln F of the pooled F
     assert best["n"] == 24000
 
@@ -327,5 +331,6 @@ def test_runs_may_differ_in_rate_manoeuvre_and_valve_input():
     assert [x["record_rate_hz"] for x in r.runs] == [2000.0, 1000.0]
     assert [x["sample_rate_hz"] for x in r.runs] == [1000.0, 1000.0]  # 2 kHz fitted at 1 kHz (prepare_record)
     assert [x["manoeuvre"]["source"] for x in r.runs] == ["position", "fitted"]
-    assert r.settings["k_nuisance"] == 5 and r.best.k == 7 + 5
+    assert r.settings["k_nuisance"] == r.runs[1]["manoeuvre"]["nuisance_parameters"] in (2, 5)
+    assert r.best.k == 7 + r.settings["k_nuisance"]
     assert not r.warnings and not any(x["disagrees"] for x in r.runs), r.warnings

@@ -40,7 +40,7 @@ model. Two ways to the effective opening tau(t), named in the result (``ValveInp
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
@@ -94,10 +94,20 @@ class ValveInput:
     # the calibrated model whose head the orifice coupling takes (``closure_coupling``): {"wave_speed_m_s", "J_rel",
     # "tau_s", "closure": {PARAM_NAMES: value}}; {} for the measured head
     coupling: dict = field(default_factory=dict)
+    # "fitted": the closure's shape (power, loss share, tail) fitted; "rig": held at the valve the rig file
+    # describes (``rig_shape``), only its timing fitted (``choose_closure``)
+    shape: str = "fitted"
+    early_F: float = math.nan  # the closure fit's mean squared residual on the record's first part, and its samples
+    early_n: int = 0
+    shape_gain: float = math.nan  # n ln F the free shape gained over the rig's valve's on the first part (choose_closure)
 
     def describe(self) -> dict:
         out = {"source": self.source, "params": dict(self.params), "se": dict(self.se), "text": self.text,
                "nuisance_parameters": self.k}
+        if self.source == "fitted":
+            out["shape"] = self.shape
+            if math.isfinite(self.shape_gain):
+                out["shape_gain"] = self.shape_gain
         if self.refined_with:
             out["refined_with"] = self.refined_with
         if self.coupling:
@@ -344,18 +354,37 @@ def coupling_exponent(rig: Rig) -> float:
     return 0.0 if rig.valve.law == "imposed" else 1.0
 
 
-def closure_bounds(rig: Rig) -> tuple[np.ndarray, np.ndarray]:
+def closure_bounds(rig: Rig, shape: str = "fitted") -> tuple[np.ndarray, np.ndarray]:
     """The box of the closure's solver variables (``to_solver``: ln beta, t_half, ln power, ln loss
     share, coupling, tail): beta within 5x the commanded one, the flow's half-closure instant up to
     T50_MAX_FACTOR x the commanded one (+ 1 s), power 0.3-6, loss share 0.001-1; the coupling held at
-    the rig's (``coupling_exponent``: its bounds coincide, so the solvers hold it)."""
+    the rig's (``coupling_exponent``: its bounds coincide, so the solvers hold it). ``shape`` "rig": power,
+    loss share and tail held at the rig's valve too (``rig_shape``)."""
     m, kappa = rig.manoeuvre, coupling_exponent(rig)
     lo = np.array([math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), kappa, 0.0])
     hi = np.array([math.log(m.beta_per_s * 5), T50_MAX_FACTOR * m.half_closure_s + 1.0, math.log(6.0), 0.0, kappa, 1.0])
+    if shape == "rig":
+        power, share, tail = rig_shape(rig)
+        for i, v in ((2, math.log(power)), (3, math.log(share)), (5, tail)):
+            lo[i] = hi[i] = v
     return lo, hi
 
 
-def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None) -> ValveInput:
+SHAPE_PARAMS = 3  # power, loss share, tail: what holding the closure's shape at the rig's valve saves
+
+
+def rig_shape(rig: Rig) -> tuple[float, float, float]:
+    """(power, loss share, tail) of the closure family that is the rig's own valve (``closure_opening``): its
+    characteristic's power (a table: w = 1 on ``tail_shape``) and loss share; the imposed flow: n = 1, s = 1."""
+    valve = rig.valve
+    if valve.law == "imposed":
+        return 1.0, 1.0, 0.0
+    if valve.characteristic == "table":
+        return 2.0, float(valve.series_loss_share), 1.0
+    return float(valve.power), float(valve.series_loss_share), 0.0
+
+
+def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None, shape: str = "fitted") -> ValveInput:
     """The parametric closure fitted on the record's first part (``early_window_s``): t from the
     trigger (starting at 0), d the head perturbation (also the measured head rise of the coupling),
     ``time_model`` a velab.fitting.friction.TimeDomainModel on the same grid (None: the frequency
@@ -378,9 +407,9 @@ def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None)
     # whole-window refinement started from nothing (tests/fitting/test_fit_manoeuvre.py, quick-opening valve)
     a_lo, a_hi = min(a0, rig.nominal_wave_speed_m_s), max(a0, rig.nominal_wave_speed_m_s)
     lo = np.array([math.log(a_lo * 0.8), math.log(1e-6), math.log(1e-3),
-                   *closure_bounds(rig)[0]])
+                   *closure_bounds(rig, shape)[0]])
     hi = np.array([math.log(a_hi * 1.25), math.log(5.0), math.log(10.0),
-                   *closure_bounds(rig)[1]])
+                   *closure_bounds(rig, shape)[1]])
     # both starts are taken a few steps (the friction correction at the rig's sigmoid), the better one
     # is solved to the end with the correction refreshed at its optimum
     wall0 = [math.log(a0), math.log(0.05), math.log(0.05)]
@@ -412,7 +441,29 @@ def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None)
             f"{params['t_half_s'] * 1e3:.4g} ms, characteristic power {params['power']:.3g}, valve loss share "
             f"{params['loss_share']:.3g}, orifice coupling {params['coupling']:.3g} (the rig's valve law), fitted "
             f"on the first {t[ne - 1] + t[1] - t[0]:.3g} s")
-    return ValveInput("fitted", q, params, ses, text, k=FITTED, alternatives=alternatives)
+    held = SHAPE_PARAMS if shape == "rig" else 0
+    return ValveInput("fitted", q, params, ses, text, k=FITTED - held, alternatives=alternatives, shape=shape,
+                      early_F=F, early_n=int(prob.d.size))
+
+
+def choose_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None) -> ValveInput:
+    """The closure fitted twice on the record's first part -- its shape free, and held at the valve the rig
+    file describes (``rig_shape``, only the timing fitted) -- and the rig's shape taken unless the free one
+    gains more than its AIC price (2 per parameter) in n ln F there. Over a campaign's whole windows the
+    free shape's power, loss share and actuator rate trade with the slow creep along a curved valley that
+    the linearised band does not cover (docs/fitting.md, "Joint calibration"); a valve that is not the one
+    described shows itself as a large gain."""
+    free = fit_closure(t, d, rig, window_s, time_model, coupling=coupling)
+    held = fit_closure(t, d, rig, window_s, time_model, coupling=coupling, shape="rig")
+    price = 2.0 * (free.k - held.k)
+    gain = free.early_n * math.log(held.early_F / free.early_F) if free.early_F > 0 else math.inf
+    if gain > price:
+        return replace(free, shape_gain=gain, text=f"{free.text}; its shape fitted (it gains {gain:.1f} in n ln F over the rig's "
+                                  f"valve's, more than its AIC price {price:g})")
+    power, share, tail = rig_shape(rig)
+    return replace(held, alternatives=(), shape_gain=gain, text=f"{held.text}; its shape held at the rig's valve (power {power:g}, loss "
+                                              f"share {share:g}{', its table' if tail else ''}): a fitted shape "
+                                              f"gained {gain:.1f} in n ln F, not more than its AIC price {price:g}")
 
 
 def joukowsky_starts(t, d, hc, rig: Rig, a: float, keep: int = 3) -> list[tuple]:
@@ -540,13 +591,14 @@ MODES = ("auto", "fitted", "rig")
 
 
 def valve_input(t, d, rig: Rig, window_s: float, *, position_pct=None, mode: str = "auto",
-                closure: ValveInput | dict | None = None) -> ValveInput:
+                closure: ValveInput | dict | None = None, shape: str = "fitted") -> ValveInput:
     """The flow at the valve for a prepared record (t from the trigger, d the head perturbation):
     ``mode`` "auto" -- from the recorded position if there is one, else the fitted closure;
     "fitted" -- the fitted closure even with a position record; "rig" -- the rig's commanded sigmoid
     imposed as the flow (the paper's model: no coupling, nothing fitted). ``closure``: a closure
     already fitted on this record's first part (a lead fit's ``settings["manoeuvre"]``): its
-    parameters drive this window too, and the closure is not fitted again."""
+    parameters drive this window too, and the closure is not fitted again. ``shape``: "fitted" (the closure's
+    shape fitted), "auto" (``choose_closure``: the rig's valve's shape unless the record shows another)."""
     if mode not in MODES:
         raise DataError(f"unknown manoeuvre input {mode!r} (choose from {', '.join(MODES)})")
     t = np.asarray(t, dtype=float)
@@ -564,7 +616,10 @@ def valve_input(t, d, rig: Rig, window_s: float, *, position_pct=None, mode: str
         hc = closure_coupling(t, d, rig, coupling, measured=hc)
         return ValveInput("fitted", closure_flow(t, hc, rig, [params[k] for k in PARAM_NAMES]), params,
                           dict(old.get("se", {})), old.get("text", ""), k=old.get("nuisance_parameters", FITTED),
-                          refined_with=old.get("refined_with", ""), coupling=coupling)
+                          refined_with=old.get("refined_with", ""), coupling=coupling,
+                          shape=old.get("shape", "fitted"), shape_gain=float(old.get("shape_gain", math.nan)))
+    if shape == "auto":
+        return choose_closure(t, d, rig, window_s, TimeDomainModel(rig, t), coupling=hc)
     return fit_closure(t, d, rig, window_s, TimeDomainModel(rig, t), coupling=hc)
 
 

@@ -40,7 +40,7 @@ def closure_models(rig, t, d, vi, position_m: float | None = None) -> list[tuple
     if vi.source != "fitted" or not vi.params:
         return []
     v0 = np.array(to_solver([float(vi.params.get(k, 0.0)) for k in PARAM_NAMES]))
-    lo, hi = closure_bounds(rig)
+    lo, hi = closure_bounds(rig, vi.shape)
     span = hi - lo
     t = np.asarray(t, dtype=float)
     hc = closure_coupling(t, d, rig, vi.coupling)

@@ -33,6 +33,8 @@ from velab.moc import moc_head
 from velab.rig import Rig
 
 POLISH_RATE_PER_BAND = 8.0  # the polish runs on each part's record decimated to this multiple of its band
+# a fitted closure's shape: the rig's valve's unless the record's first part shows another (manoeuvre.choose_closure)
+CLOSURE_SHAPE = "auto"
 
 
 class SharedTime:
@@ -168,7 +170,7 @@ class Record:
                 raise DataError(f"{where}{'' if len(sections) == 1 else f'section {s.name}: '}{exc}") from None
         valve_rec = recs[at_valve[0]]
         self.vi = valve_input(valve_rec.t, valve_rec.h, rig, valve_rec.window_s, position_pct=valve_rec.position,
-                              mode=manoeuvre)
+                              mode=manoeuvre, shape=CLOSURE_SHAPE)
         self.shared = SharedTime(rig, valve_rec.t, self.vi.flow, [s.position_m for s in sections])
         self.parts = [Part(self, s.name, s.position_m, recs[s.name], i) for i, s in enumerate(sections)]
         self.valve = self.parts[names.index(at_valve[0])]

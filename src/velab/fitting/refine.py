@@ -37,7 +37,7 @@ import numpy as np
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator, gram, sumsq
 from velab.fitting.friction import TimeDomainModel, equivalent_friction
-from velab.fitting.manoeuvre import (FITTED, NV, PARAM_NAMES, STARTS, ValveInput, _standard_errors, closure_bounds,
+from velab.fitting.manoeuvre import (NV, PARAM_NAMES, STARTS, ValveInput, _standard_errors, closure_bounds,
                                      closure_coupling, closure_flow, coupling_exponent, coupling_model, from_solver,
                                      own_valve_starts, tm_flow, to_solver)
 from velab.fitting.params import FitBounds, ParamMap, derive_bounds
@@ -99,9 +99,11 @@ def refine_closure(t, d, rig: Rig, vi: ValveInput, fit, bounds: FitBounds | None
             f"t_half = {params['t_half_s'] * 1e3:.4g} +- {ses['t_half_s'] * 1e3:.2g} ms, characteristic power "
             f"{params['power']:.3g}, valve loss share {params['loss_share']:.3g}, orifice coupling "
             f"{params['coupling']:.3g} (the rig's valve law); fitted over {tw[-1] + tw[1] - tw[0]:.4g} s "
-            f"with the wall ({getattr(fit, 'name', '') or 'S' + str(prob.k)})")
+            f"with the wall ({getattr(fit, 'name', '') or 'S' + str(prob.k)})"
+            + ("; its shape held at the rig's valve" if vi.shape == "rig" else ""))
     return ValveInput("fitted", closure_flow(prob.t_full, prob.hc_full, rig, valve), params, ses, text,
-                      k=FITTED, gain=prob.t_full.size * math.log(prob.F0 / F) if F > 0 else math.inf,
+                      k=vi.k, gain=prob.t_full.size * math.log(prob.F0 / F) if F > 0 else math.inf, shape=vi.shape,
+                      shape_gain=vi.shape_gain,
                       refined_with=getattr(fit, "name", ""), coupling=coupling)
 
 
@@ -135,7 +137,7 @@ class _Refinement:
                                           self.tm.head(a, self.J0, self.tau0, flow=tm_flow(self.t, flow0)))
         self.W = series_impedance(self.vm.s_band, rig) + (0.0 if self.eq is None else self.eq(self.vm.s_band, rig))
         self.corr = np.zeros_like(self.d)
-        self.clo, self.chi = closure_bounds(rig)
+        self.clo, self.chi = closure_bounds(rig, vi.shape)
         self._evs: dict = {}
         self.F0 = math.nan
 
@@ -200,6 +202,8 @@ class _Refinement:
         starts += [[math.log(m.beta_per_s), v0[1], math.log(power), math.log(share), coupling_exponent(self.rig), 0.0]
                    for power, share in PROTOTYPES]
         starts += [to_solver(v) for v in own_valve_starts(self.rig)]  # the valve its rig file describes (a table)
+        # (a shape held at the rig's valve: the prototypes' shapes clip onto it, and the same start is taken once)
+        starts = list({tuple(np.clip(v, self.clo, self.chi)): None for v in starts})
         wall = np.concatenate([[math.log(self.a0)], np.log(self.J0), np.log(self.tau0)])
         # the correction at the first closure, for the comparison of the starts
         self.refresh(self.a0, self.J0, self.tau0, from_solver(np.clip(v0, self.clo, self.chi)))
