@@ -333,4 +333,10 @@ def test_runs_may_differ_in_rate_manoeuvre_and_valve_input():
     assert [x["manoeuvre"]["source"] for x in r.runs] == ["position", "fitted"]
     assert r.settings["k_nuisance"] == r.runs[1]["manoeuvre"]["nuisance_parameters"] in (2, 5)
     assert r.best.k == 7 + r.settings["k_nuisance"]
+    # the runs' table says how each run's flow at the valve was obtained
+    from velab.fitting.jointresult import runs_report
+
+    rows = runs_report(r).splitlines()[2:]
+    shape = "rig's shape" if r.runs[1]["manoeuvre"]["shape"] == "rig" else "fitted shape"
+    assert "position" in rows[0] and shape in rows[1], rows
     assert not r.warnings and not any(x["disagrees"] for x in r.runs), r.warnings
