@@ -371,6 +371,9 @@ def closure_bounds(rig: Rig, shape: str = "fitted") -> tuple[np.ndarray, np.ndar
 
 
 SHAPE_PARAMS = 3  # power, loss share, tail: what holding the closure's shape at the rig's valve saves
+# a head-only record's closure (every fit path: single, sections, joint): the shape of the valve its rig file
+# describes unless the record's first part shows another (choose_closure)
+CLOSURE_SHAPE = "auto"
 
 
 def rig_shape(rig: Rig) -> tuple[float, float, float]:

@@ -22,7 +22,7 @@ from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator
 from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
-from velab.fitting.manoeuvre import valve_input
+from velab.fitting.manoeuvre import CLOSURE_SHAPE, valve_input
 from velab.fitting.nuisance import closure_models, rows_at
 from velab.fitting.params import creep_const
 from velab.fitting.prepare import prepare_record
@@ -33,8 +33,6 @@ from velab.moc import moc_head
 from velab.rig import Rig
 
 POLISH_RATE_PER_BAND = 8.0  # the polish runs on each part's record decimated to this multiple of its band
-# a fitted closure's shape: the rig's valve's unless the record's first part shows another (manoeuvre.choose_closure)
-CLOSURE_SHAPE = "auto"
 
 
 class SharedTime:

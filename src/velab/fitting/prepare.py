@@ -33,7 +33,7 @@ from velab.errors import DataError
 from velab.fitting.adequacy import assess, baseline_noise
 from velab.fitting.friction import fit_rig
 from velab.fitting.lead import lead_window_s, matches, options_key
-from velab.fitting.manoeuvre import valve_input
+from velab.fitting.manoeuvre import CLOSURE_SHAPE, valve_input
 from velab.fitting.nuisance import marginalise_single
 from velab.fitting.params import FitBounds
 from velab.fitting.refine import refine_closure
@@ -204,7 +204,8 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
     if isinstance(lead, SweepResult):
         closure = lead.settings.get("manoeuvre_refined") or lead.settings.get("manoeuvre")
     frig = fit_rig(rig, sweep_options.get("friction"), sweep_options.get("friction_unsteady"))
-    vi = valve_input(rec.t, rec.h, frig, rec.window_s, position_pct=rec.position, mode=manoeuvre, closure=closure)
+    vi = valve_input(rec.t, rec.h, frig, rec.window_s, position_pct=rec.position, mode=manoeuvre, closure=closure,
+                     shape=CLOSURE_SHAPE)
     # a closure still to be refined: this sweep only seeds a continuation (the lead's, or this fit's
     # own), which makes the time-domain polish
     refining = vi.source == "fitted" and closure is None
