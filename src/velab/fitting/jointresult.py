@@ -32,8 +32,8 @@ class JointResult(SweepResult):
 def runs_report(result: JointResult) -> str:
     """The text table of a joint fit's runs: each run's n, Q0, F/noise under the joint wall, the steady head
     offset its model took from its baseline's mean (velab.fitting.offset), its own wave speed under the best
-    model, how its flow at the valve was obtained, and whether it disagrees; under a run with several transducers, each section's n, F/noise, misfit
-    bound and offset."""
+    model, how its flow at the valve was obtained, and whether it disagrees; under a run with several
+    transducers, each section's n, F/noise, misfit bound and offset."""
     lines = [f"runs (each under the joint {result.best.name} wall; offset: its steady head's from the baseline's "
              f"mean; own a: the wall fitted on that run alone):",
              f"  {'run':<32}{'n':>7}{'Q0 (l/s)':>10}{'F/noise':>9}{'bound':>7}{'offset (mm)':>12}  {'own a (m/s)':>18}"

@@ -99,7 +99,7 @@ class ValveInput:
     shape: str = "fitted"
     early_F: float = math.nan  # the closure fit's mean squared residual on the record's first part, and its samples
     early_n: int = 0
-    shape_gain: float = math.nan  # n ln F the free shape gained over the rig's valve's on the first part (choose_closure)
+    shape_gain: float = math.nan  # n ln F the free shape gained over the rig's on the first part (choose_closure)
 
     def describe(self) -> dict:
         out = {"source": self.source, "params": dict(self.params), "se": dict(self.se), "text": self.text,
@@ -387,7 +387,8 @@ def rig_shape(rig: Rig) -> tuple[float, float, float]:
     return float(valve.power), float(valve.series_loss_share), 0.0
 
 
-def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None, shape: str = "fitted") -> ValveInput:
+def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None,
+                shape: str = "fitted") -> ValveInput:
     """The parametric closure fitted on the record's first part (``early_window_s``): t from the
     trigger (starting at 0), d the head perturbation (also the measured head rise of the coupling),
     ``time_model`` a velab.fitting.friction.TimeDomainModel on the same grid (None: the frequency
@@ -454,19 +455,20 @@ def choose_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=No
     file describes (``rig_shape``, only the timing fitted) -- and the rig's shape taken unless the free one
     gains more than its AIC price (2 per parameter) in n ln F there. Over a campaign's whole windows the
     free shape's power, loss share and actuator rate trade with the slow creep along a curved valley that
-    the linearised band does not cover (docs/fitting.md, "Joint calibration"); a valve that is not the one
-    described shows itself as a large gain."""
+    the linearised band does not cover (docs/fitting.md, "The manoeuvre" and "Joint fits"); a valve that is
+    not the one described shows itself as a large gain."""
     free = fit_closure(t, d, rig, window_s, time_model, coupling=coupling)
     held = fit_closure(t, d, rig, window_s, time_model, coupling=coupling, shape="rig")
     price = 2.0 * (free.k - held.k)
     gain = free.early_n * math.log(held.early_F / free.early_F) if free.early_F > 0 else math.inf
     if gain > price:
-        return replace(free, shape_gain=gain, text=f"{free.text}; its shape fitted (it gains {gain:.1f} in n ln F over the rig's "
-                                  f"valve's, more than its AIC price {price:g})")
+        return replace(free, shape_gain=gain, text=f"{free.text}; its shape fitted (it gains {gain:.1f} in n ln F "
+                                                   f"over the rig's valve's, more than its AIC price {price:g})")
     power, share, tail = rig_shape(rig)
-    return replace(held, alternatives=(), shape_gain=gain, text=f"{held.text}; its shape held at the rig's valve (power {power:g}, loss "
-                                              f"share {share:g}{', its table' if tail else ''}): a fitted shape "
-                                              f"gained {gain:.1f} in n ln F, not more than its AIC price {price:g}")
+    return replace(held, alternatives=(), shape_gain=gain,
+                   text=f"{held.text}; its shape held at the rig's valve (power {power:g}, loss share {share:g}"
+                        f"{', its table' if tail else ''}): a fitted shape gained {gain:.1f} in n ln F, not more than "
+                        f"its AIC price {price:g}")
 
 
 def joukowsky_starts(t, d, hc, rig: Rig, a: float, keep: int = 3) -> list[tuple]:
