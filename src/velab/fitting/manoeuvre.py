@@ -156,8 +156,7 @@ def own_valve_starts(rig: Rig) -> list[tuple]:
     if tail_shape(rig) is None:
         return []
     m = rig.manoeuvre
-    valve = rig.valve
-    power, share, tail = (1.0, 1.0, 0.0) if valve.law == "imposed" else (2.0, float(valve.series_loss_share), 1.0)
+    power, share, tail = rig_shape(rig)
     return [(m.beta_per_s, m.half_closure_s, power, share, coupling_exponent(rig), tail)]
 
 
