@@ -39,7 +39,7 @@ from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import sumsq
 from velab.fitting.nuisance import marginalised
 from velab.fitting.offset import counted_on, fitted, objective, offset, project
-# (each run's own work, closure fits and time-domain heads, touches only that run's objects: map_each)
+# (each run's own work, time-domain heads and closure refinements, touches only that run's objects: map_each)
 from velab.fitting.parallel import map_each
 from velab.fitting.jointresult import JointResult
 from velab.fitting.params import ParamMap, derive_bounds
@@ -337,7 +337,10 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, mode
                       position_pct=s.position_pct, manoeuvre=manoeuvre, friction=friction,
                       friction_unsteady=friction_unsteady)
 
-    records = map_each(make, sources)
+    # one after the other: a record's closure fit is many small numpy steps, each dropping and taking the GIL
+    # again, and two threads of them hand it over at every step (benchmarks/fit_joint.py: the five closures took
+    # 1.5 x their serial wall time on two threads, at 3 x the CPU)
+    records = [make(s) for s in sources]
     parts = [p for r in records for p in r.parts]  # record after record: each record's parts consecutive
     dt = min(float(p.rec.t[1] - p.rec.t[0]) for p in parts)
     bounds = derive_bounds(parts[0].rig, dt, max(p.rec.window_s for p in parts), tau_min_s=tau_min_s,
