@@ -11,6 +11,7 @@ runs' noise ratios.
 
     python benchmarks/fit_joint.py                  # 20 s windows, 1 repeat
     python benchmarks/fit_joint.py --window 8 --repeat 3
+    python benchmarks/fit_joint.py --rig imperial   # the same campaign on another rig (its Q0 x the same ratios)
 """
 
 from __future__ import annotations
@@ -35,13 +36,18 @@ from velab.valvelaw import commanded_position_pct
 CAMPAIGN = ((3.64, 32.0, 1000.0), (2.5, 28.0, 1000.0), (3.0, 36.0, 2000.0), (4.0, 30.0, 1000.0), (4.5, 34.0, 1000.0))
 
 
-def campaign(window_s: float) -> list[CampaignRun]:
+def campaign(window_s: float, rig_name: str = "perugia") -> list[CampaignRun]:
+    """The five runs on ``rig_name``: on another rig than the reference one, each Q0 is the rig's own times the
+    campaign's ratio to 3.64 l/s, and each actuator rate the rig's times the campaign's ratio to 32 1/s."""
     mat = load_material("A")
+    base = load_rig(rig_name)
     out = []
     for i, (q0, beta, fs) in enumerate(CAMPAIGN):
-        m = load_rig("perugia").manoeuvre
-        rig = load_rig("perugia").with_changes(steady_flow_m3_s=q0 / 1e3,
-                                               manoeuvre=type(m)(beta_per_s=beta, gamma=-beta * m.half_closure_s))
+        m = base.manoeuvre
+        if rig_name != "perugia":
+            q0, beta = base.steady_flow_m3_s * 1e3 * q0 / CAMPAIGN[0][0], m.beta_per_s * beta / CAMPAIGN[0][1]
+        rig = base.with_changes(steady_flow_m3_s=q0 / 1e3,
+                                manoeuvre=type(m)(beta_per_s=beta, gamma=-beta * m.half_closure_s))
         a = mat.wave_speed_m_s
         J = creep_scale(rig, a) * np.array([e.J_per_pa for e in mat.elements])
         tau = np.array([e.tau_s for e in mat.elements])
@@ -49,7 +55,7 @@ def campaign(window_s: float) -> list[CampaignRun]:
         mm = rig.manoeuvre
         h = moc_head(rig, a, J, tau, t, position=lambda x, mm=mm: commanded_position_pct(x, mm.beta_per_s, mm.gamma))
         h = rig.steady_head_m + h + np.random.default_rng(100 + i).normal(0.0, 0.1, t.size)
-        out.append(CampaignRun(f"run{i + 1}_{q0:g}lps", t, h, 0.0, rig, fs, None, head_sha256(t, h)))
+        out.append(CampaignRun(f"run{i + 1}_{q0:.3g}lps", t, h, 0.0, rig, fs, None, head_sha256(t, h)))
     return out
 
 
@@ -64,11 +70,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--window", type=float, default=20.0)
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--rig", default="perugia", help="a rig name or TOML file (default: perugia, the reference rig)")
     args = ap.parse_args(argv)
-    runs = campaign(args.window)
+    runs = campaign(args.window, args.rig)
     ref = runs[0]
     print(f"# {platform.machine()} {os.cpu_count()} cores, python {platform.python_version()}, numpy {np.__version__};"
-          f" load {os.getloadavg()[0]:.2f}; window {args.window:g} s, {len(runs)} runs")
+          f" load {os.getloadavg()[0]:.2f}; rig {args.rig}, window {args.window:g} s, {len(runs)} runs")
     single, joint = [], []  # (wall, CPU) of each repeat
     for _ in range(args.repeat):
         one, times = timed(lambda: fit_record(ref.time_s, ref.head_m, 0.0, ref.rig, args.window,
