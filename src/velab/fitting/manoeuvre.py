@@ -414,11 +414,11 @@ class EarlyPart:
 
     def box(self, shape: str) -> tuple[np.ndarray, np.ndarray]:
         """The solver's box (wall, then ``closure_bounds``). The wave speed's holds the scan's and the rig's
-        nominal one: the scan drives an elastic pipe with the rig's commanded sigmoid as the flow, and a valve
-        whose flow falls later than that (a quick-opening one on the reference rig: half the flow at 0.30 s,
-        not 0.17 s) pulled it to 237 m/s for 353.7; the box around it alone then held no closure that fits (F 90
-        x the noise on the first part), and the whole-window refinement started from nothing
-        (tests/fitting/test_fit_manoeuvre.py, quick-opening valve)."""
+        nominal one: the scan assumes the valve the rig describes, and a flow that falls later than that moves it
+        (when the scan took the commanded sigmoid as the flow, a quick-opening valve on the reference rig, half
+        its flow at 0.30 s, not 0.17 s, pulled it to 237 m/s for 353.7; the box around it alone then held no
+        closure that fits, F 90 x the noise on the first part, and the whole-window refinement started from
+        nothing: tests/fitting/test_fit_manoeuvre.py, quick-opening valve)."""
         a_nom = self.rig.nominal_wave_speed_m_s
         a_lo, a_hi = min(self.a0, a_nom), max(self.a0, a_nom)
         c_lo, c_hi = closure_bounds(self.rig, shape)
