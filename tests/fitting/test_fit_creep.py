@@ -18,7 +18,8 @@ import pytest
 
 from velab.commands.common import json_ready
 from velab.config import load_material, load_rig
-from velab.fitting.creep import (CREEP_POINTS, Z95, creep_curve, creep_range, decades, log_creep_gradient,
+from velab.fitting.creep import (CREEP_POINTS, Z95, CreepCurve, averaged_creep, creep_curve, creep_range, decades,
+                                 log_creep_gradient,
                                  retarded_compliance)
 from velab.fitting.params import creep_const
 from velab.fitting.prepare import fit_record
@@ -39,6 +40,37 @@ def _fit_of(J_per_pa, tau_s, a=353.73, cov=None, reduced=False) -> ModelFit:
     return ModelFit(name=f"S{m}", m=m, k=1 + (m if reduced else 2 * m), reduced=reduced, n=1000, F=0.01,
                     wave_speed_m_s=a, E_pa=tuple(E), eta_pa_s=tuple(E * np.asarray(tau_s)), lag1_autocorr=0.0,
                     cov_x=None if cov is None else np.asarray(cov).tolist())
+
+
+# ------------------------------------------------------------------ model averaging, no fit
+
+def _curve(theta, sd, t=(0.1, 1.0)):
+    """A creep curve with ln(J(t) - J0) = theta and its band's sd (the delta method's) on t."""
+    t = np.asarray(t, dtype=float)
+    theta, sd = np.broadcast_to(theta, t.shape).astype(float), np.broadcast_to(sd, t.shape).astype(float)
+    return CreepCurve(t, np.exp(theta), np.exp(theta - Z95 * sd), np.exp(theta + Z95 * sd))
+
+
+def test_the_averaged_creep_is_the_model_that_holds_all_the_weight():
+    one, other = _curve(-20.0, 0.05), _curve(-19.0, 0.01)
+    avg = averaged_creep([(1.0, one), (0.0, other)])
+    assert np.allclose(avg.J_per_pa, one.J_per_pa, rtol=1e-12) and np.allclose(avg.upper, one.upper, rtol=1e-12)
+    # a model without a band (no covariance) is not averaged; the weights are renormalised over the rest
+    none = CreepCurve(one.t_s, one.J_per_pa * 3, np.full(2, np.nan), np.full(2, np.nan))
+    assert np.allclose(averaged_creep([(0.5, one), (0.5, none)]).lower, one.lower, rtol=1e-12)
+    assert not averaged_creep([(1.0, none)]).has_band
+
+
+def test_the_averaged_band_holds_the_models_spread():
+    """Burnham & Anderson's unconditional standard error on ln(J(t) - J0): sum_m w_m sqrt(var_m + (theta_m -
+    theta_avg)^2). Two models of equal weight whose own bands do not overlap: the average lies between them and
+    its band holds both curves."""
+    lo, hi = _curve(-20.0, 0.02), _curve(-19.0, 0.02)
+    avg = averaged_creep([(0.3, lo), (0.3, hi)])  # (weights renormalised: 0.5 each)
+    se = 0.5 * np.sqrt(0.02**2 + 0.5**2) * 2
+    assert np.allclose(np.log(avg.J_per_pa), -19.5) and np.allclose(np.log(avg.upper), -19.5 + Z95 * se)
+    assert np.all(avg.lower < lo.J_per_pa) and np.all(hi.J_per_pa < avg.upper)
+    assert np.all(lo.upper < hi.lower)  # (neither model's own band holds the other's curve)
 
 
 # ------------------------------------------------------------------ the delta method, no fit
@@ -196,6 +228,14 @@ def test_json_and_the_run_file_keep_the_band(record, tmp_path):
         assert len(creep["t_s"]) == CREEP_POINTS and creep["t_s"][0] == pytest.approx(lo)
         assert creep["t_s"][-1] == pytest.approx(hi) and hi == r.window_s
         assert np.all(np.asarray(creep["lower"]) < creep["J_per_pa"])
+    # the model-averaged creep: over the models that have a band, weights (vanished-element twins merged) summing
+    # to 1; on this record S3 (the truth) holds most and S4 the rest: the average within S3's band, its band wider
+    avg = d["creep_averaged"]
+    assert set(avg) == {"t_s", "J_per_pa", "lower", "upper", "weights", "weight_left_out"}
+    assert sum(avg["weights"].values()) == pytest.approx(1.0) and avg["weights"][r.best.name] > 0.5
+    own = d["models"][r.models.index(r.best)]["creep"]
+    assert np.all(np.asarray(own["lower"]) < avg["J_per_pa"]) and np.all(np.asarray(avg["J_per_pa"]) < own["upper"])
+    assert np.all(np.asarray(avg["upper"]) - avg["lower"] >= 0.999 * (np.asarray(own["upper"]) - own["lower"]))
     # strict JSON (velab fit --json: NaN -> null, the fixed parameters' rows) and back
     back = SweepResult.from_dict(json.loads(json.dumps(json_ready(d), allow_nan=False)))
     best, best_back = r.best, back[r.best.name]
@@ -212,6 +252,7 @@ def test_json_and_the_run_file_keep_the_band(record, tmp_path):
         assert np.allclose(fh["creep"][best.name]["creep"]["upper"][()], ref.upper)
     got = stored.creep(stored[best.name])
     assert got.has_band and np.allclose(got.lower, ref.lower, rtol=1e-12) and np.allclose(got.upper, ref.upper)
+    assert np.allclose(stored.creep_averaged().curve.upper, r.creep_averaged().curve.upper, rtol=1e-12)
 
 
 def test_a_fit_stored_before_the_covariance_reads_with_no_band(record):
@@ -238,11 +279,41 @@ def test_the_report_gives_the_best_models_creep_at_the_decades(record):
     times = decades(*creep_range(r))
     assert times == [0.1, 1.0, 10.0]  # tau_min 13.7 ms on this rig, window 20 s
     c = r.creep(best, times)
-    assert len(lines) == 1 + len(times)
     for line, t, J, lo, hi in zip(lines[1:], times, c.J_per_pa, c.lower, c.upper):
+        assert line == f"  t = {t:g} s: {J:.3e}  [{lo:.3e}, {hi:.3e}]"
+    # S4 holds a share of the Akaike weight here (S3 0.84): the model-averaged creep follows, its band the models'
+    avg = r.creep_averaged(times)
+    assert 0.5 < avg.weights[best.name] < 0.99 and len(lines) == 2 * (1 + len(times))
+    assert lines[1 + len(times)].startswith(f"model-averaged creep (Akaike weights {best.name} "
+                                            f"{avg.weights[best.name]:.2f}")
+    for line, t, J, lo, hi in zip(lines[2 + len(times):], times, avg.curve.J_per_pa, avg.curve.lower, avg.curve.upper):
         assert line == f"  t = {t:g} s: {J:.3e}  [{lo:.3e}, {hi:.3e}]"
     text = r.report()
     assert "\n".join(lines) in text
     # an elastic best model creeps not at all
     el = SweepResult.from_dict({**r.to_dict(), "models": [r.to_dict()["models"][0]]})
     assert creep_lines(el) == ["creep of EL: none (an elastic wall: J(t) = J0)"]
+
+
+def test_the_figure_hatches_the_model_averaged_band_where_the_choice_is_uncertain(record):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from velab.fitting.plots import averaged_band
+
+    r = fitted(record, 11)  # S3 0.84, S4 0.16
+    fig, ax = plt.subplots()
+    try:
+        art = averaged_band(ax, r)
+        assert art is not None and art.get_label() == "model-averaged 95 % band"
+        box = art.get_paths()[0].get_extents()
+        c = r.creep_averaged().curve
+        assert box.y0 == pytest.approx(c.lower.min()) and box.y1 == pytest.approx(c.upper.max())
+        # one model holding the weight: nothing drawn
+        one = SweepResult.from_dict({**r.to_dict(), "models": [m for m in r.to_dict()["models"] if m["name"] == "S3"]})
+        one.models[0].weight = 1.0
+        assert averaged_band(ax, one) is None
+    finally:
+        plt.close(fig)

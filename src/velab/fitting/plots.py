@@ -6,11 +6,23 @@ import numpy as np
 
 from velab.rig import Rig
 from velab.fitting.adequacy import best_residuals
-from velab.fitting.creep import creep_curve, creep_of
+from velab.fitting.creep import AVERAGED_BELOW, creep_curve, creep_of
 from velab.fitting.results import SweepResult
 from velab.fitting.friction import fitted_head
 from velab.fitting.manoeuvre import result_flow
 from velab.model import phi
+
+
+def averaged_band(ax, result):
+    """The model-averaged creep's 95 % band (velab.fitting.creep), hatched, on ``ax`` where the choice of model is
+    uncertain (the best model's Akaike weight below AVERAGED_BELOW); the artist, or None."""
+    avg = result.creep_averaged()
+    if not avg.curve.has_band or avg.weights.get(result.best.name, 0.0) >= AVERAGED_BELOW:
+        return None
+    c = avg.curve
+    ok = c.J_per_pa > 0
+    return ax.fill_between(c.t_s[ok], c.lower[ok], c.upper[ok], facecolor="none", edgecolor="0.35", hatch="///",
+                           lw=0.0, label="model-averaged 95 % band", zorder=1)
 
 
 def report_figure(t, h, rig: Rig, result: SweepResult, path, position_pct=None) -> None:
@@ -75,6 +87,7 @@ def report_figure(t, h, rig: Rig, result: SweepResult, path, position_pct=None) 
             tau = tau[(tau >= c.t_s[0]) & (tau <= c.t_s[-1])] if c.t_s.size else tau[:0]
             if tau.size:
                 a2.plot(tau, creep_curve(f, tau).J_per_pa, "o", ms=4, color=line.get_color())
+    averaged_band(a2, result)
     a2.set_xlabel("t (s)")
     a2.set_ylabel("J(t) − J0 (1/Pa)")
     a2.set_title(f"retarded creep compliance (dots: {best.name}'s τ_k)")

@@ -95,6 +95,23 @@ def creep_lines(result) -> list[str]:
     for t, J, lo_, hi_ in zip(c.t_s, c.J_per_pa, c.lower, c.upper):
         band = f"  [{lo_:.3e}, {hi_:.3e}]" if c.has_band else ""
         lines.append(f"  t = {t:g} s: {J:.3e}{band}")
+    return lines + averaged_creep_lines(result, times)
+
+
+def averaged_creep_lines(result, times) -> list[str]:
+    """The model-averaged J(t) - J0 at ``times`` where the choice of model is uncertain (the best model's
+    Akaike weight, its vanished-element twins' included, below AVERAGED_BELOW): its band holds the models'
+    spread (velab.fitting.creep)."""
+    from velab.fitting.creep import AVERAGED_BELOW
+
+    avg = result.creep_averaged(times)
+    c = avg.curve
+    if not c.has_band or avg.weights.get(result.best.name, 0.0) >= AVERAGED_BELOW:
+        return []
+    shares = ", ".join(f"{k} {v:.2f}" for k, v in sorted(avg.weights.items(), key=lambda kv: -kv[1]) if v >= 0.005)
+    lines = [f"model-averaged creep (Akaike weights {shares}): J(t) - J0 (1/Pa), 95 % band with the models' spread"]
+    for t, J, lo_, hi_ in zip(c.t_s, c.J_per_pa, c.lower, c.upper):
+        lines.append(f"  t = {t:g} s: {J:.3e}  [{lo_:.3e}, {hi_:.3e}]")
     return lines
 
 

@@ -320,6 +320,7 @@ class SweepResult:
             return None
 
     def to_dict(self) -> dict:
+        # each model's "creep" and the "creep_averaged" are derived (recomputed from the models when read back)
         return {
             "n": self.n,
             "window": self.window_s,
@@ -333,6 +334,7 @@ class SweepResult:
             "duration_s": self.duration_s,
             "evaluations": self.evaluations,
             "models": [self._model_dict(f) for f in self.models],
+            "creep_averaged": self.creep_averaged().to_dict(),
             "notes": list(self.notes),
             "baseline_noise_m": self.baseline_noise_m,
             "baseline_lag1": self.baseline_lag1,
@@ -346,6 +348,13 @@ class SweepResult:
         from velab.fitting.creep import creep_of
 
         return creep_of(self, fit if fit is not None else self.best, t_s)
+
+    def creep_averaged(self, t_s=None):
+        """The model-averaged J(t) - J0 over the models' Akaike weights, its band unconditional on the model
+        (velab.fitting.creep.averaged_creep_of)."""
+        from velab.fitting.creep import averaged_creep_of
+
+        return averaged_creep_of(self, t_s)
 
     def _model_dict(self, f: ModelFit) -> dict:
         d = f.to_dict()
