@@ -127,6 +127,36 @@ def test_fit_table_shows_every_model_and_j_tau_labels_do_not_overlap(qtbot, tmp_
                     assert not a.intersects(b), (side, ta, tb)
 
 
+def test_the_creep_plot_shows_the_model_averaged_band_where_the_choice_is_uncertain(qtbot, tmp_path, sweep):
+    from velab.fitting.results import SweepResult
+    from velab.gui.fit_panel import AVERAGED_LABEL
+
+    t, h, rig, result = sweep
+    win = make_window(qtbot, tmp_path)
+    fp = win.fit_panel
+    win.tabs.setCurrentWidget(fp)
+
+    def labels():
+        return [item.name() for item in fp.p_creep.listDataItems() if item.name()]
+
+    sure = SweepResult.from_dict(result.to_dict())
+    for f in sure.models:  # the best model holds all the weight: its own band only
+        f.weight = 1.0 if f is sure.best else 0.0
+    fp.set_fit(t, h, rig, sure, title="one model")
+    qtbot.waitUntil(lambda: fp.data is not None and fp.data.get("result") is sure, timeout=30000)
+    qtbot.waitUntil(lambda: sure.best.name in labels(), timeout=10000)
+    assert AVERAGED_LABEL not in labels() and fp.data["creep_averaged"] is None
+    torn = SweepResult.from_dict(result.to_dict())
+    other = next(f for f in torn.models if f.m and f is not torn.best and not f.equivalent_to and not f.reduced)
+    for f in torn.models:  # two models share it
+        f.weight = 0.6 if f is torn.best else 0.4 if f is other else 0.0
+    fp.set_fit(t, h, rig, torn, title="two models")
+    qtbot.waitUntil(lambda: fp.data is not None and fp.data.get("result") is torn, timeout=30000)
+    qtbot.waitUntil(lambda: AVERAGED_LABEL in labels(), timeout=10000)
+    avg = torn.creep_averaged()
+    assert avg.weights[torn.best.name] == pytest.approx(0.6) and avg.weights[other.name] == pytest.approx(0.4)
+
+
 def test_fit_table_reports_bounds_negligible_elements_and_uncertainties(sweep):
     """The fitter's findings are read from the result's to_dict() when present (the fitter's
     `at_bounds`, `note`, per-element `negligible` and standard errors), absent ones leave cells empty."""

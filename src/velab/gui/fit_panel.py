@@ -22,7 +22,7 @@ from PySide6.QtGui import QBrush, QColor, QFont
 from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QTableWidget, QTableWidgetItem, QVBoxLayout,
                                QWidget)
 
-from velab.fitting.creep import creep_of
+from velab.fitting.creep import AVERAGED_BELOW, creep_of
 from velab.fitting.friction import fitted_head
 from velab.fitting.manoeuvre import result_flow
 from velab.gui import tasks
@@ -64,6 +64,9 @@ def fit_view_data(t, h, rig, result) -> dict:
     # element vanished creeps by ~1e-25 1/Pa and would stretch the log axis by ten decades: left out
     creep = {f.name: creep_of(result, f) for f in result.models
              if f.m and not f.reduced and not all(f.negligible or (False,))}
+    # the model-averaged band where the choice of model is uncertain (velab.fitting.creep)
+    avg = result.creep_averaged()
+    creep_averaged = avg.curve if avg.curve.has_band and avg.weights.get(result.best.name, 0.0) < AVERAGED_BELOW else None
     try:  # the best model's residuals at the fit rate, as the fitter saw them (comparable to the noise band)
         from velab.fitting.adequacy import best_residuals
 
@@ -71,7 +74,10 @@ def fit_view_data(t, h, rig, result) -> dict:
     except Exception:  # a model the time grid cannot hold: no residual plot
         res_t = res = np.zeros(0)
     return {"t": td, "h": h[::q], "curves": curves, "freq_hz": omega / (2 * np.pi), "phi": phis, "result": result,
-            "res_t": res_t, "res": res, "creep": creep}
+            "res_t": res_t, "res": res, "creep": creep, "creep_averaged": creep_averaged}
+
+
+AVERAGED_LABEL = "model-averaged 95 %"
 
 
 class DecadeAxis(pg.AxisItem):
@@ -384,7 +390,8 @@ class FitPanel(QWidget):
                                                label=f"ΔAIC = {level}", labelOpts={"position": where, "color": "#777"}))
 
     def _draw_creep(self) -> None:
-        """J(t) - J0 of every full model; the best one thick, over its 95 % band."""
+        """J(t) - J0 of every full model; the best one thick, over its 95 % band; where the choice of model is
+        uncertain, the model-averaged band dashed grey (its band holds the models' spread)."""
         self.p_creep.clear()
         self.creep_legend.clear()
         if not self.data or self.result is None:
@@ -405,6 +412,12 @@ class FitPanel(QWidget):
                 self.p_creep.addItem(pg.FillBetweenItem(lo, hi, brush=pg.mkBrush(fill)))
             self.p_creep.plot(c.t_s[ok], c.J_per_pa[ok], pen=pg.mkPen(color, width=2.5 if name == best else 1),
                               name=name)
+        avg = self.data.get("creep_averaged")
+        if avg is not None:
+            ok = np.isfinite(avg.lower) & (avg.lower > 0)
+            pen = pg.mkPen((90, 90, 90), width=1.2, style=Qt.DashLine)
+            self.p_creep.plot(avg.t_s[ok], avg.lower[ok], pen=pen, name=AVERAGED_LABEL)
+            self.p_creep.plot(avg.t_s[ok], avg.upper[ok], pen=pen)
 
     def _curves_ready(self, data: dict, serial: int) -> None:
         if serial != self._serial:
