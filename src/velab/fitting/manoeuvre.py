@@ -491,10 +491,13 @@ def shape_score(early: EarlyPart, x) -> float:
     """The gain in n ln F that freeing the closure's shape predicts at ``x``, the held fit's optimum (a score
     test): the Gauss-Newton step over the free box's variables against the step over the held box's, both from
     x on its residual and Jacobian (the held fit's correction). A variable on a bound that the step would take
-    out of the box is held there (the tail of a power-law valve, at 0, cannot go negative)."""
+    out of the box is held there (the tail of a power-law valve, at 0, cannot go negative). inf where no
+    prediction can be made (the free fit is then made)."""
     prob = early.prob
     r = prob.residual(x)
     J = prob.jacobian(x)
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+        return math.inf
     rss = [0.0, 0.0]
     for k, shape in enumerate(("rig", "fitted")):
         lo, hi = early.box(shape)
@@ -503,7 +506,10 @@ def shape_score(early: EarlyPart, x) -> float:
             cols = np.flatnonzero(active)
             Ja = J[:, cols]
             scale = np.sqrt(np.maximum(np.einsum("ij,ij->j", Ja, Ja), 1e-300))
-            step = np.linalg.lstsq(Ja / scale, -r, rcond=None)[0] / scale
+            try:
+                step = np.linalg.lstsq(Ja / scale, -r, rcond=None)[0] / scale
+            except np.linalg.LinAlgError:  # (no prediction: the free fit decides)
+                return math.inf
             out = ((x[cols] <= lo[cols] + 1e-12) & (step < 0)) | ((x[cols] >= hi[cols] - 1e-12) & (step > 0))
             if not out.any():
                 break
