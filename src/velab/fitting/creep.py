@@ -205,6 +205,16 @@ def averaged_creep_of(result, t_s=None, points: int = CREEP_POINTS) -> AveragedC
     return AveragedCreep(averaged_creep(weighted), weights, left)
 
 
+def averaged_creep_shown(result, t_s=None) -> AveragedCreep | None:
+    """The model-averaged creep where the report, the figure and the GUI show it -- the choice of model uncertain
+    (the best model's Akaike weight, its vanished-element twins' included, below AVERAGED_BELOW) and a band to
+    show -- else None."""
+    avg = averaged_creep_of(result, t_s)
+    if not avg.curve.has_band or avg.weights.get(result.best.name, 0.0) >= AVERAGED_BELOW:
+        return None
+    return avg
+
+
 def creep_range(result) -> tuple[float, float]:
     """(t_min, t_max) of a sweep's creep curves: its lower retardation-time bound to its window.
 
@@ -231,5 +241,5 @@ def decades(t_min_s: float, t_max_s: float) -> list[float]:
     return [10.0 ** k for k in range(k0, k1 + 1)]
 
 
-__all__ = ["AVERAGED_BELOW", "AveragedCreep", "CreepCurve", "CREEP_POINTS", "averaged_creep", "averaged_creep_of", "creep_curve", "creep_of", "creep_range", "creep_times", "decades",
+__all__ = ["AVERAGED_BELOW", "AveragedCreep", "CreepCurve", "CREEP_POINTS", "averaged_creep", "averaged_creep_of", "averaged_creep_shown", "creep_curve", "creep_of", "creep_range", "creep_times", "decades",
            "log_creep_gradient", "retarded_compliance"]

@@ -6,7 +6,7 @@ import numpy as np
 
 from velab.rig import Rig
 from velab.fitting.adequacy import best_residuals
-from velab.fitting.creep import AVERAGED_BELOW, creep_curve, creep_of
+from velab.fitting.creep import averaged_creep_shown, creep_curve, creep_of
 from velab.fitting.results import SweepResult
 from velab.fitting.friction import fitted_head
 from velab.fitting.manoeuvre import result_flow
@@ -14,10 +14,10 @@ from velab.model import phi
 
 
 def averaged_band(ax, result):
-    """The model-averaged creep's 95 % band (velab.fitting.creep), hatched, on ``ax`` where the choice of model is
-    uncertain (the best model's Akaike weight below AVERAGED_BELOW); the artist, or None."""
-    avg = result.creep_averaged()
-    if not avg.curve.has_band or avg.weights.get(result.best.name, 0.0) >= AVERAGED_BELOW:
+    """The model-averaged creep's 95 % band, hatched, on ``ax`` where the choice of model is uncertain
+    (velab.fitting.creep.averaged_creep_shown); the artist, or None."""
+    avg = averaged_creep_shown(result)
+    if avg is None:
         return None
     c = avg.curve
     ok = c.J_per_pa > 0

@@ -99,15 +99,14 @@ def creep_lines(result) -> list[str]:
 
 
 def averaged_creep_lines(result, times) -> list[str]:
-    """The model-averaged J(t) - J0 at ``times`` where the choice of model is uncertain (the best model's
-    Akaike weight, its vanished-element twins' included, below AVERAGED_BELOW): its band holds the models'
-    spread (velab.fitting.creep)."""
-    from velab.fitting.creep import AVERAGED_BELOW
+    """The model-averaged J(t) - J0 at ``times`` where the choice of model is uncertain
+    (velab.fitting.creep.averaged_creep_shown): its band holds the models' spread."""
+    from velab.fitting.creep import averaged_creep_shown
 
-    avg = result.creep_averaged(times)
-    c = avg.curve
-    if not c.has_band or avg.weights.get(result.best.name, 0.0) >= AVERAGED_BELOW:
+    avg = averaged_creep_shown(result, times)
+    if avg is None:
         return []
+    c = avg.curve
     shares = ", ".join(f"{k} {v:.2f}" for k, v in sorted(avg.weights.items(), key=lambda kv: -kv[1]) if v >= 0.005)
     lines = [f"model-averaged creep (Akaike weights {shares}): J(t) - J0 (1/Pa), 95 % band with the models' spread"]
     for t, J, lo_, hi_ in zip(c.t_s, c.J_per_pa, c.lower, c.upper):

@@ -22,7 +22,7 @@ from PySide6.QtGui import QBrush, QColor, QFont
 from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QTableWidget, QTableWidgetItem, QVBoxLayout,
                                QWidget)
 
-from velab.fitting.creep import AVERAGED_BELOW, creep_of
+from velab.fitting.creep import averaged_creep_shown, creep_of
 from velab.fitting.friction import fitted_head
 from velab.fitting.manoeuvre import result_flow
 from velab.gui import tasks
@@ -65,8 +65,8 @@ def fit_view_data(t, h, rig, result) -> dict:
     creep = {f.name: creep_of(result, f) for f in result.models
              if f.m and not f.reduced and not all(f.negligible or (False,))}
     # the model-averaged band where the choice of model is uncertain (velab.fitting.creep)
-    avg = result.creep_averaged()
-    creep_averaged = avg.curve if avg.curve.has_band and avg.weights.get(result.best.name, 0.0) < AVERAGED_BELOW else None
+    avg = averaged_creep_shown(result)
+    creep_averaged = avg.curve if avg is not None else None
     try:  # the best model's residuals at the fit rate, as the fitter saw them (comparable to the noise band)
         from velab.fitting.adequacy import best_residuals
 
