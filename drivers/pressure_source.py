@@ -66,7 +66,11 @@ class PressureSource(Protocol):
 
 
 def pressure_source(driver, name: str, clock_scale: float = 1.0) -> PressureSource:
-    """The pressure-source interface of ``driver`` (a StreamingADC or a ModbusADC)."""
+    """The pressure-source interface of ``driver``: a StreamingADC, a ModbusADC, or any driver that makes its
+    own (``driver.pressure_source(name, clock_scale)``: the DAQ families' drivers)."""
+    own = getattr(driver, "pressure_source", None)
+    if callable(own):
+        return own(name, clock_scale)
     if isinstance(driver, StreamingADC):
         return StreamingSource(driver, name, clock_scale)
     if isinstance(driver, ModbusADC):
