@@ -101,7 +101,7 @@ class DeviceFaults:
 
 
 _RIG_KEYS = {"stuck_channels", "channel_mA", "flow_nan", "flow_value", "flow_stuck_at",
-             "flow_alarm_bits", "valve_fault_after_s", "valve_fault_bits"}
+             "flow_alarm_bits", "valve_fault_after_s", "valve_fault_bits", "valve_warning_bits"}
 
 
 @dataclass

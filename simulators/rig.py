@@ -367,7 +367,7 @@ class SimulatedRig:
             return ValveState.DONE if tau >= tr.done_tau else ValveState.RUNNING
 
     def fault_bits(self, t: float | None = None) -> int:
-        return self.faults.valve_fault_bits if self.state(t) is ValveState.FAULT else 0
+        return self.faults.valve_fault_bits if self.state(t) is ValveState.FAULT else self.faults.valve_warning_bits
 
     def valve_status(self) -> tuple[ValveState, int, float, float, int]:
         """(state, fault bits, position %, time since trigger s, trigger count) at one instant, read under

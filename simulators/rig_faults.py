@@ -37,6 +37,8 @@ class RigFaults:
     flow_alarm_bits : alarm bits the flowmeter raises (bit0 empty pipe ...)
     valve_fault_after_s : the valve seizes this long after the trigger; state FAULT
     valve_fault_bits : fault bits then reported
+    valve_warning_bits : fault bits the actuator reports while it is NOT in FAULT (a drive or supply warning
+        during an otherwise normal stroke: the recorder must flag the run, not ignore them)
     """
 
     stuck_channels: dict = field(default_factory=dict)
@@ -47,6 +49,7 @@ class RigFaults:
     flow_alarm_bits: int = 0
     valve_fault_after_s: float | None = None
     valve_fault_bits: int = FAULT_FOLLOWING_ERROR
+    valve_warning_bits: int = 0
 
     def clear(self) -> None:
         self.__init__()

@@ -175,6 +175,22 @@ def test_valve_fault_during_the_manoeuvre_aborts(tmp_path):
     assert read_run(summary.path).status == "aborted"
 
 
+def test_fault_bits_while_the_actuator_is_not_in_fault_flag_the_run(tmp_path):
+    """An actuator whose status carries fault bits while its state is not FAULT (a supply-pressure warning
+    through a normal stroke) is a named fault: the run ends flagged, never a plain "completed"."""
+    from velab.simulators.rig import FAULT_SUPPLY_PRESSURE
+
+    def during(sim, ev):  # from the stroke on: the readiness check (before arming) refuses bits already set
+        if ev.kind == "valve" and ev.data.get("state") in ("RUNNING", "DONE"):
+            sim.rig.faults.valve_warning_bits = FAULT_SUPPLY_PRESSURE
+
+    summary = _record(tmp_path, during=during)
+    assert summary.status == "completed-with-faults", (summary.status, summary.reason)
+    run = read_run(summary.path)
+    assert run.status == "completed-with-faults"
+    assert "valve" in run.status_reason and "supply" in run.status_reason.lower(), run.status_reason
+
+
 def test_zero_flow_after_the_closure_is_not_a_fault(tmp_path):
     """After a normal closure the flow reads a constant 0: expected, not a stuck flowmeter."""
     s = RecordSettings(duration_s=10.0, pretrigger_s=0.5, fit=False, out_dir=tmp_path)

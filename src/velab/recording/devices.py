@@ -71,7 +71,8 @@ def profile_contents(driver) -> dict:
 
 def check_valve_open(st) -> None:
     if st.state is ValveState.FAULT or st.faults:
-        raise RunRefused(f"valve actuator in FAULT ({', '.join(st.faults) or 'no bits'}): reset it first (reset_valve())")
+        where = "in FAULT" if st.state is ValveState.FAULT else f"reports faults while {st.state.name}"
+        raise RunRefused(f"valve actuator {where} ({', '.join(st.faults) or 'no bits'}): reset it first (reset_valve())")
     if st.state not in (ValveState.IDLE, ValveState.ARMED) or st.position.value < 99.0:
         raise RunRefused(f"valve not open and idle (state {st.state.name}, {st.position.value:.1f} % open): "
                          "reopen it first (velab valve open, Recorder.reset_valve(), the GUI's Reset valve)")

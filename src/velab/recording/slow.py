@@ -46,6 +46,7 @@ class SlowChannels:
         self._valve_silent_since: float | None = None
         self._flow_quality_seen: set = set()
         self._valve_held = threading.Event()
+        self._fault_bits_seen: set = set()  # fault bits already reported while the actuator was not in FAULT
 
     def start(self) -> None:
         self._stop.clear()
@@ -127,6 +128,12 @@ class SlowChannels:
                 msg = f"valve actuator FAULT ({', '.join(st.faults) or 'no bits'}) at {st.position.value:.1f} % open"
                 self.hooks.fault("valve", msg, "actuator_fault", faults=list(st.faults))
                 self.hooks.request_end("aborted", msg)
+            elif st.faults and set(st.faults) - self._fault_bits_seen:
+                # fault bits outside FAULT: the actuator says something is wrong while it still moves or rests
+                # (a drive or supply warning): the run is flagged, never a plain "completed"
+                self._fault_bits_seen |= set(st.faults)
+                self.hooks.fault("valve", f"actuator reports {', '.join(st.faults)} while {st.state.name} at "
+                                          f"{st.position.value:.1f} % open", "actuator_fault", faults=list(st.faults))
         except DeviceFault as exc:
             self.hooks.fault("valve", str(exc), "actuator_fault")
             self.hooks.request_end("aborted", str(exc))
