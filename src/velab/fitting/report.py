@@ -114,7 +114,56 @@ def averaged_creep_lines(result, times) -> list[str]:
     return lines
 
 
-def format_report(result, elements: bool = True) -> str:
+def statistics_lines(result, width: int = 100) -> list[str]:
+    """The models compared, one line each, no wider than ``width``: k, F/noise, dAIC by the selection, weight,
+    support, wave speed +- SE; a model's note on a line of its own where the row has no room for it."""
+    head = (f"{'model':<6}{'k':>3}{'F/noise':>9}{'dAIC':>9}{'weight':>8}  {'support':<26}{'a (m/s)':>18}  note")
+    lines = [head]
+    best = result.best.name
+    for f in result.models:
+        mark = "*" if f.name == best else " "
+        a = _pm(f.wave_speed_m_s, f.wave_speed_se_m_s, ".2f")
+        row = (f"{f.name + mark:<6}{f.k:>3}{_ratio(f):>9}{f.delta_aic:>9.2f}{f.weight:>8.3f}  "
+               f"{_support(result, f):<26}{a:>18}")
+        note = f.note
+        if note and len(row) + 2 + len(note) <= width:
+            lines.append(f"{row}  {note}")
+        else:
+            lines.append(row.rstrip())
+            if note:
+                lines.extend(_wrapped(note, width, "      "))
+    crit = "AIC of an AR(1) likelihood" if result.selection == "ar1" else "white-noise AIC"
+    lines.extend(_wrapped(f"* best by the {crit}; F/noise: the mean squared residual over the record's noise; "
+                          f"n = {result.n} samples, {result.window_s:g} s window at {result.sample_rate_hz:g} Hz "
+                          "(more with -v)", width, ""))
+    return lines
+
+
+def _wrapped(text: str, width: int, indent: str = "") -> list[str]:
+    import textwrap
+
+    return textwrap.wrap(text, width=width, initial_indent=indent, subsequent_indent=indent + "  ",
+                         break_long_words=True, break_on_hyphens=False) or [""]
+
+
+def format_report(result, elements: bool = True, verbose: bool = True, width: int = 100) -> str:
+    """The text report: the headline (velab.fitting.headline) first; then, ``verbose``, every statistic
+    (both AICs, lag-1, n_eff, J_rel, bounds, creep, the record's noise); else the models' table and the
+    notes, no line wider than ``width``."""
+    from velab.fitting.headline import headline, headline_lines
+
+    if not result.models:
+        return "\n".join(["no model fitted", *warning_lines(result), *result.notes])
+    top = headline_lines(headline(result), width)
+    if not verbose:
+        lines = [*top, "", *statistics_lines(result, width)]
+        for note in result.notes:
+            lines.extend(_wrapped(note, width))
+        return "\n".join(lines)
+    return "\n".join([*top, "", _detail(result, elements)])
+
+
+def _detail(result, elements: bool = True) -> str:
     sel = result.selection
     warnings = warning_lines(result)
     lines = [
