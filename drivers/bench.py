@@ -39,6 +39,7 @@ from typing import Callable
 
 from velab.configpath import config_stem, load_config
 from velab.drivers.base import ProfileError
+from velab.drivers.fired_valve_bench import open_fired_valve
 from velab.drivers.flowmeter import Flowmeter
 from velab.drivers.modbus import BusSettings, open_bus
 from velab.drivers.modbus_adc import ModbusADC
@@ -173,9 +174,17 @@ DRIVERS: dict[str, Callable[[BenchDevice, bool], object]] = {}
 _OPTION_KEYS = ("word_order", "channels", "density_kg_m3", "name")
 
 
-def register_driver(kind: str, factory: Callable[[BenchDevice, bool], object]) -> None:
-    """factory(device, connect) -> driver instance."""
+PEER_KINDS: set[str] = set()  # kinds whose factory takes the bench's other devices (a valve fired by a DAQ's line)
+
+
+def register_driver(kind: str, factory: Callable[[BenchDevice, bool], object], *, peers: bool = False) -> None:
+    """factory(device, connect) -> driver instance; ``peers``: factory(device, connect, peers), where
+    ``peers(name)`` is the driver of another bench device (opened once and shared)."""
     DRIVERS[kind] = factory
+    if peers:
+        PEER_KINDS.add(kind)
+    else:
+        PEER_KINDS.discard(kind)
 
 
 def _modbus_factory(cls):
@@ -200,16 +209,20 @@ def _modbus_factory(cls):
     return make
 
 
-def open_device(dev: BenchDevice, connect: bool = True):
-    """Build the driver for one bench device (and connect its transport)."""
+def open_device(dev: BenchDevice, connect: bool = True, peers: Callable[[str], object] | None = None):
+    """Build the driver for one bench device (and connect its transport). ``peers(name)``: the driver of another
+    device of the bench, for the kinds built on one (PEER_KINDS: a valve fired by a DAQ's digital line)."""
     try:
         factory = DRIVERS[dev.kind]
     except KeyError:
         raise ProfileError(f"[devices.{dev.name}] kind: unknown device kind {dev.kind!r} "
                            f"(known: {', '.join(sorted(DRIVERS))})") from None
+    if dev.kind in PEER_KINDS:
+        return factory(dev, connect, peers)
     return factory(dev, connect)
 
 
 for _cls in (ModbusADC, Flowmeter, ValveActuator):
     register_driver(_cls.kind, _modbus_factory(_cls))
 register_driver("streaming_adc", open_streaming_adc)
+register_driver("fired_valve", open_fired_valve, peers=True)

@@ -57,6 +57,7 @@ from velab.simulators.modbus_server import ModbusDeviceServer
 from velab.simulators.pty_bridge import PtyPair
 from velab.simulators.rig import SimulatedRig
 from velab.simulators.schedule import FaultSchedule, Instant, ScheduledFault, fault_family, validate_fault
+from velab.simulators.fired_valve import FiredActuatorSim
 from velab.simulators.streaming_adc import StreamingADCSimHandle
 from velab.tomlschema import Key, Reader, above, within
 
@@ -165,6 +166,7 @@ def _modbus_factory(Cls):
 for _cls in (SimModbusADC, SimFlowmeter, SimValveActuator):
     register_sim_device(_cls.kind, _modbus_factory(_cls))
 register_sim_device("streaming_adc", StreamingADCSimHandle)
+register_sim_device("fired_valve", FiredActuatorSim)
 
 
 def load_sim_config(name_or_path) -> tuple[Path, dict]:
@@ -284,6 +286,10 @@ class SimulatedBench:
                 cfg["endpoints"] = [{**e, "port": 0, "link": None} for e in cfg.get("endpoints", [{"transport": "tcp"}])]
             self.handles[name] = SIM_DEVICES[kind](name, self.rig, cfg, self.host)
             self.kinds[name] = kind
+        for h in self.handles.values():  # devices wired to another (a fired actuator to its DAQ's digital line)
+            wire = getattr(h, "wire", None)
+            if callable(wire):
+                wire(self.handles, path)
         self.faults = {n: h.faults for n, h in self.handles.items()}
         self.plan = FaultPlan.from_dict(config.get("faults"), f"{path}: [faults]")
         self.plan.apply(self.rig, self.faults)
@@ -418,6 +424,11 @@ class SimulatedBench:
             eps = [e for e in self.endpoints if e.device == name]
             if prefer:
                 eps.sort(key=lambda e: prefer.index(e.transport) if e.transport in prefer else len(prefer))
+            own = getattr(h, "bench_device", None)
+            if callable(own):  # reached through another device (a fired valve through its DAQ's line)
+                bd = own()
+                devices[name] = BenchDevice(name, bd.kind, bd.profile, {**bd.settings, **device_options.get(name, {})})
+                continue
             if not eps:
                 continue
             dev = getattr(h, "device", None)

@@ -19,7 +19,8 @@ from velab.drivers.valve import ValveState
 from velab.recording.types import DeviceFailure, RunRefused
 
 log = logging.getLogger(__name__)
-ROLE_KINDS = {"pressure": ("streaming_adc", "modbus_adc"), "valve": ("valve_actuator",), "flowmeter": ("flowmeter",)}
+ROLE_KINDS = {"pressure": ("dataq", "labjack", "streaming_adc", "modbus_adc"), "valve": ("fired_valve", "valve_actuator"),
+              "flowmeter": ("flowmeter",)}
 RECORDER_KEYS = {"pressure_source", "valve", "flowmeter", "armed_timeout_s", "transducers"}
 
 

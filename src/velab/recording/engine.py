@@ -333,6 +333,14 @@ class Recorder:
         return pressure_source(drv, name).describe()
 
     # what a connected device of each role says it is doing, for the connect report
+    def _peer(self, name: str):
+        """The driver of bench device ``name``, opened once (a fired valve's DAQ is the pressure source's)."""
+        if name not in self.bench.devices:
+            raise DeviceFailure(f"bench {self.bench.name!r}: no device {name!r} (have: {', '.join(self.bench.devices)})")
+        if name not in self.devices:
+            self.devices[name] = open_device(self.bench.devices[name], peers=self._peer)
+        return self.devices[name]
+
     _DESCRIBE = {"valve": _describe_valve, "flowmeter": _describe_flowmeter, "pressure": _describe_pressure}
 
     def _do_connect(self) -> list[DeviceStatus]:
@@ -346,7 +354,7 @@ class Recorder:
                 dev = self.bench.devices[name]
                 if name not in self.devices:
                     try:
-                        self.devices[name] = open_device(dev)
+                        self.devices[name] = open_device(dev, peers=self._peer)
                     except (OSError,) + DEVICE_ERRORS as exc:
                         raise DeviceFailure(f"{name}: cannot connect: {exc}") from None
                 drv = self.devices[name]

@@ -54,6 +54,9 @@ def make_safe(valve, ask: bool = True) -> str | None:
     state = st.state if st is not None else None
     if state not in (ValveState.ARMED, ValveState.RUNNING, None):
         return f"actuator: {state.name} at {float(st.position.value):.1f} % open, at rest: the safe state already"
+    if state is ValveState.RUNNING and not getattr(valve, "can_stop", lambda: True)():
+        # a fired actuator (velab.drivers.fired_valve) runs its stroke to its end: nothing to command
+        return f"actuator: a fired stroke runs to its end (at {float(st.position.value):.1f} % open): it cannot be stopped"
     try:
         valve.abort()
     except DEVICE_ERRORS as exc:
