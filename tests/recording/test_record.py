@@ -179,17 +179,50 @@ def test_interlock_refuses_an_unsafe_manoeuvre_before_anything_moves(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_ceiling_below_the_predicted_peak_is_refused_before_anything_moves(tmp_path):
+    """An abort after the closure cannot stop the surge: a ceiling the predicted peak reaches is refused at arm
+    (exit 3), the valve never armed, no run file (issue 50; it used to warn and close the valve anyway)."""
+    s = RecordSettings(duration_s=3, fit=False, out_dir=tmp_path, ceiling_head_m=40.0)
+    with Recorder.simulated(s, clock="fast") as rec:
+        pred = rec.predict_surge()
+        assert not pred.allowed and pred.over_ceiling and pred.ceiling_m == 40.0 and pred.peak_head_m > 40.0
+        with pytest.raises(RunRefused, match="reaches the pressure ceiling 40.0 m"):
+            rec.run()
+        assert rec.sim.rig.trigger_count == 0 and rec.sim.rig.state().name == "IDLE"
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_pressure_ceiling_aborts_and_holds_the_valve(tmp_path):
-    # real time: the head crosses 45 m with the valve 40 % open, 0.19 s before it closes (16 ms of wall
-    # time on the fast clock: a loaded host then stopped a valve that had already closed)
-    summary, events, valve_state = _run(tmp_path, "A", duration_s=1.5, fit=False, ceiling_head_m=45.0,
-                                        clock="realtime")
+    # a head the interlock did not predict (a measured 19.5 mA, within NE43: a measurement near full scale,
+    # from 0.1 s after the trigger) crosses a ceiling above the predicted peak: the run is aborted while
+    # the valve still closes. Real time: on the fast clock a loaded host stopped a valve that had closed.
+    from velab.configpath import find_config
+
+    cfg = tmp_path / "surge.toml"
+    cfg.write_text(find_config("sim", "default").read_text() + '\n[[faults.schedule]]\ndevice = "rig"\n'
+                   'fault = { channel_mA = { 0 = 19.5 } }\nat = "trigger+0.1"\nduration_s = 0.5\n')
+    summary, events, valve_state = _run(tmp_path, "A", sim_config=str(cfg), duration_s=1.5, fit=False,
+                                        ceiling_head_m=56.0, clock="realtime")
     assert summary.status == "aborted" and summary.exit_code == 4
     assert "pressure ceiling" in summary.reason
     assert valve_state in ("ABORTED", "HOLDING")
     run = read_run(summary.path)
     assert run.status == "aborted" and "pressure ceiling" in run.status_reason
-    assert run.head_m.max() > 45.0  # recorded up to the end, the crossing included
+    assert run.head_m.max() > 56.0  # recorded up to the end, the crossing included
+
+
+def test_cli_a_manoeuvre_outside_the_actuators_profile_is_bad_input_and_writes_nothing(tmp_path):
+    """--beta 5000 against the actuator profile's maximum 200: exit 2, one line naming it, no run file (it was
+    a device failure, exit 5, with a "failed" run file); --ceiling under the predicted peak: exit 3, none."""
+    for extra, code, said in ((["--beta", "5000"], 2, "beta = 5000.0 1/s is above the profile maximum 200"),
+                              (["--ceiling", "40"], 3, "reaches the pressure ceiling 40.0 m")):
+        out = subprocess.run(
+            [sys.executable, "-m", "velab.cli", "record", "--simulate", "--fast", "--duration", "3", "--no-fit",
+             "--out-dir", str(tmp_path), *extra], capture_output=True, text=True, timeout=120)
+        assert out.returncode == code, out.stderr
+        errors = [line for line in out.stderr.splitlines() if line.startswith("velab:")]
+        assert len(errors) == 1 and said in errors[0] and "Traceback" not in out.stderr, out.stderr
+        assert [p.name for p in tmp_path.iterdir() if not p.name.startswith(".")] == []
 
 
 @pytest.mark.parametrize("where", ["missing", "proc"])

@@ -21,7 +21,7 @@ from velab.recording.online_fit import HALTED, OnlineFit
 from velab.recording.ops import Append, Event, Value
 from velab.recording.pressure import PressureStage
 from velab.recording.redundancy import RedundancyMonitor, head_mismatch, head_tolerance_m
-from velab.recording.safety import ceiling_head, check_output_dir, predict_surge
+from velab.recording.safety import ceiling_head, check_manoeuvre, check_output_dir, predict_surge
 from velab.recording.slow import SlowChannels
 from velab.recording.timeline import Timeline
 from velab.recording.transducers import transducer_channels
@@ -110,6 +110,7 @@ class Run:
                              f"({lo:g}..{hi:g} Hz)")
         fs = float(s.sample_rate_hz)
         beta, gamma, end = self._manoeuvre()
+        check_manoeuvre(self.rec.devices[self.rec.roles["valve"]], self.rec.roles["valve"], beta, gamma, end)
         ceiling = ceiling_head(self.rec.rig, s)
         if s.ceiling_head_m is not None and s.ceiling_head_m > ceiling:
             raise VelabError(f"pressure ceiling {s.ceiling_head_m:g} m is above the limiting pressure of the rig "
@@ -130,12 +131,9 @@ class Run:
             check_steady_head(*looks[t.adc_channel], self.rec.rig.steady_head_at_m(t.position_m), s.head_range,
                               ceiling, transducer=f"{t.name} ({t.adc_channel})")
         self.steady = head
-        pred = predict_surge(self.rec.rig, s, head)
+        pred = predict_surge(self.rec.rig, s, head)  # (the limits, cavitation and the ceiling)
         if not pred.allowed:
             raise RunRefused(pred.message)
-        if pred.peak_head_m >= ceiling:
-            self.rec.emit("message", f"warning: predicted peak {pred.peak_head_m:.1f} m is above the pressure "
-                                  f"ceiling {ceiling:.1f} m: the run will probably be aborted")
         # the rate the device will sample at: the time line, the run file and the fit are built on it
         asked = fs
         try:

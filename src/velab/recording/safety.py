@@ -23,6 +23,7 @@ from velab.cavitation import predict_downsurge
 from velab.rig import Rig
 from velab.drivers.base import GRAVITY_M_S2, Quality
 from velab.drivers.blocks import MEASUREMENT_CODES, QUALITY_CODE, QUALITY_CODES
+from velab.errors import VelabError
 from velab.recording.settings import RecordSettings
 from velab.recording.types import RunRefused
 
@@ -43,12 +44,17 @@ class SurgePrediction:
     min_head_m: float = math.nan
     vapour_head_m: float = math.nan
     cavitation: bool = False
+    # the run's pressure ceiling (velab.recording.safety.ceiling_head): a peak at or above it is refused too,
+    # since aborting after the closure cannot stop the surge
+    ceiling_m: float = math.nan
+    over_ceiling: bool = False
 
 
 def predict_surge(rig: Rig, settings: RecordSettings, steady_head_m: float | None = None,
                   steady_flow_m3_s: float | None = None) -> SurgePrediction:
     """Joukowsky surge a*dQ/(g A) over the steady head, plus margin, against the rig's limits; and the
-    same below the steady head against the vapour-pressure head (column separation, velab.cavitation).
+    same below the steady head against the vapour-pressure head (column separation, velab.cavitation),
+    and the peak against the run's pressure ceiling (``ceiling_head``): each refused before anything moves.
 
     Conservative on both sides: the peak from the higher of the measured and the rig's steady head,
     the downsurge from the lower one, and from the measured flow if given, else from the highest flow
@@ -68,14 +74,49 @@ def predict_surge(rig: Rig, settings: RecordSettings, steady_head_m: float | Non
     msg = (f"predicted peak {peak:.1f} m ({peak_pa / 1e5:.2f} bar) = steady {h0:.1f} m + Joukowsky surge "
            f"{surge:.1f} m (margin {settings.surge_margin:.0%}) {verdict} the {limiting} "
            f"({limit_pa / 1e5:.2f} bar = {limit_pa / rho_g:.1f} m)")
+    ceiling = ceiling_head(rig, settings)
+    over = allowed and peak >= ceiling
     if not allowed:
         msg = "manoeuvre refused: " + msg
         if not down.allowed:
             msg += "; and " + down.message.removeprefix("manoeuvre refused: ")
+    elif over:
+        where = "the run's setting" if settings.ceiling_head_m is not None else "95 % of the limiting pressure"
+        msg = (f"manoeuvre refused: predicted peak {peak:.1f} m = steady {h0:.1f} m + Joukowsky surge {surge:.1f} m "
+               f"(margin {settings.surge_margin:.0%}) reaches the pressure ceiling {ceiling:.1f} m ({where}): "
+               "an abort after the closure cannot stop the surge; raise the ceiling, slow the closure (beta) "
+               "or close partly (end position)")
+        if not down.allowed:
+            msg += "; and " + down.message.removeprefix("manoeuvre refused: ")
     elif not down.allowed:
         msg = down.message  # one line naming cavitation and the vapour-pressure head
-    return SurgePrediction(h0, surge, peak, peak_pa, limit_pa, limiting, allowed and down.allowed, msg,
-                           down.min_head_m, down.vapour_head_m, not down.allowed)
+    return SurgePrediction(h0, surge, peak, peak_pa, limit_pa, limiting, allowed and not over and down.allowed, msg,
+                           down.min_head_m, down.vapour_head_m, not down.allowed, ceiling, over)
+
+
+def check_manoeuvre(valve, name: str, beta_per_s: float, gamma: float, end_position_pct: float) -> None:
+    """The manoeuvre against what the valve's actuator accepts, before anything is armed: VelabError (exit 2,
+    bad input) naming the value and the limit. A driver that knows its own limits says so through its
+    ``check_manoeuvre(beta, gamma, end)``; else the ranges of its device profile's beta, gamma and
+    end_position registers (velab.drivers.profile); a valve without either takes any manoeuvre."""
+    own = getattr(valve, "check_manoeuvre", None)
+    try:
+        if callable(own):
+            own(beta_per_s, gamma, end_position_pct)
+            return
+        profile = getattr(valve, "profile", None)
+        registers = getattr(profile, "registers", None)
+        if not isinstance(registers, dict):
+            return
+        for reg, value in (("beta", beta_per_s), ("gamma", gamma), ("end_position", end_position_pct)):
+            spec = registers.get(reg)
+            if spec is not None and hasattr(spec, "check_range"):
+                spec.check_range(float(value))
+    except ValueError as exc:  # (the drivers' RangeError is a ValueError too)
+        where = getattr(getattr(valve, "profile", None), "path", None)
+        text = " ".join(str(exc).removeprefix(f"{name}: ").split())
+        raise VelabError(f"manoeuvre outside the valve actuator's profile: {name}: {text}"
+                         + (f" ({where})" if where else "") + "; nothing was armed") from None
 
 
 def limit_pressure(rig: Rig) -> tuple[float, str]:
