@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from velab.batch.address import scheduler_address
 from velab.commands.common import ProgressLine, add_json_option, check_output_path, float_range, int_range, write_json
-from velab.errors import DataError, ExitCode
+from velab.errors import DataError, ExitCode, UnavailableError
 
 # velab.fitting.sweep.METHODS, named here so that building the parser does not import the
 # fitter (scipy); run() checks the option against the fitter's own list.
@@ -118,6 +119,11 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
     from velab.runfiles import RunStillOpen, read_run
 
     run = read_run(path)
+    refused = _refused_save(run)
+    if refused and opts["save"]:  # said before the fit, not after it
+        raise refused
+    if refused:
+        print(f"velab: {path}: {_save_note(run)}", file=sys.stderr)
     # the one fit path (velab.fitting.prepare): window, steady head, decimation to the fit rate
     result = fit_run(run, opts["window_s"], models=opts["models"], method=opts["method"],
                      reduced=opts["reduced"], starts=opts["starts"], polish=opts["polish"],
@@ -125,6 +131,8 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
                      selection=opts["selection"], friction=opts["friction"],
                      friction_unsteady=opts["friction_unsteady"], manoeuvre=opts.get("manoeuvre", "auto"))
     result.settings["window_s_requested"] = opts["window_s"]
+    if refused:
+        result.notes.append(_save_note(run))
     name = None
     if opts["save"]:
         try:
@@ -146,6 +154,24 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
     return result, name
 
 
+def _refused_save(run):
+    """The error a fit that would be saved into ``run`` gets, or None: a run still open for writing (the
+    recorder running, or killed: a storage matter, exit 5) or a damaged one (velab.runfiles.soundness, exit 2)."""
+    if run.open_for_write:
+        return UnavailableError(f"{run.path}: the run is still open for writing (being recorded, or its writer was "
+                                f"killed): nothing fitted; --no-save fits it without saving, `velab recover "
+                                f"{run.path}` writes a closed copy")
+    if run.damage:
+        return DataError(f"{run.path}: damaged run ({run.damage}): velab fit does not write into it; "
+                         f"--no-save fits it without saving")
+    return None
+
+
+def _save_note(run) -> str:
+    what = "open for writing" if run.open_for_write else f"damaged ({run.damage})"
+    return f"the run is {what}: fitted with --no-save, nothing written into it"
+
+
 def run(args: argparse.Namespace) -> int:
     opts = _options(args)
     if getattr(args, "joint", False):
@@ -158,14 +184,21 @@ def run(args: argparse.Namespace) -> int:
 
             result, name = fit_file(path, opts, progress=cb)
         if args.json:
-            write_json({"path": path, "fit_name": name, **result.to_dict()})
+            write_json({"path": path, "fit_name": name, **result.to_dict(), "headline": _headline(result)})
         else:
             print(f"{path}")
-            print(result.report())
+            print(result.report(verbose=bool(getattr(args, "verbose", 0))))
             if name:
                 print(f"saved as /entry/fits/{name}")
         return ExitCode.OK
     return _run_batch(args, opts)
+
+
+def _headline(result) -> dict:
+    """The report's summary as plain data (velab.fitting.headline): the JSON's "headline" object."""
+    from velab.fitting.headline import headline
+
+    return headline(result).to_dict()
 
 
 def _run_batch(args, opts: dict) -> int:
@@ -234,10 +267,11 @@ def _run_joint(args, opts: dict) -> int:
         except OSError as exc:
             raise DataError(f"{opts['plot']}: cannot write the figure: {exc.strerror or exc}") from None
     if args.json:
-        write_json({"paths": [s.path for s in sources], "fit_name": name, **result.to_dict()})
+        write_json({"paths": [s.path for s in sources], "fit_name": name, **result.to_dict(),
+                    "headline": _headline(result)})
     else:
         print("joint fit of " + ", ".join(s.path for s in sources))
-        print(result.report())
+        print(result.report(verbose=bool(getattr(args, "verbose", 0))))
         print(runs_report(result))
         if name:
             print(f"saved as /entry/fits/{name} in each of the {len(sources)} runs")

@@ -79,6 +79,29 @@ class _Terminate(BaseException):
     pass
 
 
+def status_line(state: dict, width: int = 79) -> str:
+    """The live status line: phase, countdown, t, peak head, samples and lost, never wider than ``width``.
+
+    The peak head is never cut: where the line does not fit, the samples count goes first, then the
+    words around the numbers, then the countdown (an 80-column terminal: width 79)."""
+    peak = f"{state['peak']:.2f} m" if state["peak"] > -1e300 else "-"
+    phase, cd = state["phase"], state.get("countdown") or ""
+    t, n, lost = state["t"], state["samples"], state["lost"]
+    at = f"{phase} ({cd})" if cd else phase
+    forms = (
+        f"{phase:<12} {cd:<20} | t {t:8.3f} s | peak head {peak} | {n} samples, {lost} lost",
+        f"{at} | t {t:.2f} s | peak head {peak} | {n} samples, {lost} lost",
+        f"{at} | t {t:.1f} s | peak head {peak} | {lost} lost",
+        f"{phase} | t {t:.1f} s | peak head {peak} | {lost} lost",
+        f"{phase} | t {t:.1f} s | peak {peak}",
+    )
+    for i, text in enumerate(forms):
+        text = text if i == 0 else " ".join(text.split())  # (no countdown: no double space)
+        if len(text) <= width:
+            return text
+    return " ".join(forms[-1].split())[:max(10, width)]
+
+
 class _Progress:
     """Prints the recorder's events (stderr) from its own thread.
 
@@ -115,13 +138,9 @@ class _Progress:
             print(text, file=self.stream, flush=True)
 
     def _status(self) -> None:
-        st = self.state
-        peak = f"{st['peak']:.2f} m" if st["peak"] > -1e300 else "-"
-        text = (f"{st['phase']:<12} {st['countdown']:<22} | t {st['t']:8.3f} s | "
-                f"{st['samples']} samples, {st['lost']} lost | peak head {peak}")
-        width = shutil.get_terminal_size((80, 24)).columns - 1
+        text = status_line(self.state, shutil.get_terminal_size((80, 24)).columns - 1)
         with self.lock:
-            self.stream.write("\r\x1b[2K" + text[:max(10, width)])
+            self.stream.write("\r\x1b[2K" + text)
             self.stream.flush()
             self.status_shown = True
 
@@ -147,7 +166,10 @@ class _Progress:
                 st["peak"] = max(st["peak"], float(m))
 
     def _on_progress(self, d) -> None:
-        self.state["countdown"] = f"{d['what']} {d['remaining_s']:.1f} s"
+        left = d["remaining_s"]
+        # the fit window in, the record goes on to its duration: say so, not "0.0 s" for the rest of the run
+        self.state["countdown"] = (f"{d['what']} {left:.1f} s" if left > 0 or d["what"] != "fit window"
+                                   else "fit window in")
 
     # what each phase line adds, from the phase event's data
     _PHASE_TEXT = {
@@ -279,8 +301,16 @@ def make_recorder(args, settings):
     return Recorder(bench, rig, settings)
 
 
-def _print_summary(summary, out) -> None:
+def _print_summary(summary, out, verbose: bool = False) -> None:
+    """The run's result first (velab.fitting.headline), then the run's facts, then the models' table
+    (every statistic with ``verbose``); no line wider than 100 columns unless ``verbose``."""
     print("", file=out)
+    if summary.fit is not None:
+        from velab.fitting.headline import headline, headline_lines
+
+        for line in headline_lines(headline(summary.fit)):
+            print(line, file=out)
+        print("", file=out)
     print(f"run: {summary.path}", file=out)
     print(f"status: {summary.status}" + (f" ({summary.reason})" if summary.reason else ""), file=out)
     peak = f"{summary.peak_head_m:.2f} m" if math.isfinite(summary.peak_head_m) else "-"
@@ -288,10 +318,13 @@ def _print_summary(summary, out) -> None:
     print(f"samples: {summary.n_samples}, lost {summary.lost_samples} in {summary.gaps} gaps, "
           f"{summary.flagged_samples} flagged, peak head {peak}{trig}", file=out)
     if summary.fit is not None:
-        print(summary.fit.report(elements=False).rstrip(), file=out)
-        print(f"best model: {summary.best_model}, a = {summary.wave_speed_m_s:.2f} m/s"
-              + (f" (final fit {summary.fit_latency_s:.2f} s after the window closed)" if summary.fit_latency_s else ""),
-              file=out)
+        text = summary.fit.report(elements=verbose, verbose=verbose)
+        # (the headline is printed above the run's facts: the table and the notes follow here)
+        body = text.split("\n\n", 1)[1] if "\n\n" in text else text
+        print("", file=out)
+        print(body.rstrip(), file=out)
+        if summary.fit_latency_s:
+            print(f"final fit {summary.fit_latency_s:.2f} s after the window closed", file=out)
     if summary.fit_error:
         print(summary.fit_error, file=out)
 
@@ -343,7 +376,7 @@ def run_command(args) -> int:
             codes.append(s.exit_code)
             progress.pause()
             if not args.quiet:
-                _print_summary(s, out)
+                _print_summary(s, out, verbose=bool(getattr(args, "verbose", 0)))
             if s.exit_code in (130, 5):
                 break
     except (KeyboardInterrupt, _Terminate):

@@ -387,9 +387,10 @@ class SweepResult:
     def warning_codes(self) -> list[str]:
         return [w["code"] for w in self.warnings]
 
-    def report(self, elements: bool = True) -> str:
-        """A plain-text table (one line per model), the parameters per element, bounds, notes."""
-        return format_report(self, elements=elements)
+    def report(self, elements: bool = True, verbose: bool = True) -> str:
+        """The headline (velab.fitting.headline), then (``verbose``) every statistic, the parameters per
+        element, bounds, notes; not ``verbose``: the models' table and the notes within 100 columns."""
+        return format_report(self, elements=elements, verbose=verbose)
 
 
 __all__ = ["ModelFit", "SweepResult", "apply_criteria", "support_category", "model_name", "lag1", "SELECTIONS"]

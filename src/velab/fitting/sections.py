@@ -39,7 +39,7 @@ class SectionsResult(SweepResult):
         d["sections"] = [dict(s) for s in self.sections]
         return d
 
-    def report(self, elements: bool = True) -> str:
+    def report(self, elements: bool = True, verbose: bool = True) -> str:
         """The single fit's report and the sections' table (each under the best model's wall)."""
         lines = [f"sections (each under the {self.best.name} wall):",
                  f"  {'section':<16}{'x (m)':>9}{'n':>8}{'F/noise':>9}{'bound':>7}  disagrees"]
@@ -48,7 +48,7 @@ class SectionsResult(SweepResult):
             lines.append(f"  {s['name']:<16}{s['position_m']:>9.2f}{s['n']:>8}"
                          f"{'-' if ratio is None else format(ratio, '.3f'):>9}{'-' if bound is None else format(bound, '.2f'):>7}"
                          f"  {'yes' if s['disagrees'] else 'no'}")
-        return super().report(elements) + "\n" + "\n".join(lines)
+        return super().report(elements, verbose) + "\n" + "\n".join(lines)
 
 
 def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: float | None = 20.0, *,
