@@ -62,7 +62,10 @@ class DaqLine:
         read = getattr(self.daq, "read_digital", None)
         if read is None:
             return None
-        return bool((int(read()) >> self.line) & 1)
+        state = read()  # a bit mask, or one level per line
+        if isinstance(state, (tuple, list)):
+            return bool(state[self.line]) if self.line < len(state) else None
+        return bool((int(state) >> self.line) & 1)
 
     def __str__(self) -> str:
         return f"{getattr(self.daq, 'name', 'daq')} digital line {self.line}"
