@@ -36,10 +36,32 @@ def run(args: argparse.Namespace) -> int:
     for i, path in enumerate(args.runs):
         if i:
             print()
+        for line in result_lines(path):  # the result first (velab.fitting.headline)
+            print(line)
         print(describe(read_run(path)))
         for line in joint_lines(path) + sections_lines(path):
             print(line)
     return 0
+
+
+def result_lines(path, width: int = 100) -> list[str]:
+    """The headline of each fit stored in the run (velab.fitting.headline), a blank line after; [] without one."""
+    from velab.fitting.headline import headline, headline_lines
+    from velab.fitting.jointresult import JointResult
+    from velab.fitting.results import SweepResult
+    from velab.runfiles.summary import read_fits
+
+    out = []
+    for name, d in read_fits(path).items():
+        if "error" in d or not d.get("models"):
+            continue
+        try:
+            result = (JointResult if d.get("joint") or d.get("fit_kind") == "joint" else SweepResult).from_dict(d)
+            lines = headline_lines(headline(result), width)
+        except (KeyError, TypeError, ValueError):  # a damaged fit: describe() says so
+            continue
+        out += [f"{lines[0]} [fit {name}]", *lines[1:], ""]
+    return out
 
 
 def sections_lines(path) -> list[str]:
