@@ -91,7 +91,7 @@ def _support_words(result, best) -> str:
     else:
         nxt = others[0]
         d = _num(nxt.delta_aic)
-        words = (f"{lead} of {len(result.models)} models; next {nxt.name}, dAIC {d:.1f} ({nxt.support} support)"
+        words = (f"{lead} of {len(result.models)} models; next {nxt.name}, dAIC {d:.1f} (support: {nxt.support})"
                  if math.isfinite(d) else f"{lead} of {len(result.models)} models")
     if best.note:
         words += f"; {best.note}"
