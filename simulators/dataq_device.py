@@ -117,11 +117,16 @@ class DataqDevice:
         self.dout = 0
         self.index = 0
         self.counter = 0
+        self.t_start: float | None = None
 
     # ------------------------------------------------------------ time and scheduled faults
 
     def source_time(self) -> float:
-        return float(self.clock.now()) if self.clock is not None else time.monotonic()
+        """Now on the source's time axis: the simulation clock's, or without one the device time since the
+        last start (0 at ``start``)."""
+        if self.clock is not None:
+            return float(self.clock.now())
+        return time.monotonic() - self.t_start if self.t_start is not None else 0.0
 
     def clock_scale(self) -> float:
         return float(getattr(self.clock, "scale", 1.0) or 1.0) if self.clock is not None else 1.0
@@ -261,7 +266,7 @@ class DataqDevice:
         self.scanning = True
         self.index = 0
         self.t_start = time.monotonic()
-        self._t_source0 = self.source_time()
+        self._t_source0 = float(self.clock.now()) if self.clock is not None else 0.0
         self.stats.starts += 1
 
     def due_scans(self) -> int:
