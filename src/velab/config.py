@@ -19,6 +19,7 @@ import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from velab import bounds
 from velab.configpath import config_stem, load_config
 from velab.friction import FACTOR_LAWS, STEADY_LAWS, UNSTEADY_LAWS
 from velab.rig import FitSettings, Fluid, Manoeuvre, Pipe, Rig, Section, Transducer, constraint_coefficient
@@ -60,6 +61,7 @@ _ANCHORING = ("upstream", "throughout", "expansion_joints")
 def load_rig(name_or_path: str | os.PathLike) -> Rig:
     path, doc = load_config("rigs", name_or_path)
     r = _Reader(path, doc)
+    _check_tables(r, doc, RIG_TABLES)
     top = r.read(
         {k: v for k, v in doc.items() if not isinstance(v, dict) and k != "transducers"},
         "",
@@ -173,7 +175,31 @@ def load_rig(name_or_path: str | os.PathLike) -> Rig:
         raise r.fail("[flow]", "non-physical rig: the steady or Joukowsky head is not a finite number")
     if steady_head_m <= 0:
         raise r.fail("[flow] reservoir_head_m", f"smaller than the steady head loss {rig.steady_head_loss_m:.3g} m")
+    problem = bounds.rig_problem(rig)  # the one rule of what is physical (velab.bounds), as for a stored rig
+    if problem:
+        raise r.fail(*problem)
     return rig
+
+
+# The tables a rig file may have (and its [[transducers]] array): any other is refused, a misspelt one named.
+RIG_TABLES = ("pipe", "fluid", "flow", "manoeuvre", "transducer", "wave", "fit", "valve", "transducers")
+
+
+def _check_tables(r: "_Reader", doc: dict, known: tuple[str, ...]) -> None:
+    """Refuse a table the file kind does not have: "unknown table [pipes] (did you mean [pipe]?)"."""
+    import difflib
+
+    for key in sorted(str(k) for k, v in doc.items() if isinstance(v, (dict, list)) and k not in known):
+        value = doc[key]
+        if isinstance(value, list) and not any(isinstance(x, dict) for x in value):
+            continue  # an array value, not a table: the key check names it
+        label = f"[[{key}]]" if isinstance(value, list) else f"[{key}]"
+        close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+        hint = ""
+        if close:
+            hint = f" (did you mean [[{close[0]}]]?)" if close[0] == "transducers" else f" (did you mean [{close[0]}]?)"
+        raise r.fail("", f"unknown table {label}{hint}; a rig file has "
+                         f"{', '.join(f'[{t}]' for t in known if t != 'transducers')} and [[transducers]]")
 
 
 def _transducers(r: "_Reader", length_m: float) -> tuple[Section, ...]:
@@ -184,6 +210,9 @@ def _transducers(r: "_Reader", length_m: float) -> tuple[Section, ...]:
         return ()
     if not isinstance(tables, list) or not tables:
         raise r.fail("[[transducers]]", "must be one or more [[transducers]] tables")
+    too_many = bounds.check_count(len(tables), bounds.MAX_TRANSDUCERS, "[[transducers]] tables")
+    if too_many:  # before reading them: a bench has a few, a generated file may have thousands
+        raise r.fail("[[transducers]]", too_many)
     out, names = [], set()
     for i, t in enumerate(tables):
         where = f"[[transducers]] #{i + 1} "
@@ -249,6 +278,8 @@ def _characteristic(r: "_Reader", v: dict, where: str) -> dict:
         for key, val in zip(("position_pct", "flow_ratio"), table):
             if val is None:
                 raise r.fail(f"{where} {key}", 'missing key (needed with characteristic = "table")')
+            if len(val) > bounds.MAX_TABLE_POINTS:
+                raise r.fail(f"{where} {key}", bounds.check_count(len(val), bounds.MAX_TABLE_POINTS, "points"))
             if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in val):
                 raise r.fail(f"{where} {key}", "must be an array of finite numbers")
         try:
@@ -409,6 +440,9 @@ def load_material_doc(path: Path, doc: dict) -> Material:
             "kelvin_voigt": _Key(list, False, []),
         },
     )
+    too_many = bounds.check_count(len(top["kelvin_voigt"]), bounds.MAX_KV_ELEMENTS, "[[kelvin_voigt]] elements")
+    if too_many:
+        raise r.fail("[[kelvin_voigt]]", too_many)
     elements = []
     for i, el in enumerate(top["kelvin_voigt"]):
         where = f"[[kelvin_voigt]] #{i + 1} "
@@ -430,4 +464,8 @@ def load_material_doc(path: Path, doc: dict) -> Material:
             elements.append(KelvinVoigt.from_creep(v["J_per_pa"], v["tau_s"]))
         else:
             raise r.fail(where.strip(), "give either E_pa + eta_pa_s or J_per_pa + tau_s")
-    return Material(wave_speed_m_s=top["wave_speed_m_s"], elements=tuple(elements), name=top["name"])
+    material = Material(wave_speed_m_s=top["wave_speed_m_s"], elements=tuple(elements), name=top["name"])
+    problem = bounds.material_problem(material)  # velab.bounds: the same rule for files and stored materials
+    if problem:
+        raise r.fail(*problem)
+    return material

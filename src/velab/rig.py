@@ -249,8 +249,22 @@ def rig_from_dict(d: dict) -> Rig:
             transducers=tuple(Section(name=str(x["name"]), position_m=float(x["position_m"]))
                               for x in d.get("transducers") or ()),
         )
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise ConfigError(f"rig description: invalid or incomplete ({exc})") from None
+
+
+def checked_rig(rig: Rig, where: str = "rig description") -> Rig:
+    """``rig`` if it is physical by :mod:`velab.bounds` (the rule a rig file is read with), else a one-line
+    ConfigError naming ``where`` and the key: a stored rig is checked as its file was."""
+    from velab import bounds
+
+    try:
+        problem = bounds.rig_problem(rig)
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError) as exc:
+        problem = ("", f"not a number where one is needed ({exc})")
+    if problem:
+        raise ConfigError(f"{where}: {problem[0]}: {problem[1]}" if problem[0] else f"{where}: {problem[1]}")
+    return rig
 
 def _valve_from_stored(d: dict) -> Valve:
     """The valve of a stored rig. Run files written before the valve law existed were made with the

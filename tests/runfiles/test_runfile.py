@@ -300,10 +300,15 @@ def test_killed_run_is_fitted_and_recovered_into_a_closed_copy(synth_run, tmp_pa
     proc = subprocess.run([sys.executable, "-c", KILLED, str(synth_run), str(killed)], timeout=60)
     assert proc.returncode == -signal.SIGKILL
     before = killed.read_bytes()
-    # fitting what is there works; saving into the flagged file is refused with a clear note
-    assert main(["fit", str(killed), "--models", "0-1", "--window", "2"]) == 0
+    # saving into the flagged file is refused before any fit: one line, exit 5 (docs/cluster.md), untouched
+    assert main(["fit", str(killed), "--models", "0-1", "--window", "2"]) == 5
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "still open for writing" in err and "velab recover" in err
+    assert killed.read_bytes() == before
+    # fitting what is there works with --no-save, which says so
+    assert main(["fit", str(killed), "--models", "0-1", "--window", "2", "--no-save"]) == 0
     out = capsys.readouterr().out
-    assert "best model" in out and "not saved:" in out and "velab recover" in out
+    assert "best model" in out and "open for writing: fitted with --no-save" in out
     assert killed.read_bytes() == before
     # velab recover: a closed copy that takes the fit; the original is untouched
     assert main(["recover", str(killed)]) == 0

@@ -214,9 +214,9 @@ def test_killed_swmr_writer_read_refused_for_saves_and_recovered(big_run, tmp_pa
     r = read_run(killed)
     assert r.incomplete and r.open_for_write and not r.end_time
     assert r.events == [(0.0, "note", "é" * 700)]  # not cut: the continuation row is joined back
-    assert main(["fit", str(killed), *FIT]) == 0  # fitted, not saved (and says why)
-    out = capsys.readouterr().out
-    assert "not saved:" in out and "velab recover" in out
+    assert main(["fit", str(killed), *FIT]) == 5  # refused before the fit: one line naming the remedy
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "still open for writing" in err and "velab recover" in err
     with pytest.raises(Exception, match="still open for writing"):
         save_fit(killed, {"method": "x", "window": 1.0, "models": []}, "x")
     assert main(["recover", str(killed)]) == 0

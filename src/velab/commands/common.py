@@ -98,6 +98,11 @@ def int_range(lo: int | None = None, hi: int | None = None) -> Number:
     return Number(int, lo, hi)
 
 
+def bound_float(bound) -> Number:
+    """A finite float inside a :class:`velab.bounds.Bound` (the same bound the config and run-file doors use)."""
+    return Number(float, bound.lo, bound.hi, lo_open=bound.lo_open, units=bound.units)
+
+
 finite_float = Number(float)
 positive_float = Number(float, 0, None, lo_open=True)
 non_negative_float = Number(float, 0, None)

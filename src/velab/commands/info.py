@@ -12,7 +12,8 @@ from velab.errors import VelabError
 def register(sub) -> None:
     p = sub.add_parser("info", help="summarise a run file and its fits",
                        description="Print what a run file holds: status, timing, rig, manoeuvre, material, events, "
-                       "gaps, fits. A damaged file is reported on one line (exit 2).")
+                       "gaps, fits. A damaged file is reported on one line (exit 2); a run whose structure is "
+                       "damaged but readable is shown, marked DAMAGED with the reason (exit 2).")
     p.add_argument("runs", nargs="+", help="run files (.h5)")
     add_json_option(p)
     p.set_defaults(func=run)
@@ -26,22 +27,35 @@ def run(args: argparse.Namespace) -> int:
         docs, failed = [], 0
         for path in args.runs:
             try:
-                docs.append(as_dict(read_run(path)))
+                run = read_run(path)
+                docs.append(as_dict(run))
+                failed += _say_damaged(run)
             except VelabError as exc:
                 docs.append({"path": str(path), "error": str(exc)})
                 print(f"velab: {exc}", file=sys.stderr)
                 failed += 1
         write_json(docs[0] if len(docs) == 1 else {"runs": docs})
         return 2 if failed else 0
+    damaged = 0
     for i, path in enumerate(args.runs):
         if i:
             print()
+        run = read_run(path)
         for line in result_lines(path):  # the result first (velab.fitting.headline)
             print(line)
-        print(describe(read_run(path)))
+        print(describe(run))
         for line in joint_lines(path) + sections_lines(path):
             print(line)
-    return 0
+        damaged += _say_damaged(run)
+    return 2 if damaged else 0
+
+
+def _say_damaged(run) -> int:
+    """One line on stderr for a run whose structure is damaged (velab.runfiles.soundness); 1 if it is."""
+    if not run.damage:
+        return 0
+    print(f"velab: {run.path}: damaged run ({run.damage}); nothing will be written into it", file=sys.stderr)
+    return 1
 
 
 def result_lines(path, width: int = 100) -> list[str]:

@@ -6,7 +6,8 @@ from __future__ import annotations
 import argparse
 import logging
 
-from velab.commands.common import float_range, int_range, prepare_output
+from velab import bounds
+from velab.commands.common import bound_float, float_range, int_range, prepare_output
 from velab.errors import DataError, SafetyError
 
 log = logging.getLogger("velab.synth")
@@ -41,15 +42,15 @@ def register(sub) -> None:
     p.add_argument("--noise", type=float_range(0, 100, units="m"), default=None,
                    help="noise standard deviation, m, 0..100 (default: the paper's, 0.1 m)")
     p.add_argument("--seed", type=int_range(0, 2**63 - 1), default=None, help="noise seed (default: the paper's, 2018)")
-    p.add_argument("--rate", type=float_range(0, 1e6, lo_open=True, units="Hz"), default=1000.0,
+    p.add_argument("--rate", type=bound_float(bounds.SAMPLE_RATE_HZ), default=1000.0,
                    help="sampling rate, Hz (default 1000)")
     p.add_argument("--duration", type=float_range(0, 3600, lo_open=True, units="s"), default=20.0,
                    help="record after the trigger, s (default 20)")
     p.add_argument("--pretrigger", type=float_range(0, 600, units="s"), default=1.0,
                    help="record before the trigger, s (default 1)")
-    p.add_argument("--beta", type=float_range(0, 1e4, lo_open=True, units="1/s"),
+    p.add_argument("--beta", type=bound_float(bounds.BETA_PER_S),
                    help="sigmoid beta, 1/s (default: the rig's)")
-    p.add_argument("--gamma", type=float_range(-100, 100), help="sigmoid gamma (default: the rig's)")
+    p.add_argument("--gamma", type=bound_float(bounds.GAMMA), help="sigmoid gamma, -100..0 (default: the rig's)")
     # choices checked in run(): the law names live in velab.friction, which needs numpy (--help stays light)
     p.add_argument("--friction", metavar="LAW",
                    help="steady friction: quadratic (Darcy-Weisbach), linear (the paper's tangent), none "
@@ -112,6 +113,12 @@ def run(args: argparse.Namespace) -> int:
         rig = rig.with_changes(friction_unsteady=args.friction_unsteady)
     if args.valve is not None:
         rig = with_valve_law(rig, args.valve)
+    problem = bounds.rig_problem(rig)  # the options' rig, by the rule its file was read with (velab.bounds)
+    if problem:
+        raise DataError(f"rig {rig.name} with these options: {problem[0]}: {problem[1]}")
+    work = bounds.work_problem(rig, args.duration + args.pretrigger)
+    if work:
+        raise DataError(f"--duration {args.duration:g} s: {work}")
     refuse_cavitation(rig)
     min_rate = NYQUIST_FACTOR * flow_band_hz(rig)
     if args.rate < min_rate:

@@ -34,6 +34,7 @@ import h5py
 from velab.errors import DataError
 from velab.runfiles import layout as L
 from velab.runfiles.h5open import RunStillOpen, check_file, open_h5
+from velab.runfiles.soundness import defects, describe_defects
 from velab.runfiles.probe import trust
 
 try:
@@ -165,6 +166,9 @@ def edit_copy(path: str | os.PathLike) -> Iterator[h5py.File]:
     with open_h5(path) as fh:  # is it a velab run at all (never edit a foreign file)
         if L.to_str(fh.attrs.get("file_format", "")) != L.FILE_FORMAT or "entry" not in fh:
             raise DataError(f"{path}: not a velab run file (no /entry with file_format={L.FILE_FORMAT})")
+        found = defects(fh)  # never write into a run that is not sound (velab.runfiles.soundness)
+        if found:
+            raise DataError(f"{path}: damaged run ({describe_defects(found)}): nothing is written into it")
     with run_lock(path):
         _remove_stale_temps(path)
         stage("locked")

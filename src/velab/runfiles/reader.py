@@ -16,11 +16,13 @@ from typing import Iterator
 import h5py
 import numpy as np
 
+from velab import bounds
 from velab.config import Material, material_from_dict
 from velab.fitting.window import enough_samples, steady_head, window_slice
-from velab.rig import Manoeuvre, Rig, rig_from_dict
-from velab.errors import DataError
+from velab.rig import Manoeuvre, Rig, checked_rig, rig_from_dict
+from velab.errors import DataError, VelabError
 from velab.runfiles import layout as L
+from velab.runfiles import soundness
 from velab.runfiles import superblock as sb_
 from velab.runfiles.h5open import RunStillOpen, open_h5
 
@@ -57,6 +59,13 @@ class Run:
     versions: dict = field(default_factory=dict)  # velab and library versions that wrote the run
     file_name: str = ""
     open_for_write: bool = False  # flagged open by a writer (live, or killed)
+    # what is wrong with the run's structure (velab.runfiles.soundness), "" for a sound run: a damaged run
+    # is shown, never written into
+    damage: str = ""
+
+    @property
+    def sound(self) -> bool:
+        return not self.damage
 
     @property
     def incomplete(self) -> bool:
@@ -157,37 +166,63 @@ def read_run(path: str | os.PathLike) -> Run:
     with open_run_file(path) as fh:
         try:
             return _read_entry(path, fh)
-        except DataError as exc:
+        except VelabError as exc:  # a DataError, or the ConfigError of a stored rig or material
             if str(exc).startswith(str(path)):
-                raise
+                raise DataError(str(exc)) from None
             raise DataError(f"{path}: damaged velab run file ({exc})") from None
         except (Exception, MemoryError) as exc:  # noqa: BLE001 - h5py and json raise many types on damage
             raise _damaged(path, exc) from None
 
 
-def _vector(ds, name: str, limit: int, n: int | None = None) -> np.ndarray:
+def _vector(ds, name: str, limit: int, n: int | None = None, numeric: bool = False) -> np.ndarray:
+    """A 1-d dataset's values; ``numeric``: real numbers only (no complex, compound, string or opaque type)."""
     if not isinstance(ds, h5py.Dataset) or ds.ndim != 1:
         raise DataError(f"{name} is not a one-dimensional dataset")
     if ds.shape[0] * max(ds.dtype.itemsize, 1) > limit:
         raise DataError(f"{name} claims {ds.shape[0]} values, more than the file can hold")
+    if numeric and ds.dtype.kind not in "fiu":
+        raise DataError(f"{name} holds {_dtype_name(ds.dtype)} values, not real numbers")
+    if ds.shape[0] > bounds.MAX_SAMPLES:
+        raise DataError(f"{name}: {ds.shape[0]} values, more than the {bounds.MAX_SAMPLES:,} of a record")
     return np.asarray(ds[:n] if n is not None else ds[()])
+
+
+def _dtype_name(dtype) -> str:
+    return {"c": "complex", "S": "string", "U": "string", "O": "string", "V": "compound or opaque", "b": "boolean",
+            "M": "date", "m": "time-delta"}.get(dtype.kind, str(dtype))
+
+
+def _check_heads(name: str, h: np.ndarray) -> None:
+    """Heads a pipe can hold (velab.bounds.HEAD_M); NaN is a flagged sample, kept."""
+    finite = h[np.isfinite(h)]
+    if np.isinf(h).any():
+        raise DataError(f"{name}: infinite values (at sample {int(np.argmax(np.isinf(h)))})")
+    if finite.size and not (bounds.HEAD_M.contains(finite.min()) and bounds.HEAD_M.contains(finite.max())):
+        worst = float(finite[np.argmax(np.abs(finite))])
+        raise DataError(f"{name}: head {worst:g} m {bounds.HEAD_M(worst)}")
 
 
 def _read_entry(path: Path, fh: h5py.File) -> Run:
     limit = 4 * os.path.getsize(path) + (16 << 20)  # no dataset may claim more than the file could hold
+    damage = soundness.describe_defects(soundness.defects(fh))
     e = fh["entry"]
     data = e["data"]
     signal = L.to_str(data.attrs.get("signal", "head"))
     axis = L.to_str(np.atleast_1d(data.attrs.get("axes", ["time"]))[0])
-    t = _vector(data[axis], f"/entry/data/{axis}", limit).astype(float)
-    h = _vector(data[signal], f"/entry/data/{signal}", limit).astype(float)
+    t = _vector(data[axis], f"/entry/data/{axis}", limit, numeric=True).astype(float)
+    h = _vector(data[signal], f"/entry/data/{signal}", limit, numeric=True).astype(float)
     n = min(t.size, h.size)  # a killed writer may leave one dataset a flush ahead
     t, h = t[:n], h[:n]
+    if not np.isfinite(t).all():
+        raise DataError(f"/entry/data/{axis}: not a finite number at sample {int(np.argmax(~np.isfinite(t)))}")
+    _check_heads(f"/entry/data/{signal}", h)
     rate = float(data[axis].attrs.get("sample_rate_hz", 0.0))
     if not (math.isfinite(rate) and rate > 0):
         rate = 1.0 / float(np.median(np.diff(t))) if n > 1 else 0.0
     if not (math.isfinite(rate) and rate > 0):
         raise DataError("no sample rate (time axis without @sample_rate_hz and fewer than 2 samples)")
+    if not bounds.SAMPLE_RATE_HZ.contains(rate):
+        raise DataError(f"/entry/data/{axis}: sample rate {rate:g} Hz {bounds.SAMPLE_RATE_HZ(rate)}")
     sample = e["sample"]
     rig = rig_from_dict(L.read_json(sample, "rig_json"))
     man = e.get("manoeuvre")
@@ -196,22 +231,34 @@ def _read_entry(path: Path, fh: h5py.File) -> Run:
         for k, ds in man.items():
             if isinstance(ds, h5py.Dataset) and ds.shape == () and ds.dtype.kind in "fiu":
                 manoeuvre[k] = float(ds[()])
+    for key, bound in (("beta", bounds.BETA_PER_S), ("gamma", bounds.GAMMA)):
+        if key in manoeuvre and bound(manoeuvre[key]):
+            raise DataError(f"/entry/manoeuvre/{key}: {bound(manoeuvre[key])} (got {manoeuvre[key]:g})")
+    if not math.isfinite(manoeuvre.get("trigger_time", 0.0)):
+        raise DataError("/entry/manoeuvre/trigger_time: not a finite number")
     # the commanded manoeuvre is the run's, whatever the rig snapshot says (format 1.0 files disagreed)
     if "beta" in manoeuvre or "gamma" in manoeuvre:
         m = Manoeuvre(beta_per_s=manoeuvre.get("beta", rig.manoeuvre.beta_per_s),
                       gamma=manoeuvre.get("gamma", rig.manoeuvre.gamma))
         if m != rig.manoeuvre:
             rig = rig.with_changes(manoeuvre=m)
+    rig = checked_rig(rig, "/entry/sample/rig_json")  # the rule its rig file was read with (velab.bounds)
     material = None
     mj = L.read_json(sample, "material_json")
     if mj is not None:
         material = material_from_dict(mj, f"{path}:/entry/sample")
     noise = sample.attrs.get("noise_std_m")
     channels, units = {}, {}
+    if len(data) > bounds.MAX_CHANNELS + 2:
+        raise DataError(f"/entry/data: {bounds.check_count(len(data), bounds.MAX_CHANNELS + 2, 'datasets')}")
     for name, ds in data.items():
         if name in (axis, signal) or not isinstance(ds, h5py.Dataset) or ds.ndim != 1:
             continue
-        channels[name] = _vector(ds, f"/entry/data/{name}", limit, n)
+        if ds.dtype.kind not in "fiu" and not name.startswith("head"):
+            continue  # not a channel of numbers (a damaged or foreign dataset): not read
+        channels[name] = _vector(ds, f"/entry/data/{name}", limit, n, numeric=True)
+        if name.startswith("head"):
+            _check_heads(f"/entry/data/{name}", channels[name].astype(float))
         units[name] = L.to_str(ds.attrs.get("units", ""))
     events = []
     ev = e.get("events")
@@ -260,4 +307,5 @@ def _read_entry(path: Path, fh: h5py.File) -> Run:
         versions=versions if isinstance(versions, dict) else {},
         file_name=L.to_str(fh.attrs.get("file_name", "")),
         open_for_write=sb_.read_superblock(path).open_for_write,
+        damage=damage,
     )

@@ -21,6 +21,7 @@ def as_dict(r: Run) -> dict:
     return {
         "path": str(r.path), "file_name": r.file_name, "title": r.title, "status": r.status,
         "status_reason": r.status_reason, "incomplete": r.incomplete, "open_for_write": r.open_for_write,
+        "damaged": r.damage or None,
         "start_time": r.start_time, "end_time": r.end_time, "format_version": r.format_version,
         "velab_version": r.velab_version, "n_samples": r.n_samples, "sample_rate_hz": r.sample_rate_hz,
         "trigger_time_s": r.trigger_time_s, "duration_after_trigger_s": r.duration_after_trigger_s,
@@ -36,8 +37,12 @@ def as_dict(r: Run) -> dict:
 
 def describe(r: Run) -> str:
     lines = [f"{r.path}"]
+    if r.damage:  # first: what is shown below is what is left of a run velab will not write into
+        lines.append(f"  DAMAGED      {r.damage}: read-only (velab fit --no-save only)")
     status = r.status
-    if r.incomplete:
+    if r.damage and "no /entry/status" in r.damage:
+        status = "(none stored)"
+    elif r.incomplete:
         status = "INCOMPLETE (the recording never closed the file: crash or kill; data up to the last flush)"
         if r.status_reason:
             status += f"; {r.status_reason}"
