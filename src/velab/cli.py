@@ -16,9 +16,12 @@ are printed as one line, ``velab: <message>``, and exit with the codes of
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
+import signal
 import sys
+import threading
 
 from velab import __version__
 from velab.errors import ExitCode, VelabError, one_line
@@ -137,12 +140,41 @@ def _close_logging() -> None:
     logger.setLevel(logging.NOTSET)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, delivered as an interrupt: the command unwinds (partial files removed) and exits 130."""
+
+
+@contextlib.contextmanager
+def _sigterm_interrupts():
+    """While a command runs, SIGTERM interrupts it as Ctrl-C does (exit 130, every ``finally`` run: no partial
+    file) instead of killing the process (exit 143, a ``.part`` left behind). Only where SIGTERM has its default
+    action and on the main thread: a command with its own handler (record, sim) installs it over this one."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
+        yield
+        return
+
+    def on_term(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not cut the clean-up short
+        raise Terminated()
+
+    signal.signal(signal.SIGTERM, on_term)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return ExitCode.BAD_INPUT
+    with _sigterm_interrupts():
+        return _run(args, argv)
+
+
+def _run(args, argv) -> int:
     log = logging.getLogger(LOGGER)
     try:
         configure_logging(args.verbose, args.quiet, args.log_file)
@@ -152,8 +184,8 @@ def main(argv: list[str] | None = None) -> int:
         log.debug("user error", exc_info=True)
         print(f"velab: {one_line(exc)}", file=sys.stderr)
         return int(exc.exit_code)
-    except KeyboardInterrupt:
-        print("velab: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        print(f"velab: {'terminated (SIGTERM)' if isinstance(exc, Terminated) else 'interrupted'}", file=sys.stderr)
         return ExitCode.INTERRUPTED
     except BrokenPipeError:  # `velab info ... | head`: the reader left; not an error
         return ExitCode.OK

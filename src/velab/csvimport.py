@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from velab import bounds
 from velab.errors import DataError
 from velab.inputfiles import check_input_file
 
@@ -115,6 +117,9 @@ def read_csv_record(
         fh.seek(0)
         if not sample.strip():
             raise DataError(f"{path}: empty file")
+        if "\0" in sample:
+            raise DataError(f"{path}: line {sample[:sample.index(chr(0))].count(chr(10)) + 1}: a NUL byte: not a "
+                            "text CSV file")
         try:
             dialect = csv.Sniffer().sniff(sample, delimiters=",;\t ")
         except csv.Error:
@@ -124,6 +129,11 @@ def read_csv_record(
             header = [h.strip() for h in next(reader)]
             if all(_is_number(h) for h in header if h):
                 raise DataError(f"{path}: line 1: expected a header row (column names), found numbers")
+            named = [h for h in header if h]
+            twice = sorted({h for h in named if named.count(h) > 1})
+            if twice:
+                raise DataError(f"{path}: line 1: column {twice[0]!r} named more than once (each column needs its "
+                                "own name)")
             ti = _pick(header, time_column, 0, path, "time")
             what = "pressure" if len(wanted) == 1 else "pressure (transducer {})"
             his = {n: _pick(header, c, 1, path, what.format(repr(n))) for n, c in wanted.items()}
@@ -135,8 +145,14 @@ def read_csv_record(
                 line = reader.line_num
                 if not row or all(not c.strip() for c in row):
                     continue
-                if len(row) <= last:
-                    raise DataError(f"{path}: line {line}: expected {len(header)} columns, found {len(row)}")
+                if any("\0" in c for c in row):
+                    raise DataError(f"{path}: line {line}: a NUL byte: not a text CSV file")
+                if len(row) != len(header):
+                    comma = _decimal_comma(row, header, dialect.delimiter)
+                    raise DataError(f"{path}: line {line}: expected {len(header)} columns, found {len(row)}"
+                                    + (f"; {comma}" if comma else ""))
+                if len(times) >= bounds.MAX_SAMPLES:
+                    raise DataError(f"{path}: line {line}: more than the {bounds.MAX_SAMPLES:,} samples of a record")
                 t = _number(row[ti], path, line, header[ti])
                 times.append(t)
                 for n, i in his.items():
@@ -161,6 +177,9 @@ def read_csv_record(
         i = int(bad[0]) + 1
         raise DataError(f"{path}: line {i + 2}: time {t[i]:g} s does not increase (previous {t[i - 1]:g} s)")
     step = float(np.median(dt))
+    if not bounds.SAMPLE_RATE_HZ.contains(1.0 / step):
+        raise DataError(f"{path}: time step {step:g} s ({1.0 / step:g} Hz): the sampling rate "
+                        f"{bounds.SAMPLE_RATE_HZ(1.0 / step)}; is the time column in seconds?")
     off = np.nonzero(np.abs(dt - step) > uneven_tolerance * step)[0]
     if off.size:
         i = int(off[0]) + 1
@@ -171,12 +190,56 @@ def read_csv_record(
     factor = PRESSURE_UNITS[units]
     heads = {n: np.asarray(v) if factor is None else np.asarray(v) * factor / (rig.fluid.density_kg_m3 * GRAVITY_M_S2)
              for n, v in values.items()}
+    for n, h in heads.items():
+        _check_head_range(path, rig, header[his[n]], units, np.asarray(values[n], dtype=float), h)
     main = rig.head_section.name
     pos = np.asarray(positions) if pi is not None else None
     others = {n: h for n, h in heads.items() if n != main} if len(heads) > 1 else {}
     return CsvRecord(t, heads[main], header[ti], header[his[main]], units, 1.0 / step, pos,
                      header[pi] if pi is not None else "", section_heads=others,
                      section_columns={n: header[i] for n, i in his.items()} if len(heads) > 1 else {})
+
+
+def _check_head_range(path: Path, rig: Rig, column: str, units: str, raw, head) -> None:
+    """Refuse heads the rig's transducer cannot read (velab.bounds.head_range_m: the vacuum to 1.5 x its full
+    scale), naming the unit the column is likely in: a kPa column read as metres is ten times too high."""
+    import numpy as np
+
+    lo, hi = bounds.head_range_m(rig)
+    with np.errstate(over="ignore", invalid="ignore"):
+        bad = ~((head >= lo) & (head <= hi))
+    if not bad.any():
+        return
+    i = int(np.argmax(bad))
+    rho_g = rig.fluid.density_kg_m3 * bounds.GRAVITY_M_S2
+    with np.errstate(over="ignore", invalid="ignore"):
+        median = float(np.median(raw))
+    fits = []
+    for u, f in PRESSURE_UNITS.items():
+        with np.errstate(over="ignore", invalid="ignore"):
+            h = raw if f is None else raw * f / rho_g
+            ok = bool(np.all((h >= lo) & (h <= hi)))
+        if u != units and ok:
+            fits.append((abs(math.log(max(abs(median if f is None else median * f / rho_g), 1e-9)
+                                      / max(rig.steady_head_m, 1e-9))), u, median if f is None else median * f / rho_g))
+    hint = ""
+    if fits:
+        _, u, steady = min(fits)
+        hint = f"; the column looks like {u} (--units {u}: median head {steady:.3g} m, the rig's steady {rig.steady_head_m:.3g} m)"
+    shown = float(head[i])
+    raise DataError(f"{path}: line {i + 2}: column {column!r}: head {shown:.4g} m (read as {units}) is beyond what the "
+                    f"rig's transducer reads ({lo:g} .. {hi:.3g} m: the vacuum to {bounds.OVER_RANGE:g} x its "
+                    f"{rig.transducer.full_scale_pa / 1e5:g} bar full scale){hint}")
+
+
+_DECIMAL_COMMA = re.compile(r"^\s*[+-]?\d+,\d+\s*$")
+
+
+def _decimal_comma(row: list[str], header: list[str], delimiter: str) -> str:
+    """The hint for a row that a decimal comma split ("0,001" read as two fields), or ""."""
+    if delimiter == "," and len(row) == 2 * len(header) and all(c.strip().lstrip("+-").isdigit() for c in row):
+        return 'decimal commas? ("0,001" splits into two fields: velab reads a decimal point, "0.001")'
+    return ""
 
 
 def _is_number(text: str) -> bool:
@@ -191,7 +254,8 @@ def _number(text: str, path: Path, line: int, column: str) -> float:
     try:
         v = float(text.strip())
     except ValueError:
-        raise DataError(f"{path}: line {line}: column {column!r}: not a number: {text.strip()!r}") from None
+        comma = " (a decimal comma: velab reads a decimal point, 0.001)" if _DECIMAL_COMMA.match(text) else ""
+        raise DataError(f"{path}: line {line}: column {column!r}: not a number: {text.strip()!r}{comma}") from None
     if not math.isfinite(v):
         raise DataError(f"{path}: line {line}: column {column!r}: {text.strip()} is not a finite number")
     return v
