@@ -405,7 +405,7 @@ class ModbusClient:
             code = body[1]
             self.stats.exceptions += 1
             name = EXCEPTION_NAMES.get(code, "unknown exception")
-            raise DeviceException(f"{self.name} unit {exp.unit}: {exp.what} refused: Modbus exception {code} ({name})",
+            raise DeviceException(f"{self.name} unit {exp.unit}: {exp.what} refused (exception {code}: {name})",
                                   code, device=self.name)
         if body[0] != exp.fc:
             raise self._err(ReplyMismatch, "wrong_function", exp, f"function code {body[0]:#04x}, expected {exp.fc:#04x}",
