@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from velab import bounds
 from velab.batch.address import scheduler_address
 from velab.commands.common import ProgressLine, add_json_option, check_output_path, float_range, int_range, write_json
 from velab.errors import DataError, ExitCode, UnavailableError
@@ -119,6 +120,9 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
     from velab.runfiles import RunStillOpen, read_run
 
     run = read_run(path)
+    work = bounds.work_problem(run.rig, opts["window_s"])  # bounded work (velab.bounds), before any fit
+    if work:
+        raise DataError(f"{path}: --window {opts['window_s']:g} s: {work}")
     refused = _refused_save(run)
     if refused and opts["save"]:  # said before the fit, not after it
         raise refused

@@ -7,6 +7,8 @@ import sys
 
 from velab.commands.common import DataError, add_json_option, int_range
 
+# the models a fit can name best (velab.fitting.sweep.MAX_M elements; the reduced S1r..S5r), and "none": not fitted
+MODEL_NAMES = frozenset(["el", "none"] + [f"s{m}" for m in range(1, 7)] + [f"s{m}r" for m in range(1, 6)])
 _SORT_HELP = "start, path, status, title, operator, specimen, rig, q0, beta, rate, duration, best, wave-speed, se, fits, noise"
 
 
@@ -74,7 +76,11 @@ def filters_of(args: argparse.Namespace):
             q0 = parse_range(args.q0)
         except ValueError as exc:
             raise DataError(f"--q0: {exc}") from None
-    return Filters(status=status, best=tuple(b for v in args.best for b in _words(v)), rig=args.rig.strip(),
+    best = tuple(b for v in args.best for b in _words(v))
+    for b in best:
+        if b.lower() not in MODEL_NAMES:
+            raise DataError(f"--best {b}: not a model velab fits (EL, S1..S6, S1r..S5r, or none: not fitted)")
+    return Filters(status=status, best=best, rig=args.rig.strip(),
                    since=since, until=until, text=tuple(w for w in args.text if w.strip()), q0=q0)
 
 
