@@ -182,7 +182,7 @@ _MODEL = {
     "flow_noise_rel": Key(float, False, 2e-3, within(0, 1)),
     "flow_update_s": Key(float, False, 0.5, above(0, 60, "s")),
     "grid_dt_s": Key(float, False, 2e-4, within(1e-6, 0.1, "s")),
-    "transient_s": Key(float, False, 20.0, above(0, 3600, "s")),
+    "transient_s": Key(float, False, 32.0, above(0, 3600, "s")),  # (simulators.rig.TRANSIENT_S)
 }
 _DEVICE_TYPES = {"kind": str, "profile": str, "unit": int, "word_order": str, "endpoints": list,
                  "sample_rate_hz": int, "buffer_channels": int, "realtime": bool, "baudrate": int, "serial_no": str}

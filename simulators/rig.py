@@ -93,6 +93,10 @@ class _Transient:
     freeze_tau: float | None  # hold / seizure instant (position frozen after it)
     done_tau: float  # position within 0.1 % of the end: state DONE
     others: np.ndarray | None = None  # head perturbations (m) at the other transducers, (transducers, grid)
+    # beyond the grid (tau > its end): each transducer's head perturbation relaxes from its last value to where
+    # the rig settles (``final``: the valve's transducer first, then the others) with time constant ``tail_s``
+    final: tuple = ()
+    tail_s: float = math.inf
 
 
 def _splitmix64(x: np.ndarray) -> np.ndarray:
@@ -114,6 +118,13 @@ def hashed_normal(seed: int, stream: int, t: np.ndarray) -> np.ndarray:
     return np.sqrt(-2.0 * np.log(u1)) * np.cos(2 * np.pi * u2)
 
 
+# seconds of transient computed on arm: a default 30 s recording is the model's to its end (beyond it the
+# head relaxes to where the rig settles: SimulatedRig._tail)
+TRANSIENT_S = 32.0
+# the continuation's relaxation time: at least this, at most TAIL_MAX_S (the envelope's own decay between)
+TAIL_MIN_S, TAIL_MAX_S = 1.0, 60.0
+
+
 class SimulatedRig:
     """The whole rig's physics, sampled by every simulated device.
 
@@ -125,13 +136,17 @@ class SimulatedRig:
     pressure_noise_fs : transducer noise, standard deviation as a fraction of full scale.
     flow_noise_rel : flowmeter noise, relative standard deviation.
     flow_update_s : flowmeter refresh period (MAG 6000: 0.5 s).
-    grid_dt_s, transient_s : grid of the precomputed transient.
+    grid_dt_s, transient_s : grid of the precomputed transient (``transient_s`` s after the trigger, 32 by
+        default: the default 30 s record). Beyond it the head is continued by the model's end state: it relaxes
+        from the grid's last value to where the rig settles (a closed valve: the reservoir's head at every
+        transducer; a valve left partly open or held: the mean of the grid's last pipe period) with the
+        transient's own decay time, never a flat hold.
     """
 
     def __init__(self, rig: Rig, material: Material, clock, seed: int = 0, *,
                  pressure_noise_fs: float = 2e-4, position_noise_pct: float = 0.02,
                  flow_noise_rel: float = 2e-3, flow_update_s: float = 0.5,
-                 grid_dt_s: float = 2e-4, transient_s: float = 20.0):
+                 grid_dt_s: float = 2e-4, transient_s: float = TRANSIENT_S):
         self.rig = rig
         self.material = material
         self.clock = clock
@@ -414,8 +429,33 @@ class SimulatedRig:
         flow = self.rig.steady_flow_m3_s + q
         volume = np.concatenate([[0.0], np.cumsum(0.5 * (flow[1:] + flow[:-1]) * dt)])
         done_tau = rig_c.manoeuvre.closed_s
+        final, tail_s = self._tail(head, others, standard)
         return _Transient(trigger_time, beta, gamma, end, dt, position, head, flow, volume, freeze_tau, done_tau,
-                          others)
+                          others, final, tail_s)
+
+    def _tail(self, head: np.ndarray, others: np.ndarray | None, closed: bool) -> tuple[tuple, float]:
+        """Where each transducer's head perturbation settles after the grid, and how fast it gets there.
+
+        A valve closed for good stops the flow: the head everywhere tends to the reservoir's (no friction loss
+        left), i.e. the perturbation to reservoir - steady head. Otherwise (partly open, held, seized) the
+        grid's last pipe period's mean. The time constant is the envelope's decay over the grid's last
+        periods (the spread of the last period against the one before), within [TAIL_MIN_S, TAIL_MAX_S]."""
+        dt = self.grid_dt_s
+        period = 4.0 * self.rig.pipe.length_m / max(self.material.wave_speed_m_s, 1.0)
+        k = max(2, int(round(period / dt)))
+        rows = [head] + ([] if others is None else list(others))
+        final = []
+        for i, h in enumerate(rows):
+            if closed:
+                final.append(self.rig.reservoir_head_m - self._steady_heads[i])
+            else:
+                final.append(float(np.mean(h[-k:])) if h.size else 0.0)
+        tail_s = TAIL_MAX_S
+        if head.size >= 3 * k:
+            last, before = float(np.std(head[-k:])), float(np.std(head[-2 * k:-k]))
+            if 0.0 < last < before:
+                tail_s = period / math.log(before / last)
+        return tuple(final), float(min(max(tail_s, TAIL_MIN_S), TAIL_MAX_S))
 
     def _interp(self, tr: _Transient, arr: np.ndarray, tau: np.ndarray) -> np.ndarray:
         x = np.clip(tau / tr.dt, 0.0, arr.size - 1.0)
@@ -454,7 +494,17 @@ class SimulatedRig:
             return np.full(t.shape, h0)
         tau = t - tr.trigger_time
         h = tr.head if transducer == 0 else tr.others[transducer - 1]
-        return np.where(tau < 0, h0, h0 + self._interp(tr, h, np.maximum(tau, 0.0)))
+        return np.where(tau < 0, h0, h0 + self._continued(tr, h, np.maximum(tau, 0.0), transducer))
+
+    def _continued(self, tr: _Transient, h: np.ndarray, tau: np.ndarray, transducer: int) -> np.ndarray:
+        """The head perturbation on the grid, and beyond its end relaxed towards the rig's end state."""
+        out = self._interp(tr, h, tau)
+        end = (h.size - 1) * tr.dt
+        if not tr.final or not np.any(tau > end):
+            return out
+        final = tr.final[transducer]
+        beyond = final + (h[-1] - final) * np.exp(-np.maximum(tau - end, 0.0) / tr.tail_s)
+        return np.where(tau > end, beyond, out)
 
     def pressure_pa(self, t, transducer: int = 0) -> np.ndarray:
         """Gauge pressure at a transducer (Pa, as :meth:`head_m`), with that transducer's own noise."""

@@ -11,7 +11,7 @@ from velab.config import load_material, load_rig
 from velab.model import ValveHeadModel, flow_perturbation
 from velab.simulators.clock import ManualClock
 from velab.simulators.modbus_devices import SimValveActuator
-from velab.simulators.rig import SimulatedRig
+from velab.simulators.rig import TRANSIENT_S, SimulatedRig
 from velab.synth import transient, transient_head, with_valve_law
 from velab.valvelaw import commanded_position_pct, orifice_flow
 
@@ -19,6 +19,9 @@ TAU = np.arange(0, 20 + 1e-4, 2e-4)
 
 
 def _run(rig, *, end=0.0, seize_after=None, hold_at=None, **options):
+    # the transient on TAU's span, as the references here (the MOC's last digits depend on the span);
+    # the default span and what follows it: the tests at the end
+    options.setdefault("transient_s", TAU[-1])
     sim = SimulatedRig(rig, load_material("A"), ManualClock(), seed=1, **options)
     m = rig.manoeuvre
     sim.set_manoeuvre(m.beta_per_s, m.gamma, end)
@@ -147,3 +150,48 @@ def test_every_device_shows_the_same_valve():
     # at 20 % open a butterfly (with its 5 % share of the loss) passes about a fifth of Q0
     assert sim.flowmeter_value(t0 + 5.0) == pytest.approx(float(rig.valve.opening(20.0)) * rig.steady_flow_m3_s,
                                                           rel=0.15)
+
+
+def _flat_s(h: np.ndarray, dt: float) -> float:
+    """The longest stretch (s) over which the noise-free head does not change at all."""
+    moving = np.flatnonzero(np.abs(np.diff(h)) > 1e-12)
+    edges = np.concatenate([[-1], moving, [h.size - 1]])
+    return float(np.max(np.diff(edges)) * dt)
+
+
+def test_a_default_30_s_run_has_no_flat_tail_and_settles_to_the_reservoirs_head():
+    """Issue 50: the transient was computed for 20 s and held, so a 30 s run ended with 10 s of dead-flat head
+    below the steady head; a closed valve's head tends to the reservoir's."""
+    rig = load_rig("perugia")
+    sim, t0 = _run(rig, transient_s=TRANSIENT_S)  # (the default)
+    dt = 1e-3
+    t = t0 + np.arange(0.0, 30.0, dt)
+    h = sim.head_m(t)
+    tail = h[t >= t0 + 20.0]
+    assert _flat_s(tail, dt) < 0.05  # it still moves to the end of the record
+    assert np.std(tail) > 0.01
+    last = h[t >= t0 + 27.0]
+    # its last seconds oscillate about the reservoir's head, above the steady head it started from
+    assert abs(np.mean(last) - rig.reservoir_head_m) < 0.1 < rig.reservoir_head_m - rig.steady_head_m
+    assert np.mean(last) > rig.steady_head_m + 0.2
+
+
+@pytest.mark.parametrize("end", [0.0, 30.0])
+def test_beyond_the_computed_transient_the_head_relaxes_to_the_rigs_end_state(end):
+    """Past ``transient_s`` the head continues from the grid's last value (no step) towards where the rig
+    settles: the reservoir's head for a closed valve, the last period's mean for one left partly open."""
+    rig = load_rig("perugia")
+    sim, t0 = _run(rig, end=end, transient_s=6.0)
+    dt = 1e-3
+    t = t0 + np.arange(0.0, 120.0, dt)
+    h = sim.head_m(t)
+    join = np.searchsorted(t, t0 + 6.0)
+    slope = np.abs(np.diff(h[join - 6:join - 1])).max()  # (m per sample just before it)
+    assert abs(h[join + 1] - h[join - 1]) <= 2 * slope + 1e-3  # continuous at the grid's end: no step
+    assert _flat_s(h[(t > t0 + 6.0) & (t < t0 + 20.0)], dt) < 0.05  # still moving after it
+    settled = h[-1000:]
+    assert np.ptp(settled) < 1e-3  # settled
+    if end == 0.0:
+        assert settled.mean() == pytest.approx(rig.reservoir_head_m, abs=0.01)
+    else:  # partly open: about the steady head the smaller flow leaves (the last period's mean)
+        assert abs(settled.mean() - rig.steady_head_m) < 0.5
