@@ -3,8 +3,33 @@
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 
-from velab.errors import VelabError
+from velab.errors import UnavailableError, VelabError
+
+# Qt platforms that need no display server (QT_QPA_PLATFORM): no window on a screen, but they start
+HEADLESS_PLATFORMS = ("offscreen", "minimal", "vnc", "eglfs", "linuxfb", "vkkhrdisplay")
+
+
+def display_problem(env=None, platform: str | None = None) -> str:
+    """Why Qt could not open a window here ("" when it can), decided before Qt starts: on Linux and the BSDs
+    Qt without an X or Wayland display aborts the interpreter (a core dump, exit 134) instead of raising."""
+    env = os.environ if env is None else env
+    platform = sys.platform if platform is None else platform
+    if platform.startswith(("win", "darwin", "cygwin")):
+        return ""
+    qpa = (env.get("QT_QPA_PLATFORM") or "").split(":", 1)[0].split(";", 1)[0].strip().lower()
+    if qpa in HEADLESS_PLATFORMS:
+        return ""
+    x, wl = bool(env.get("DISPLAY")), bool(env.get("WAYLAND_DISPLAY"))
+    if qpa == "xcb" and not x:
+        return "QT_QPA_PLATFORM=xcb but $DISPLAY is not set"
+    if qpa.startswith("wayland") and not wl:
+        return f"QT_QPA_PLATFORM={qpa} but $WAYLAND_DISPLAY is not set"
+    if not qpa and not (x or wl):
+        return "neither $DISPLAY nor $WAYLAND_DISPLAY is set"
+    return ""
 
 
 def register(sub) -> None:
@@ -38,6 +63,10 @@ def run(args: argparse.Namespace) -> int:
         check_input_file(find_config("benches", args.config), "bench configuration")
     if args.open:
         check_input_file(args.open, "run file")
+    why = display_problem()
+    if why:
+        raise UnavailableError(f"no display for the window: {why} (run it in a desktop session, with ssh -X, under "
+                               "xvfb-run, or with QT_QPA_PLATFORM=offscreen for no visible window)")
     try:
         import PySide6  # noqa: F401
         import pyqtgraph  # noqa: F401

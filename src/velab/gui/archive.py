@@ -9,7 +9,7 @@ from pathlib import Path
 
 from PySide6.QtCore import QObject, QSettings, Qt, QTimer, Signal
 from PySide6.QtGui import QFont
-from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QFileDialog, QFormLayout, QGroupBox,
+from PySide6.QtWidgets import (QAbstractItemView, QCheckBox, QFileDialog, QGridLayout, QGroupBox,
                                QHBoxLayout, QHeaderView, QLabel, QLineEdit, QPlainTextEdit,
                                QProgressBar, QPushButton, QScrollArea, QSplitter, QTableView, QTabWidget, QVBoxLayout,
                                QWidget)
@@ -18,7 +18,7 @@ from velab.catalogue.query import STATUSES, Filters, parse_range, parse_when
 from velab.gui import tasks
 from velab.gui.archive_io import (RefitOptions, export_csv, export_report_figure, export_rows, index_folder, load_run,
                                   refit, refit_many)
-from velab.gui.catalogue_table import CatalogueModel
+from velab.gui.catalogue_table import COLUMNS, WIDEST, CatalogueModel
 from velab.gui.fit_panel import FitPanel
 from velab.gui.live_plot import LivePlot
 from velab.gui.messages import describe_error
@@ -32,6 +32,24 @@ class _Rows(QObject):
     rows = Signal(object, bool, str, int)  # rows, replace, folder, generation
 
 
+BEST_TIP = "best model of the latest fit, one or several: EL, S1..S6, S1r..S5r, or none (not fitted): S3, S2"
+
+
+def parse_best(text: str) -> tuple[str, ...]:
+    """The best-model filter's names; ValueError naming a name that is no model (the field is then marked
+    and ignored, as a date that does not parse: "S9" showing no row would look like no such run)."""
+    from velab.fitting.sweep import MAX_M
+
+    names = tuple(b.strip() for b in text.split(",") if b.strip())
+    known = {"el", "none"} | {f"s{m}" for m in range(1, MAX_M + 1)} | {f"s{m}r" for m in range(1, MAX_M)}
+    bad = [b for b in names if b.lower() not in known]
+    if bad:
+        raise ValueError(f"{', '.join(bad)}: no such model (EL, S1..S{MAX_M}, S1r..S{MAX_M - 1}r or none); "
+                         "the filter is ignored")
+    return names
+
+
+TABLE_ROWS = 10  # catalogue rows on screen at 1366 x 768 (issue 50)
 JOINT_FIT_TIP = "Fit several runs together: select two or more different runs of one pipe (velab fit --joint)"
 JOINT_FIT_READY_TIP = ("Fit the selected runs together: one wall for all, each run its own steady state, manoeuvre and "
                        "noise (velab fit --joint with the Re-fit settings' models and window; saved into each run)")
@@ -95,12 +113,18 @@ class ArchiveBrowser(QWidget):
         self.splitter = split
         self.catalogue_split.addWidget(split)
         self.catalogue_split.setStretchFactor(0, 1)
-        self.catalogue_split.setStretchFactor(1, 2)
+        self.catalogue_split.setStretchFactor(1, 1)
+        self.catalogue_split.setChildrenCollapsible(False)
+        self._split_moved = False  # the operator moved the split: the window leaves it where they put it
+        self.catalogue_split.splitterMoved.connect(lambda *_: setattr(self, "_split_moved", True))
 
         # ------------------------------------------------------------ left column
+        # compact (a grid, no group boxes but the Re-fit one) so that at 1366 x 768 every control of the run
+        # shown (Open, Folder, Reload, Follow, the stored fits, Re-fit, Export) is on screen without scrolling
         left = QWidget()
         ll = QVBoxLayout(left)
         ll.setContentsMargins(2, 2, 2, 2)
+        ll.setSpacing(3)
         row = QHBoxLayout()
         self.open_button = QPushButton("Open run…")
         self.open_button.clicked.connect(self.choose_file)
@@ -112,19 +136,21 @@ class ArchiveBrowser(QWidget):
         for b in (self.open_button, self.folder_button, self.reload_button):
             row.addWidget(b)
         ll.addLayout(row)
-        self.follow = QCheckBox("Follow a run being written (re-read every 2 s)")
+        self.follow = QCheckBox("Follow a run being written")
+        self.follow.setToolTip("a run still being recorded is re-read every 2 s (SWMR)")
         self.follow.setChecked(True)
         ll.addWidget(self.follow)
-
-        fits_box = QGroupBox("Stored fits")
-        fl = QVBoxLayout(fits_box)
+        fits_row = QHBoxLayout()
+        fits_row.addWidget(QLabel("stored fit"))
         self.fit_combo = ComboBox()
         self.fit_combo.currentIndexChanged.connect(self._fit_chosen)
-        fl.addWidget(self.fit_combo)
-        ll.addWidget(fits_box)
+        fits_row.addWidget(self.fit_combo, 1)
+        ll.addLayout(fits_row)
 
         refit_box = QGroupBox("Re-fit")
-        form = QFormLayout(refit_box)
+        form = QGridLayout(refit_box)
+        form.setContentsMargins(4, 2, 4, 4)
+        form.setVerticalSpacing(3)
         self.models_edit = QLineEdit(settings.value("archive/models", "0-6"))
         self.models_edit.setToolTip("models by number of Kelvin-Voigt elements: 0-6, 1-4, 1,3 (0 = EL)")
         self.window_spin = DoubleSpinBox()
@@ -141,26 +167,31 @@ class ArchiveBrowser(QWidget):
         self.starts_spin.setRange(0, 50)
         self.starts_spin.setSpecialValueText("all")
         self.starts_spin.setToolTip("cap on the number of starts per model (all: the full search)")
-        self.reduced_check = QCheckBox("also reduced S1r..S5r")
-        self.save_check = QCheckBox("store the fit in the run file")
+        self.reduced_check = QCheckBox("also S1r..S5r")
+        self.reduced_check.setToolTip("also the reduced models S1r..S5r")
+        self.save_check = QCheckBox("store in the file")
+        self.save_check.setToolTip("store the fit in the run file")
         self.save_check.setChecked(True)
-        form.addRow("models", self.models_edit)
-        form.addRow("window", self.window_spin)
-        form.addRow("method", self.method_combo)
-        form.addRow("starts", self.starts_spin)
-        form.addRow(self.reduced_check)
-        form.addRow(self.save_check)
+        for r, (label, w, label2, w2) in enumerate((("models", self.models_edit, "window", self.window_spin),
+                                                     ("method", self.method_combo, "starts", self.starts_spin))):
+            form.addWidget(QLabel(label), r, 0)
+            form.addWidget(w, r, 1)
+            form.addWidget(QLabel(label2), r, 2)
+            form.addWidget(w2, r, 3)
+        form.addWidget(self.reduced_check, 2, 0, 1, 2)
+        form.addWidget(self.save_check, 2, 2, 1, 2)
         self.refit_button = QPushButton("Re-fit")
         self.refit_button.clicked.connect(self.start_refit)
         self.progress = QProgressBar()
         self.progress.setTextVisible(True)
         self.progress.setFormat("idle")
         self.progress.setValue(0)
-        form.addRow(self.refit_button, self.progress)
+        form.addWidget(self.refit_button, 3, 0, 1, 2)
+        form.addWidget(self.progress, 3, 2, 1, 2)
         ll.addWidget(refit_box)
 
-        exp = QGroupBox("Export")
-        el = QHBoxLayout(exp)
+        el = QHBoxLayout()
+        el.addWidget(QLabel("export"))
         self.export_fig_button = QPushButton("Figure…")
         self.export_fig_button.setToolTip("the report figure of the shown fit (.png, .pdf, .svg)")
         self.export_fig_button.clicked.connect(lambda: self.export_figure())
@@ -169,12 +200,16 @@ class ArchiveBrowser(QWidget):
         self.export_csv_button.clicked.connect(lambda: self.export_csv())
         el.addWidget(self.export_fig_button)
         el.addWidget(self.export_csv_button)
-        ll.addWidget(exp)
+        ll.addLayout(el)
+        ll.addStretch(1)
 
-        scroll = QScrollArea()
+        scroll = QScrollArea()  # only below the laptop's screen (1366 x 700 and less) does it scroll
         scroll.setWidgetResizable(True)
         scroll.setWidget(left)
-        scroll.setMinimumWidth(260)
+        # as wide as its controls (no horizontal scrolling: a cut Reload or CSV… button looks like none)
+        scroll.setMinimumWidth(left.sizeHint().width() + scroll.verticalScrollBar().sizeHint().width() + 4)
+        scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarAlwaysOff)
+        self.detail_scroll = scroll
         split.addWidget(scroll)
 
         # ------------------------------------------------------------ right side
@@ -192,15 +227,24 @@ class ArchiveBrowser(QWidget):
         run_page.addWidget(self.run_plot)
         run_page.setStretchFactor(0, 1)
         run_page.setStretchFactor(1, 2)
+        # small minimums: under ten catalogue rows at 1366 x 768 the run's view has ~270 px
+        self.summary.setMinimumHeight(48)
+        self.run_plot.setMinimumHeight(150)
         self.tabs.addTab(run_page, "Run")
         self.fit_panel = FitPanel(title="No fit shown")
-        self.tabs.addTab(self.fit_panel, "Fit")
+        # in a scroll area: the panel (every model row, the plots) is taller than the room left under ten
+        # catalogue rows at 1366 x 768; without one it would push the catalogue down to a few rows
+        self.fit_scroll = QScrollArea()
+        self.fit_scroll.setWidgetResizable(True)
+        self.fit_panel.setMinimumHeight(460)
+        self.fit_scroll.setWidget(self.fit_panel)
+        self.tabs.addTab(self.fit_scroll, "Fit")
         self.trends = TrendsView()
         self.tabs.addTab(self.trends, "Trends")
         split.addWidget(self.tabs)
         split.setStretchFactor(0, 0)
         split.setStretchFactor(1, 1)
-        split.setSizes([300, 900])
+        split.setSizes([scroll.minimumWidth(), 900])
 
         self.follow_timer = QTimer(self)
         self.follow_timer.setInterval(2000)
@@ -214,6 +258,29 @@ class ArchiveBrowser(QWidget):
         if folder:
             self.set_folder(folder)
         self._update_buttons()
+
+    def resizeEvent(self, event) -> None:
+        super().resizeEvent(event)
+        if not self._split_moved:
+            self._place_split()
+
+    def _place_split(self) -> None:
+        """The catalogue as tall as TABLE_ROWS rows (more when the window is taller: half of it), the run's
+        controls and views below; the operator's own placement is kept once they move the split."""
+        total = self.catalogue_split.height()
+        panel = self.catalogue_split.widget(0)
+        table_h = self.table.height()
+        need = panel.height() - table_h + self._table_height(TABLE_ROWS) if panel.height() else 0
+        if total <= 0 or need <= 0:
+            return
+        top = max(need, total // 2) if total - need > 300 else need
+        top = min(top, total - 120)
+        self.catalogue_split.setSizes([top, total - top])
+
+    def _table_height(self, rows: int) -> int:
+        t = self.table
+        return (t.horizontalHeader().sizeHint().height() + rows * t.verticalHeader().defaultSectionSize()
+                + 2 * t.frameWidth() + (t.horizontalScrollBar().sizeHint().height() + 2))
 
     # ------------------------------------------------------------------ files
     def choose_file(self) -> None:
@@ -233,6 +300,7 @@ class ArchiveBrowser(QWidget):
         self.settings.setValue("archive/folder", str(folder))
         self.folder_label.setText(f"Runs under {folder}")
         self.model.set_rows([])
+        self._columns_fitted = False
         self.refresh_list(folder)
 
     def refresh_list(self, folder=None) -> None:
@@ -289,7 +357,10 @@ class ArchiveBrowser(QWidget):
     def _show_count(self, extra: str = "") -> None:
         n_all = len(self.model.all)
         damaged = sum(1 for r in self.model.all.values() if r.get("status") == "damaged")
-        self.index_label.setText(f"{self.model.rowCount()} of {n_all} runs shown ({damaged} damaged){extra}")
+        bad = "; ".join(getattr(self, "_filter_problems", ()))
+        self.index_label.setText(f"{self.model.rowCount()} of {n_all} runs shown ({damaged} damaged){extra}"
+                                 + (f" — filter {bad}" if bad else ""))
+        self.index_label.setStyleSheet("color: rgb(150, 20, 20);" if bad else "")
 
     # ------------------------------------------------------------------ the catalogue table
     def _catalogue_panel(self) -> QWidget:
@@ -345,7 +416,17 @@ class ArchiveBrowser(QWidget):
         self.table.verticalHeader().setDefaultSectionSize(20)
         self.table.horizontalHeader().setSectionResizeMode(QHeaderView.Interactive)
         self.table.horizontalHeader().setStretchLastSection(True)
+        fm = self.table.fontMetrics()
+        for c, text in enumerate(WIDEST):  # each column opens as wide as what it shows (the start time whole)
+            if text:
+                head = self.table.horizontalHeader().fontMetrics().horizontalAdvance(COLUMNS[c][0]) + 24
+                self.table.setColumnWidth(c, max(fm.horizontalAdvance(text) + 14, head))
         self.table.setMinimumHeight(90)
+        # once rows are in, each column as wide as the rows on screen need (the rig's name whole); later the
+        # operator's widths are kept
+        self.table.horizontalHeader().setResizeContentsPrecision(TABLE_ROWS * 3)
+        self._columns_fitted = False
+        self.model.layoutChanged.connect(self._fit_columns)
         self.table.activated.connect(lambda ix: self.open(self.model.row(ix.row())["path"]))
         self.table.selectionModel().selectionChanged.connect(self._selection_changed)
         lay.addWidget(self.table, 1)
@@ -372,8 +453,17 @@ class ArchiveBrowser(QWidget):
         lay.addLayout(acts)
         return panel
 
-    @staticmethod
-    def _parsed(w: QLineEdit, parse, tip: str = ""):
+    def _fit_columns(self, *_) -> None:
+        if self._columns_fitted or not self.model.rowCount():
+            return
+        self._columns_fitted = True
+        widths = [self.table.columnWidth(c) for c in range(self.model.columnCount())]
+        self.table.resizeColumnsToContents()
+        for c, w in enumerate(widths[:-1]):  # never narrower than the start time's whole text
+            if self.table.columnWidth(c) < w:
+                self.table.setColumnWidth(c, w)
+
+    def _parsed(self, w: QLineEdit, parse, tip: str = ""):
         """parse(text) of a filter field, None when empty; a value that does not parse is marked and ignored."""
         text = w.text().strip()
         try:
@@ -382,18 +472,21 @@ class ArchiveBrowser(QWidget):
             w.setToolTip(tip)
             return value
         except ValueError as exc:
-            w.setStyleSheet("color: rgb(190, 30, 30)")
+            w.setStyleSheet("color: rgb(150, 20, 20); background: #fde2e1;")
             w.setToolTip(str(exc))
+            self._filter_problems.append(f"{text!r} ignored: {exc}".replace("; the filter is ignored", ""))
             return None
 
     def filters(self) -> Filters:
         """The filter fields as velab.catalogue Filters; a date or range that does not parse is marked and ignored."""
+        self._filter_problems = []
         when = {name: self._parsed(w, lambda t, end=end: parse_when(t, end=end))
                 for name, w, end in (("since", self.since_filter, False), ("until", self.until_filter, True))}
         q0 = self._parsed(self.q0_filter, parse_range, self._q0_tip)
         status = self.status_filter.currentData()
+        best = self._parsed(self.best_filter, parse_best, BEST_TIP) or ()
         return Filters(status=(status,) if status else (),
-                       best=tuple(b.strip() for b in self.best_filter.text().split(",") if b.strip()),
+                       best=best,
                        rig=self.rig_filter.text().strip(), since=when["since"], until=when["until"],
                        text=tuple(self.text_filter.text().split()), q0=q0)
 
@@ -617,7 +710,7 @@ class ArchiveBrowser(QWidget):
         self.current_fit = (name, r)
         if path == self.path:
             self.fit_panel.set_fit(out.t, out.h, out.rig, r, title=f"{path.name} — re-fit {name}")
-            self.tabs.setCurrentWidget(self.fit_panel)
+            self.tabs.setCurrentWidget(self.fit_scroll)
         text = f"Re-fit of {path.name}: best {r.best.name} (a = {r.best.wave_speed_m_s:.1f} m/s) in {r.duration_s:.1f} s"
         text += f", saved as /entry/fits/{out.saved_as}" if out.saved_as else ""
         self.message.emit(text, "info")

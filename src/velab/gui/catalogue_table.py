@@ -11,11 +11,13 @@ from __future__ import annotations
 from PySide6.QtCore import QAbstractTableModel, QModelIndex, Qt
 from PySide6.QtGui import QBrush, QColor
 
-from velab.catalogue.query import Filters, sort_rows, status_text, wave_speed_text, when_text
+import datetime as _dt
+
+from velab.catalogue.query import Filters, sort_rows, status_text, wave_speed_text
 
 # header, sort key (velab.catalogue.query.SORT_KEYS), cell text
 COLUMNS = (
-    ("start", "start", when_text),
+    ("start", "start", lambda r: start_text(r)),
     ("status", "status", status_text),
     ("best", "best", lambda r: r.get("best_model") or ""),
     ("a m/s ± SE", "wave-speed", wave_speed_text),
@@ -30,8 +32,23 @@ COLUMNS = (
     ("specimen", "specimen", lambda r: r.get("specimen") or ""),
     ("file", "path", lambda r: r["path"].rsplit("/", 1)[-1]),
 )
+# the widest text each column shows in practice: the columns open that wide (the start time whole, with
+# its seconds: two runs of one minute differ)
+WIDEST = ("2026-11-21 08:00:00", "completed-with-faults", "S1r", "352.12 ± 0.35", "3.600", "10.5", "10000",
+          "120.0", "fits", "perugia", "closure 3, material A", "operator", "specimen", "")
 _RED = QBrush(QColor(190, 30, 30))
 _AMBER = QBrush(QColor(170, 110, 0))
+
+
+def start_text(row: dict) -> str:
+    """The run's start, date and time to the second, in the time zone it was recorded in."""
+    s = row.get("start_time")
+    if not s:
+        return ""
+    try:
+        return _dt.datetime.fromisoformat(s).strftime("%Y-%m-%d %H:%M:%S")
+    except ValueError:
+        return str(s)[:19].replace("T", " ")
 
 
 def _num(v, fmt: str) -> str:

@@ -29,8 +29,11 @@ import numpy as np
 from PySide6.QtCore import QObject, QTimer, Signal
 
 from velab.gui.messages import describe_error
+from velab.gui.spot import spot_readings
 from velab.gui.state import ControlState
 from velab.recording import phases as P
+
+LOOK_EVERY_S = 2.0  # the device table's spot reading between runs (velab.gui.spot)
 
 
 class RecorderController(QObject):
@@ -62,6 +65,10 @@ class RecorderController(QObject):
         self._local = {"phase": P.DISCONNECTED, "data": {}}  # before a Recorder exists / after one failed
         self._progress: dict = {}
         self.valve_info: dict | None = None  # the last "valve" event
+        self.run_info: dict = {}  # the armed run's duration_s, fit, fit_window_s, final_fit (ControlState.run)
+        self.refusal = ""  # the interlock refuses the form's settings (set_refusal): Arm is not offered
+        self._look = None  # the spot reading in flight (a Future on the engine's control thread)
+        self._last_look = 0.0
         self.state = ControlState(allowed=P.allowed_commands(P.DISCONNECTED))
         self.events_seen = 0
         # making and closing a Recorder starts/stops devices (or the simulator): never on the GUI thread
@@ -98,6 +105,8 @@ class RecorderController(QObject):
         or a new one; after a run that closed the valve, the valve is reopened first."""
         if self._refuse("arm"):
             return
+        self.run_info = {"duration_s": settings.get("duration_s"), "fit": bool(settings.get("fit", True)),
+                         "fit_window_s": settings.get("fit_window_s"), "final_fit": False}
         if self.recorder is None:
             self._replace(settings, then=lambda: self._arm_on(self.recorder, settings, reopen=False))
         else:
@@ -146,6 +155,12 @@ class RecorderController(QObject):
             return
         rec = self.recorder
         self._post("abort", lambda: rec.abort(reason), None)
+
+    def set_refusal(self, why: str) -> None:
+        """The interlock's verdict on the form's settings, from the window: non-empty = it would refuse them."""
+        if why != self.refusal:
+            self.refusal = why
+            self._update_state()
 
     def predict_surge(self, beta_per_s=None, gamma=None):
         """The recorder's pure surge prediction, or None before a recorder exists."""
@@ -246,7 +261,26 @@ class RecorderController(QObject):
         rec = self.recorder
         if rec is not None:
             self._drain_events(rec.events)
+            self._spot(rec)
         self._update_state()
+
+    def _spot(self, rec) -> None:
+        """Between runs (ready, or a run's end), every LOOK_EVERY_S: the steady head, flow and valve for the
+        device table (velab.gui.spot), on the engine's control thread, never beside one of the window's
+        commands."""
+        look = self._look
+        if look is not None:
+            if not look.done():
+                return
+            self._look = None
+            if look.exception() is None and look.result():
+                self.devices.emit(look.result())
+        now = time.monotonic()
+        if (self._pending or now - self._last_look < LOOK_EVERY_S
+                or not (self.state.phase == P.READY or self.state.phase in P.END_PHASES)):
+            return
+        self._last_look = now
+        self._look = rec.submit(lambda: spot_readings(rec))
 
     def _drain_events(self, q) -> None:
         deadline = time.perf_counter() + self.budget_s
@@ -283,7 +317,8 @@ class RecorderController(QObject):
             snap = rec.snapshot  # one read: phase, data and allowed commands belong together
             phase, data, allowed = snap.phase, dict(snap.data), snap.allowed
         st = ControlState(phase=phase, allowed=allowed, data=data, progress=self._progress, in_flight=in_flight,
-                          valve=self.valve_info)
+                          valve=self.valve_info, run=self.run_info,
+                          refused=self.refusal)
         if st != self.state:
             old, self.state = self.state, st
             if old.phase != phase:
@@ -311,6 +346,11 @@ class RecorderController(QObject):
     def _on_progress(self, data) -> None:
         self._progress = dict(data)
 
+    def _on_fit(self, data) -> None:
+        if data.get("final", True):  # the final fit is in: the indicator stops saying "fitting"
+            self.run_info = {**self.run_info, "final_fit": True}
+        self.fit.emit(data)
+
     # each engine event kind (velab.recording.types.RecorderEvent) -> what the window is told
     # ("samples" are batched by _drain_events)
     _HANDLERS = {
@@ -319,7 +359,7 @@ class RecorderController(QObject):
         "device": lambda self, d: self.devices.emit(d),
         "valve": _on_valve,
         "trigger": _on_trigger,
-        "fit": lambda self, d: self.fit.emit(d),
+        "fit": _on_fit,
         "message": lambda self, d: self.message.emit(str(d), "info"),
         "fault": lambda self, d: self.fault.emit(d),
         "done": lambda self, d: self.done.emit(d),

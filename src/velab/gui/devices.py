@@ -21,16 +21,32 @@ def _quality_text(q) -> str:
     return str(getattr(q, "value", q) or "ok")
 
 
-def _fmt(value) -> str:
+# each signal as the rig's people read it: (label, units shown, scale from the reading's units, decimals)
+SIGNALS = {
+    "head": ("head at the valve", "m", {"m": 1.0}, 2),
+    "flow": ("flow", "l/s", {"m3/s": 1e3, "l/s": 1.0}, 3),
+    "valve_position": ("valve position", "%", {"%": 1.0}, 1),
+}
+
+
+def shown(name: str, value, units: str) -> tuple[str, str, str]:
+    """(label, value text, units) of a reading in the rig's units with the digits it deserves: the head
+    in m to the cm, the flow in l/s to the ml/s, the valve in % to 0.1 % (a closed valve's 7.6e-08 % is
+    0.0 %); a signal not listed keeps its units, 4 significant digits."""
+    label, unit, scales, decimals = SIGNALS.get(name, (name, units, {units: 1.0}, None))
+    scale = scales.get(units)
+    if scale is None:  # units this table does not know: as the device gave them
+        unit, scale, decimals = units, 1.0, None
     try:
-        v = float(value)
+        v = float(value) * scale
     except (TypeError, ValueError):
-        return str(value)
+        return label, str(value), unit
     if not math.isfinite(v):
-        return "—"
-    if v != 0 and (abs(v) >= 1e5 or abs(v) < 1e-3):
-        return f"{v:.4g}"
-    return f"{v:.3f}" if abs(v) < 100 else f"{v:.1f}"
+        return label, "—", unit
+    if decimals is None:
+        return label, f"{v:.4g}", unit
+    text = f"{v:.{decimals}f}"
+    return label, ("0." + "0" * decimals if text.lstrip("-") == "0." + "0" * decimals else text), unit
 
 
 class DevicePanel(QWidget):
@@ -51,7 +67,8 @@ class DevicePanel(QWidget):
         self.table.setEditTriggers(QAbstractItemView.NoEditTriggers)
         self.table.setSelectionMode(QAbstractItemView.NoSelection)
         self.table.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeToContents)
-        self.table.horizontalHeader().setStretchLastSection(True)
+        self.table.horizontalHeader().setSectionResizeMode(0, QHeaderView.Stretch)
+        self.table.setHorizontalScrollBarPolicy(Qt.ScrollBarAlwaysOff)
         self.table.verticalHeader().setDefaultSectionSize(20)
         self.table.setMinimumHeight(90)
         self.table.setMaximumHeight(130)
@@ -108,7 +125,8 @@ class DevicePanel(QWidget):
             q = _quality_text(getattr(r, "quality", "ok"))
             ts = getattr(r, "timestamp_s", None)
             age = f"{max(0.0, time.time() - ts):.1f} s" if isinstance(ts, (int, float)) and ts > 1e9 else ""
-            cells = (name, _fmt(value), str(units), q, age)
+            label, text, unit = shown(name, value, str(units))
+            cells = (label, text, unit, q, age)
             color = OK if q == "ok" else (WARN if q in ("stale", "over_range", "under_range") else BAD)
             if self._device_of(name) in self.faults:
                 color = BAD

@@ -19,14 +19,15 @@ import pyqtgraph as pg
 import shiboken6
 from PySide6.QtCore import Qt, QTimer, Signal
 from PySide6.QtGui import QBrush, QColor, QFont
-from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QTableWidget, QTableWidgetItem, QVBoxLayout,
-                               QWidget)
+from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QSizePolicy, QTableWidget,
+                               QTableWidgetItem, QVBoxLayout, QWidget)
 
 from velab.fitting.creep import averaged_creep_shown, creep_of
 from velab.fitting.friction import fitted_head
 from velab.fitting.manoeuvre import result_flow
 from velab.gui import tasks
 from velab.gui.fit_rows import COLUMNS, criterion, model_rows, warnings_text
+from velab.gui.fit_summary import summary_html
 from velab.model import phi
 
 PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf",
@@ -161,6 +162,17 @@ class FitPanel(QWidget):
         self.table.verticalHeader().setDefaultSectionSize(ROW_H)
         self.table.verticalHeader().setMinimumSectionSize(ROW_H)
         self.table.itemChanged.connect(self._item_changed)
+        # the result first: the fit's Headline (best model, support, a ± SE, every element's E, η, τ, J ± SE,
+        # the noise ratio) beside the model table, in the panel itself
+        self.summary = QLabel("")
+        self.summary.setTextFormat(Qt.RichText)
+        self.summary.setWordWrap(True)  # the words wrap in their cell; the element cells do not (nowrap)
+        self.summary.setAlignment(Qt.AlignLeft | Qt.AlignTop)
+        self.summary.setTextInteractionFlags(Qt.TextSelectableByMouse)
+        self.summary.setStyleSheet("background:#f4f8f1; border:1px solid #cfdcc8; padding:3px;")
+        self.summary.setSizePolicy(QSizePolicy.Expanding, QSizePolicy.Minimum)
+        self.summary.hide()
+        lay.addWidget(self.summary)
         lay.addWidget(self.table)  # as tall as its rows (_fit_table_height): every model shows
 
         self.plots = pg.GraphicsLayoutWidget()
@@ -211,6 +223,7 @@ class FitPanel(QWidget):
         self._serial += 1
         self.table.setRowCount(0)
         self.warnings.hide()
+        self.summary.hide()
         for p in (self.p_head, self.p_aic, self.p_creep, self.p_phi, self.p_res):
             p.clear()
         self.creep_legend.clear()
@@ -278,6 +291,18 @@ class FitPanel(QWidget):
         self._updating = False
         self._draw_head()
 
+    def _fit_label_heights(self) -> None:
+        """The wrapped labels (header, warnings, summary) as tall as their text needs at the panel's width: left
+        to Qt, a wrapped label's minimum is its height at its narrowest, which made the window taller than
+        the screen (the Messages dock pushed off a 1366 x 768 screen)."""
+        width = max(self.width(), 600) - 8
+        for lab in (self.header, self.warnings, self.summary):
+            lab.setMinimumHeight(max(1, lab.heightForWidth(width)))
+
+    def resizeEvent(self, event) -> None:
+        super().resizeEvent(event)
+        self._fit_label_heights()
+
     def showEvent(self, event) -> None:
         super().showEvent(event)
         if self._stale:
@@ -293,16 +318,19 @@ class FitPanel(QWidget):
         best = result.best
         doc_sel = criterion({"selection": getattr(result, "selection", None)})
         self.header.setText(
-            (self.title + "\n" if self.title else "")
-            + f"Best model {best.name} (minimum {doc_sel}): a = {best.wave_speed_m_s:.1f} m/s, F = {best.F:.3g} m²;  "
-            f"n = {result.n}, window {result.window_s:g} s, method {result.method}. "
+            (self.title + ": " if self.title else "")
+            + f"best by minimum {doc_sel}; n = {result.n}, window {result.window_s:g} s, method {result.method}. "
             f"Residual lag-1 autocorrelation {best.lag1_autocorr:.2f}"
             + (" (correlated: the white-noise AIC over-rewards extra parameters)"
                if abs(best.lag1_autocorr) > 0.2 and doc_sel == "AIC" else "")
         )
+        summary = summary_html(result, warnings=False)
+        self.summary.setText(summary or "")
+        self.summary.setVisible(bool(summary))
         text = warnings_text(result)
         self.warnings.setText("⚠ " + text.replace("\n", "\n⚠ ") if text else "")
         self.warnings.setVisible(bool(text))
+        self._fit_label_heights()
         self._fill_table(result)
         self._compute_curves()
         # the plots in the next turns of the event loop: drawing everything at once held the GUI

@@ -248,7 +248,7 @@ class MainWindow(QMainWindow):
         self.reset_valve_action.setEnabled(st.controls()["reset_valve"])
         self.run_panel.set_phase(st.phase)
         self.phase_label.setText(status_text(st))
-        style = f"background:{COLORS.get(st.phase, 'transparent')}; padding:2px 6px;"
+        style = f"background:{COLORS.get(st.indicator()[0], 'transparent')}; padding:2px 6px;"
         if self.phase_label.styleSheet() != style:
             self.phase_label.setStyleSheet(style)
 
@@ -269,11 +269,17 @@ class MainWindow(QMainWindow):
             return exc
 
     def update_prediction(self) -> None:
+        """The interlock's line under the control bar, and Arm offered only when the interlock would allow it."""
         pred = self._predict()
         if isinstance(pred, BaseException):
-            self.run_panel.show_settings_error(describe_error(pred)[1])
+            why = describe_error(pred)[1]
+            self.run_panel.show_settings_error(why)
         else:
             self.run_panel.show_prediction(pred)
+            why = "" if pred is None or getattr(pred, "allowed", True) else (
+                getattr(pred, "message", "") or "predicted surge over the limit")
+        if self.controller is not None:
+            self.controller.set_refusal(why)
 
     # ------------------------------------------------------------------ engine events
     def _devices_ready(self, devices: list) -> None:
@@ -318,7 +324,7 @@ class MainWindow(QMainWindow):
             rate = self.run_panel.rate_combo.currentData()
             self.run_page.show_stats(float(rate))
             if self.live.buffer.n:
-                self.devices.update_readings({"head (ADC)": _Reading(float(self.live.buffer.column("head_m")[-1]), "m")})
+                self.devices.update_readings({"head": _Reading(float(self.live.buffer.column("head_m")[-1]), "m")})
 
     def _fault(self, data) -> None:
         """A ``fault`` event: {"device", "message", "kind", "role"...} (velab.recording.Fault)."""

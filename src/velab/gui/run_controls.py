@@ -24,6 +24,10 @@ TIPS = {
 }
 
 
+ABORT_LIVE = ("QPushButton:enabled { color: white; background: #b3261e; font-weight: bold; border: 1px solid #7a1912;"
+              " border-radius: 3px; padding: 2px 12px; }")
+
+
 class RunControls(QFrame):
     """``clicked(action)`` with action in BUTTONS; ``apply(state)``; ``phase_label``, ``detail_label``."""
 
@@ -46,8 +50,9 @@ class RunControls(QFrame):
         self.arm_button, self.trigger_button = self.buttons["arm"], self.buttons["trigger"]
         self.stop_button, self.abort_button = self.buttons["stop"], self.buttons["abort"]
         self.connect_button, self.reset_valve_button = self.buttons["connect"], self.buttons["reset_valve"]
-        self.abort_button.setStyleSheet("QPushButton { color: white; background: #b3261e; font-weight: bold; }"
-                                        "QPushButton:disabled { background: #d9a3a0; }")
+        # red only while Abort can act: a disabled Abort is drawn as every disabled button (grey), so the
+        # bar never shows a live-looking control that does nothing
+        self.abort_button.setStyleSheet(ABORT_LIVE)
         self.trigger_button.setStyleSheet("QPushButton { font-weight: bold; }")
         self.arm_button.setMinimumWidth(120)
         lay.addSpacing(10)

@@ -23,6 +23,11 @@ class RunPage(QWidget):
         rl.addWidget(self.banner)
         self.controls = RunControls()
         rl.addWidget(self.controls)
+        self.form = RunPanel(qsettings, rig=rig)
+        # the interlock's verdict on the form (within limits / REFUSED) under the control bar, whole and outside
+        # any scroll area: at 1366 x 768 it was cut at the form's foot even scrolled
+        self.interlock = self.form.prediction
+        rl.addWidget(self.interlock)
         self.split = QSplitter(Qt.Horizontal)
         rl.addWidget(self.split, 1)
         left = QWidget()
@@ -34,7 +39,6 @@ class RunPage(QWidget):
         self.devices = DevicePanel()
         dl.addWidget(self.devices)
         ll.addWidget(dev_box)
-        self.form = RunPanel(qsettings, rig=rig)
         ll.addWidget(self.form)
         self.scroll = QScrollArea()  # only the form scrolls; the run's buttons are in the control bar
         self.scroll.setWidgetResizable(True)

@@ -104,7 +104,7 @@ class RunPanel(QWidget):
         self.prediction.setWordWrap(True)
         self.prediction.setTextFormat(Qt.RichText)
         self.prediction.setMargin(4)
-        lay.addWidget(self.prediction)
+        # (the Run page shows it under the control bar, outside the form's scroll area: RunPage.interlock)
 
         lay.addStretch(1)
         for w in (self.beta_spin, self.gamma_spin, self.end_spin, self.margin_spin, self.duration_spin,

@@ -34,6 +34,9 @@ class ControlState:
     progress: dict = field(default_factory=dict)  # the last countdown {what, remaining_s, t_s}
     in_flight: tuple = ()  # names of the window's commands not settled yet
     valve: dict | None = None  # the engine's last valve status {state, position_pct, open, faults}
+    run: dict = field(default_factory=dict)  # the armed run as the window asked for it: duration_s, fit,
+    # fit_window_s, and final_fit once the final fit's result is in
+    refused: str = ""  # the interlock refuses the form's settings (why): Arm would be refused, so it is not offered
 
     @property
     def valve_closed(self) -> bool:
@@ -60,7 +63,7 @@ class ControlState:
         ending = any(n in ENDING for n in self.in_flight)
         return {
             "connect": not busy and "connect" in allowed,
-            "arm": not busy and ("arm" in allowed or self.reopen_before_arm),
+            "arm": not busy and not self.refused and ("arm" in allowed or self.reopen_before_arm),
             "trigger": not busy and not ending and "trigger" in allowed and "trigger" not in self.in_flight,
             "stop": not busy and not ending and "stop" in allowed,
             "abort": not busy and not ending and "abort" in allowed,
@@ -87,6 +90,13 @@ class ControlState:
             return float(timeout) - (float(base) - (left if left is not None else float(base)))
         return None
 
+    def recording_left(self) -> float | None:
+        """Seconds of recording still to come (the armed duration after the trigger), None if unknown."""
+        dur, trig, now = self.run.get("duration_s"), self.data.get("trigger_time_s"), self.progress.get("t_s")
+        if not all(isinstance(x, (int, float)) for x in (dur, trig, now)) or self.progress.get("phase") != P.RECORDING:
+            return None
+        return max(0.0, float(trig) + float(dur) - float(now))
+
     def indicator(self) -> tuple[str, str]:
         """(phase, detail): the phase word as ``velab record`` prints it and what it means now."""
         ph, d = self.phase, self.data
@@ -108,6 +118,8 @@ class ControlState:
                 tail = "reopening the valve (actuator reset, 1 s for the flow to settle)…"
             elif self.valve_fault:
                 tail = "actuator FAULT: Reset valve before the next run"
+            elif self.refused:
+                tail = "the interlock refuses these settings: change the manoeuvre or the margin to arm"
             elif self.reopen_before_arm:
                 tail = "valve closed: Arm reopens it first (or Reset valve)"
             else:
@@ -128,10 +140,18 @@ class ControlState:
         if ph == P.RECORDING:
             left = self.countdown("fit window")
             left = left if left is not None else d.get("remaining_s", d.get("fit_window_s"))
+            rest = self.recording_left()
+            tail = f"recording ends in {rest:.1f} s" if rest is not None else "recording goes on"
+            if left is not None and left <= 0.0:  # the window is in: the final fit runs while the rest records
+                if self.run.get("fit", True) and not self.run.get("final_fit"):
+                    return P.FITTING, f"final fit of the {self.run.get('fit_window_s') or 0:g} s window running; " \
+                                      f"{tail} (Stop keeps the run and its fit)"
+                done = "final fit done; " if self.run.get("final_fit") else ""
+                return ph, f"{done}{tail} (Stop keeps the run)"
             return ph, (f"fit window {left:.1f} s to go" if left is not None else "manoeuvre commanded") + \
                 " (Stop keeps the run; the fit needs the whole window)"
         if ph == P.FITTING:
-            return ph, f"final fit running (run {d.get('status', '')})".replace(" ()", "")
+            return ph, f"final fit running (run {d.get('status', '')}); its result appears on the Fit page".replace(" ()", "")
         return ph, ""
 
 
