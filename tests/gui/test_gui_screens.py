@@ -3,8 +3,9 @@ every phase of a run and of the Archive tab with 1,000 catalogued runs, and what
 inside the window and the screen, not cut by a scroll area, its text whole; the interlock's line; ten
 archive rows with their whole start time; the device table's steady head before arming, in the rig's
 units; a disabled Abort drawn as disabled; the fitting phase; the fit's summary in the panel; a bad model
-in the filter marked. tests/gui/xvfb_shots.py takes the shots (one process per screen size); the PNGs
-are kept under the test's temporary folder (look at them: they are what an operator sees)."""
+in the filter marked. tests/gui/xvfb_shots.py takes the shots (one process per screen size); with
+VELAB_SCREENSHOTS=DIR the PNGs (and what each shows, as JSON) are kept in DIR: look at them, they are what
+an operator sees."""
 
 from __future__ import annotations
 
@@ -35,6 +36,10 @@ def _shoot(out: Path, size, *args, timeout=300) -> Path:
     cmd = [XVFB, "-a", "-s", f"-screen 0 {size[0]}x{size[1]}x24", sys.executable, str(HERE / "xvfb_shots.py"),
            *args, "--out", str(out)]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+    keep = os.environ.get("VELAB_SCREENSHOTS")  # a folder to keep the shots in, to look at them
+    if keep:
+        dest = Path(keep) / f"{size[0]}x{size[1]}-{'-'.join(args)}"
+        shutil.copytree(out, dest, dirs_exist_ok=True, ignore=shutil.ignore_patterns("cache"))
     assert p.returncode == 0, f"xvfb_shots {' '.join(args)} failed (exit {p.returncode}): {p.stderr[-2000:]}"
     return out
 

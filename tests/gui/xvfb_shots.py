@@ -152,10 +152,10 @@ def scenario_run(out: Path, clock: str, quick: bool = False) -> int:
     rp, rc = win.run_panel, win.run_controls
     rp.title_edit.setText("closure 3, material A")
     rp.operator_edit.setText("M. Rossi")
-    rp.duration_spin.setValue(8.0)
-    rp.pre_spin.setValue(3.0)
-    rp.fit_window_spin.setValue(2.0)
-    rp.models_edit.setText("0-2")
+    rp.duration_spin.setValue(5.0)
+    rp.pre_spin.setValue(4.5)  # 1.5 s of the armed phase at the 3x clock: time for its shot
+    rp.fit_window_spin.setValue(1.5)
+    rp.models_edit.setText("0-1")
     rp.rate_combo.setCurrentIndex(rp.rate_combo.findData(1000.0))
     rp.out_edit.setText(str(tmp / "runs"))
     screen = win.screen().geometry()
@@ -188,7 +188,7 @@ def scenario_run(out: Path, clock: str, quick: bool = False) -> int:
         win.close()
         return 0
     rc.buttons["arm"].click()
-    step(lambda: win.controller.phase in ("armed", "triggerable"), 60, "never armed")
+    step(lambda: win.controller.phase == "armed", 60, "never armed")
     shots.take("armed", run_page_widgets(win), extra())
     step(lambda: rc.buttons["trigger"].isEnabled(), 60, "Trigger never enabled")
     rc.buttons["trigger"].click()

@@ -152,7 +152,7 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
         figure = _plot_path(opts["plot"], path, many)
         t, h = run.fit_window(opts["window_s"])
         try:
-            report_figure(t, h, run.rig, result, figure, position_pct=_window_position(run, t))
+            report_figure(t, h, run.rig, result, figure, position_pct=_window_position(run, t), run=run)
         except OSError as exc:
             raise DataError(f"{figure}: cannot write the figure: {exc.strerror or exc}") from None
     return result, name
@@ -267,7 +267,7 @@ def _run_joint(args, opts: dict) -> int:
         from velab.fitting.campaign import campaign_figure
 
         try:
-            campaign_figure(result, opts["plot"])
+            campaign_figure(result, opts["plot"], sources)
         except OSError as exc:
             raise DataError(f"{opts['plot']}: cannot write the figure: {exc.strerror or exc}") from None
     if args.json:

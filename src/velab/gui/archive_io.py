@@ -134,7 +134,7 @@ def export_report_figure(path_run, result, path) -> Path:
     window = result.window_s if result.window_s and math.isfinite(result.window_s) else None
     window = min(window, run.duration_after_trigger_s) if window else None
     t, h = run.fit_window(window)
-    report_figure(t, h, run.rig, result, path)
+    report_figure(t, h, run.rig, result, path, run=run)
     return path
 
 
