@@ -39,7 +39,9 @@ from typing import Callable
 
 from velab.configpath import config_stem, load_config
 from velab.drivers.base import ProfileError
+from velab.drivers.dataq_bench import open_dataq
 from velab.drivers.fired_valve_bench import open_fired_valve
+from velab.drivers.labjack_bench import open_labjack
 from velab.drivers.flowmeter import Flowmeter
 from velab.drivers.modbus import BusSettings, open_bus
 from velab.drivers.modbus_adc import ModbusADC
@@ -225,4 +227,6 @@ def open_device(dev: BenchDevice, connect: bool = True, peers: Callable[[str], o
 for _cls in (ModbusADC, Flowmeter, ValveActuator):
     register_driver(_cls.kind, _modbus_factory(_cls))
 register_driver("streaming_adc", open_streaming_adc)
+register_driver("dataq", open_dataq)
+register_driver("labjack", open_labjack)
 register_driver("fired_valve", open_fired_valve, peers=True)

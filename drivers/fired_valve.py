@@ -75,12 +75,27 @@ class DaqPosition:
     """The valve position on a DAQ's analog channel: the newest streamed sample while the DAQ streams
     (``latest``), a command-response read otherwise (``read_analog``)."""
 
+    FIRST_SAMPLE_S = 2.0  # a stream just started: how long its first sample may take
+
     def __init__(self, daq, channel: str):
         self.daq, self.channel = daq, channel
 
+    def _streaming(self) -> bool:
+        s = getattr(self.daq, "streaming", getattr(self.daq, "running", False))
+        return bool(s() if callable(s) else s)
+
     def read(self) -> Reading:
-        r = self.daq.latest(self.channel)
-        return r if r is not None else self.daq.read_analog(self.channel)
+        deadline = time.monotonic() + self.FIRST_SAMPLE_S
+        while True:
+            r = self.daq.latest(self.channel)
+            if r is not None:
+                return r
+            if not self._streaming():
+                return self.daq.read_analog(self.channel)
+            if time.monotonic() >= deadline:
+                raise DeviceTimeout(f"{self}: no streamed sample within {self.FIRST_SAMPLE_S:g} s",
+                                    device=getattr(self.daq, "name", None))
+            time.sleep(0.005)
 
     def __str__(self) -> str:
         return f"{getattr(self.daq, 'name', 'daq')} {self.channel}"
@@ -97,6 +112,7 @@ class FiredValve:
 
     kind = "fired_valve"
     can_hold = False
+    reports_own_position = False  # its position is an analog channel (the recorder's redundancy check skips it)
 
     def __init__(self, name: str, line: DigitalLine, position: PositionInput, *, fire_level: bool = True,
                  reset_line: DigitalLine | None = None, closed_pct: float = 2.0, open_pct: float = 98.0,

@@ -82,7 +82,7 @@ class LabJackT:
     ``stream_transport``: a factory of the 702 byte transport (default: TCP to the profile's host and
     ``stream_port``)."""
 
-    kind = "labjack_t7"
+    kind = "labjack"
 
     def __init__(self, bus: RegisterBus, profile: LabJackProfile | str | None = None, *, name: str | None = None,
                  stream_transport: Callable[[], ByteTransport] | None = None, host: str | None = None,

@@ -1,8 +1,8 @@
-"""The LabJack T-series as a bench device: ``[devices.X] kind = "labjack_t7"`` (the integrator registers
+"""The LabJack T-series as a bench device: ``[devices.X] kind = "labjack"`` (the integrator registers
 ``open_labjack`` in velab.drivers.bench; this module imports the bench, never the other way round)::
 
     [devices.daq]
-    kind = "labjack_t7"
+    kind = "labjack"
     profile = "labjack_t7"          # configs/devices/labjack_t7.toml
     host = "192.168.1.207"          # optional overrides of the profile: host, port, stream_port, unit,
     stream_port = 702               #   timeout_s, retries, data_s, name, density_kg_m3

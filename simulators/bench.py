@@ -57,7 +57,9 @@ from velab.simulators.modbus_server import ModbusDeviceServer
 from velab.simulators.pty_bridge import PtyPair
 from velab.simulators.rig import SimulatedRig
 from velab.simulators.schedule import FaultSchedule, Instant, ScheduledFault, fault_family, validate_fault
+from velab.simulators.dataq_sim import DataqSimHandle
 from velab.simulators.fired_valve import FiredActuatorSim
+from velab.simulators.labjack_sim import LabJackSimHandle
 from velab.simulators.streaming_adc import StreamingADCSimHandle
 from velab.tomlschema import Key, Reader, above, within
 
@@ -166,6 +168,8 @@ def _modbus_factory(Cls):
 for _cls in (SimModbusADC, SimFlowmeter, SimValveActuator):
     register_sim_device(_cls.kind, _modbus_factory(_cls))
 register_sim_device("streaming_adc", StreamingADCSimHandle)
+register_sim_device("dataq", DataqSimHandle)
+register_sim_device("labjack", LabJackSimHandle)
 register_sim_device("fired_valve", FiredActuatorSim)
 
 
@@ -282,7 +286,7 @@ class SimulatedBench:
             if kind not in SIM_DEVICES:
                 raise ConfigError(f"{path}: [devices.{name}] kind: unknown simulated device kind {kind!r} "
                                   f"(known: {', '.join(sorted(SIM_DEVICES))})")
-            if ephemeral:
+            if ephemeral and getattr(SIM_DEVICES[kind], "has_endpoints", True):
                 cfg["endpoints"] = [{**e, "port": 0, "link": None} for e in cfg.get("endpoints", [{"transport": "tcp"}])]
             self.handles[name] = SIM_DEVICES[kind](name, self.rig, cfg, self.host)
             self.kinds[name] = kind
@@ -434,7 +438,8 @@ class SimulatedBench:
             dev = getattr(h, "device", None)
             # a Modbus device's profile as the simulator reads it; the streaming ADC's as its table names it
             profile = dev.profile.path if dev is not None else getattr(h, "profile", None)
-            settings = eps[0].bench_settings()
+            own_settings = getattr(h, "bench_settings", None)  # a device reached on several ports (LabJack)
+            settings = own_settings() if callable(own_settings) else eps[0].bench_settings()
             if dev is not None and getattr(dev, "profile", None) is not None:
                 settings["word_order"] = dev.profile.word_order.value
             settings.update(device_options.get(name, {}))

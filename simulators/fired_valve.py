@@ -34,6 +34,7 @@ ARM_WAIT_S = 10.0  # a line fired while the actuator is still charging waits thi
 
 class FiredActuatorSim:
     kind = "fired_valve"
+    has_endpoints = False  # reached through its DAQ's line: the sim bench gives it no ports
 
     def __init__(self, name: str, rig, cfg: dict, host: str = "127.0.0.1"):
         unknown = sorted(set(cfg) - _KEYS)
@@ -82,12 +83,11 @@ class FiredActuatorSim:
     def wire(self, handles: dict, path: str = "<sim config>") -> None:
         """Connect to the simulated DAQ named ``daq``: its digital output changes call on_digital."""
         daq = handles.get(self.daq)
-        listen = getattr(daq, "add_digital_listener", None)
-        if daq is None or not callable(listen):
-            have = ", ".join(n for n, h in handles.items() if callable(getattr(h, "add_digital_listener", None)))
+        if daq is None or not hasattr(daq, "on_digital") or daq is self:
+            have = ", ".join(n for n, h in handles.items() if hasattr(h, "on_digital") and h is not self)
             raise ConfigError(f"{path}: [devices.{self.name}] daq: {self.daq!r} is not a simulated DAQ with digital "
                               f"outputs (have: {have or 'none'})")
-        listen(self.on_digital)
+        daq.on_digital = self.on_digital
 
     def bench_device(self):
         """The bench's [devices.X] table that reaches this valve: through its DAQ's line and position channel."""

@@ -77,7 +77,7 @@ class StreamFaults:
 class SimLabJackT:
     """The simulated T7 (see the module docstring)."""
 
-    kind = "labjack_t7"
+    kind = "labjack"
 
     def __init__(self, name: str, rig, *, unit: int = 1, serial: int = 470_012_345, device_name: str = "velab-sim-T7",
                  shunt_ohm=249.0, calibration: T7Calibration = SIM_CALIBRATION,

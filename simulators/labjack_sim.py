@@ -24,7 +24,7 @@ from velab.simulators.endpoint import Endpoint
 from velab.simulators.labjack_device import TICK_S, SimLabJackT
 from velab.simulators.modbus_server import ModbusDeviceServer
 
-KIND = "labjack_t7"
+KIND = "labjack"
 STREAM_TRANSPORT = "labjack-stream"
 _KEYS = {"kind", "model", "unit", "shunt_ohm", "serial", "device_name", "port", "stream_port", "endpoints", "profile"}
 

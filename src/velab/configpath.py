@@ -24,6 +24,9 @@ from velab.errors import ConfigError
 from velab.tomlschema import read_toml
 
 ENV_VAR = "VELAB_CONFIG_PATH"
+# the simulated bench the commands (record/gui --simulate, velab sim) start unless told: products a lab buys
+# (a DATAQ DI-2108, a valve fired by its digital line, the SITRANS flowmeter); "default" is velab's own devices
+DEFAULT_SIM = "dataq"
 KINDS = {"rigs": "rig", "materials": "material", "benches": "bench", "devices": "device profile",
          "sim": "sim config"}
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,127}")

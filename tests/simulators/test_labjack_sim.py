@@ -36,7 +36,7 @@ def sim(rig):
 
 
 def connect(sim, **over):
-    return open_labjack(BenchDevice("daq", "labjack_t7", None, {**sim.bench_settings(), "timeout_s": 2.0, **over}))
+    return open_labjack(BenchDevice("daq", "labjack", None, {**sim.bench_settings(), "timeout_s": 2.0, **over}))
 
 
 @pytest.fixture

@@ -6,6 +6,7 @@ import argparse
 import os
 import sys
 
+from velab.configpath import DEFAULT_SIM
 from velab.errors import UnavailableError, VelabError
 
 # Qt platforms that need no display server (QT_QPA_PLATFORM): no window on a screen, but they start
@@ -44,7 +45,8 @@ def register(sub) -> None:
     src.add_argument("--config", metavar="BENCH", help="bench configuration: a name (benches/BENCH.toml on the "
                      "config path) or a TOML file")
     src.add_argument("--simulate", action="store_true", help="record from the built-in simulated rig")
-    p.add_argument("--sim-config", default="default", help="simulated rig configuration (with --simulate)")
+    p.add_argument("--sim-config", default=DEFAULT_SIM, help=f"simulated rig configuration (with --simulate; default "
+                                                          f"{DEFAULT_SIM})")
     p.add_argument("--material", default=None, help="pipe material of the simulated rig, e.g. A (with --simulate)")
     p.add_argument("--clock", default=None, metavar="KIND",
                    help="simulated clock: realtime (default), fast (12x) or scaled:K (with --simulate)")

@@ -18,6 +18,7 @@ import threading
 import time
 from pathlib import Path
 
+from velab.configpath import DEFAULT_SIM
 from velab.commands.common import add_json_option, float_range, int_range, positive_float, write_json
 from velab.errors import VelabError
 
@@ -35,7 +36,9 @@ def register(subparsers) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--config", metavar="BENCH", help="bench config (configs/benches/<name>.toml or a path)")
     src.add_argument("--simulate", action="store_true", help="start the simulated rig in-process (zero set-up)")
-    p.add_argument("--sim-config", default="default", metavar="NAME", help="sim config for --simulate (default: default)")
+    p.add_argument("--sim-config", default=DEFAULT_SIM, metavar="NAME",
+                   help=f"sim config for --simulate (default: {DEFAULT_SIM}: a DATAQ DI-2108 and a valve fired by its "
+                        "digital line; 'default': velab's own SADC-4, Modbus ADC and servo actuator)")
     p.add_argument("--material", default=None, metavar="NAME", help="simulated pipe-wall material (e.g. A, B, hdpe_s1)")
     clk = p.add_mutually_exclusive_group()
     clk.add_argument("--realtime", dest="clock", action="store_const", const="realtime",

@@ -10,6 +10,7 @@ import signal
 import sys
 import threading
 
+from velab.configpath import DEFAULT_SIM
 from velab.commands.common import float_range
 from velab.errors import UnavailableError
 
@@ -31,7 +32,8 @@ def register(subparsers) -> None:
                     "Binds 127.0.0.1 unless --host says otherwise; an address that is not loopback "
                     "(e.g. 0.0.0.0) puts valve control on the network and needs --allow-remote.",
     )
-    p.add_argument("--config", default="default", help="sim config name (sim/<name>.toml on the config path) or path")
+    p.add_argument("--config", default=DEFAULT_SIM, help=f"sim config name (sim/<name>.toml on the config path) or "
+                                                         f"path (default {DEFAULT_SIM})")
     p.add_argument("--host", default=None, help="address to bind (default: the config's, 127.0.0.1)")
     p.add_argument("--allow-remote", action="store_true",
                    help="allow a --host that is not a loopback address (anyone who reaches it can move the valve)")

@@ -67,6 +67,7 @@ class Recorder:
         self.devices: dict[str, Any] = {}
         self.roles: dict[str, str] = {}
         self.identities: dict[str, dict] = {}
+        self.last_stroke = None  # the last run's measured stroke (Run._manoeuvre: a fired valve's next prediction)
         self.profiles: dict[str, dict] = {}
         self._valve_state: ValveState | None = None
         self._valve_position: float | None = None

@@ -104,7 +104,10 @@ def create_run_file(path: Path, rig: Rig, settings, *, fs: float, manoeuvre: tup
     man = {"end_position": (end, "%"), "beta": (beta, "1/s"), "gamma": (gamma, ""),
            "planned_trigger_time": (0.0, "s"), "trigger_host_time": (float("nan"), "s"),
            "steady_head": (steady_head, "m"), "measured_steady_flow": (steady_flow, "m^3/s"),
-           "predicted_peak_head": (predicted_peak, "m"), "ceiling_head": (ceiling, "m")}
+           "predicted_peak_head": (predicted_peak, "m"), "ceiling_head": (ceiling, "m"),
+           # the stroke measured on the valve-position channel (velab.recording.stroke), NaN until measured
+           "measured_beta": (float("nan"), "1/s"), "measured_gamma": (float("nan"), ""),
+           "measured_end_position": (float("nan"), "%"), "measured_stroke_rms": (float("nan"), "%")}
     snapshot = settings.to_dict() | {"rig": rig.name, "armed_timeout_in_force_s": armed_timeout_s,
                                      # the bench's channel map as it was in force (velab.recording.transducers)
                                      "transducers": [{"name": t.name, "position_m": t.position_m, "head": t.head,

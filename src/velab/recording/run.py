@@ -23,6 +23,7 @@ from velab.recording.pressure import PressureStage
 from velab.recording.redundancy import RedundancyMonitor, head_mismatch, head_tolerance_m
 from velab.recording.safety import ceiling_head, check_manoeuvre, check_output_dir, predict_surge
 from velab.recording.slow import SlowChannels
+from velab.recording.stroke import fit_stroke
 from velab.recording.timeline import Timeline
 from velab.recording.transducers import transducer_channels
 from velab.recording.trigger import TriggerFailed, make_safe, readback_note, trigger_manoeuvre
@@ -56,6 +57,7 @@ class Run:
         self.trigger_fut: cf.Future | None = None  # a trigger queued during the baseline (control thread)
         self.armed_timeout_s = 0.0
         self.valve_lost = False  # the safe-state command could not reach the actuator
+        self.stroke = None  # the measured stroke (velab.recording.stroke.Stroke), at the end
         self.finished = threading.Event()  # the end has begun: no more samples are taken
         self.done = threading.Event()  # the summary is published
         self.summary: RunSummary | None = None
@@ -90,9 +92,19 @@ class Run:
                 self._marks.setdefault(f"{f.device}:{kind}", str(f))
 
     def _manoeuvre(self) -> tuple[float, float, float]:
+        """The manoeuvre the interlock predicts from and the timeline expects: the settings' (a servo actuator
+        runs it), else, for a valve that runs its own stroke (fired), the last stroke measured on this
+        connection, else the rig's nominal."""
         s, m = self.settings, self.rec.rig.manoeuvre
+        last = getattr(self.rec, "last_stroke", None)
+        if last is not None and getattr(self._valve(), "kind", "") == "fired_valve":
+            return (s.beta_per_s if s.beta_per_s is not None else last.beta_per_s,
+                    s.gamma if s.gamma is not None else last.gamma, s.end_position_pct)
         return (s.beta_per_s if s.beta_per_s is not None else m.beta_per_s,
                 s.gamma if s.gamma is not None else m.gamma, s.end_position_pct)
+
+    def _valve(self):
+        return self.rec.devices.get(self.rec.roles.get("valve", ""))
 
     # ------------------------------------------------------------------ arm
     def arm(self):
@@ -379,6 +391,7 @@ class Run:
         tl = self.timeline
         tl.finish()
         self._compare_redundant()  # before the status is decided: a disagreement flags the run
+        self._measure_stroke()
         if self.trigger_fut is not None:
             fut, self.trigger_fut = self.trigger_fut, None
             fut.set_exception(VelabError(f"trigger cancelled: the run ended before the baseline was in "
@@ -408,6 +421,28 @@ class Run:
                          name="velab-recorder-conclude").start()
         return None
 
+    def _measure_stroke(self) -> None:
+        """The sigmoid of the measured valve position (velab.recording.stroke) into the run file and the summary;
+        the recorder keeps it: a fired valve's next interlock prediction starts from it."""
+        rec = self.timeline.stroke_record() if self.timeline is not None else None
+        if rec is None:
+            return
+        try:
+            st = fit_stroke(*rec)
+        except Exception as exc:  # noqa: BLE001 - a bug here must not lose the run: say it
+            log.exception("stroke")
+            self.log("warning", f"the measured stroke could not be fitted: {type(exc).__name__}: {exc}")
+            return
+        if st is None:
+            return
+        self.stroke = st
+        for key, v in (("beta", st.beta_per_s), ("gamma", st.gamma), ("end_position", st.end_position_pct),
+                       ("stroke_rms", st.rms_pct)):
+            self.writer.put(Value(f"manoeuvre/measured_{key}", v))
+        self.log("stroke", f"measured stroke: beta {st.beta_per_s:.2f} 1/s, gamma {st.gamma:.3f}, end "
+                           f"{st.end_position_pct:.1f} %, 90-10 % in {st.closure_s * 1e3:.0f} ms (sigmoid within "
+                           f"{st.rms_pct:.2f} % RMS)")
+
     def _compare_redundant(self) -> None:
         """Redundant measurements compared (velab.recording.redundancy): the actuator's position
         against the ADC's channel, the steady flow against Q0 (faults: the run is flagged), the
@@ -417,7 +452,11 @@ class Run:
             return
         try:
             c = tl.counters()
-            f, n = mon.position_finding(c.trigger_time, c.trigger_from_feedback, profile=self._manoeuvre())
+            # a valve that reports no position of its own (fired: its position is an analog channel, the one the
+            # recording holds) has nothing to compare with the recorded channel
+            independent = getattr(self._valve(), "reports_own_position", True)
+            f, n = (mon.position_finding(c.trigger_time, c.trigger_from_feedback, profile=self._manoeuvre())
+                    if independent else (None, 0))
             if f is not None:
                 self.fault("valve", f.message, f.kind, deviation_pct=round(f.deviation, 3),
                             tolerance_pct=f.tolerance, t_s=f.at_s, polls_compared=n, **f.extras)
@@ -486,13 +525,15 @@ class Run:
             wave_speed_m_s=float(result.best.wave_speed_m_s) if result is not None else None,
             trigger_time_s=tl.trigger_time, steady_head_m=self.steady, gaps=tl.gaps,
             fit_latency_s=latency if result is not None else None, fit_error=error,
-            faults=self.mark_lines(), flagged_samples=tl.flagged)
+            faults=self.mark_lines(), flagged_samples=tl.flagged, stroke=self.stroke)
         fut = self.rec.submit(lambda: self._finish(summary))  # the phase is the control thread's
         if fut.done() and fut.exception() is not None:  # (a recorder closing: no control thread any more)
             self._finish(summary)
 
     def _finish(self, summary: RunSummary) -> None:
         self.summary = summary
+        if summary.stroke is not None:  # (the control thread's): a fired valve's next prediction starts from it
+            self.rec.last_stroke = summary.stroke
         self.rec.set_phase(summary.status, status=summary.status, reason=summary.reason, path=str(self.path))
         self.rec.emit("done", summary)
         self.done.set()

@@ -2,7 +2,7 @@
 
 A fired actuator runs its own stroke; what the interlock and the fit need of it is the sigmoid the
 paper describes the closure with, in position: p(t) = end + (100 - end) / (1 + exp(beta (t - t0) + gamma)),
-t0 the instant the line fired. Between 10 and 90 % of the stroke, ln(100 / o - 1) (o the opening of
+t0 the run's trigger instant (the file's trigger_time: measured from the position where it could be). Between 10 and 90 % of the stroke, ln(100 / o - 1) (o the opening of
 the stroke, velab.recording.timeline.stroke_opening_pct) is linear in t: beta its slope, gamma its
 value at t0; a least-squares line on those samples, then the sigmoid's residual in position as the
 check that the stroke was a sigmoid at all.
@@ -42,7 +42,7 @@ class Stroke:
 
 def fit_stroke(t: np.ndarray, position_pct: np.ndarray, t0: float, end_pct: float | None = None) -> Stroke | None:
     """The sigmoid of the recorded position ``position_pct`` (% open) on the time axis ``t`` (s), gamma at
-    ``t0`` (the fire instant on that axis); ``end_pct`` the stroke's end (default: the median of the last
+    ``t0`` (the trigger instant on that axis); ``end_pct`` the stroke's end (default: the median of the last
     tenth of the record after the stroke, clipped to 0..50 %). None when fewer than MIN_SAMPLES samples
     lie inside the stroke's 10..90 % band (no stroke, or sampled too slowly to tell its shape)."""
     t = np.asarray(t, dtype=float)

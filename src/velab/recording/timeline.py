@@ -481,6 +481,16 @@ class Timeline:
             self.hooks.request_end("completed", "")
 
     # ---------------------------------------------------------------- the fit's data
+    def stroke_record(self) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """(time, valve position %, the run's trigger instant) after the trigger, for the measured stroke
+        (velab.recording.stroke: gamma at the run file's trigger_time, as the file's manoeuvre); None without a
+        position channel or a trigger."""
+        with self._lock:
+            if not self.vch or self.trigger_time is None or self._fit is None:
+                return None
+            n = self._fit_n
+            return self._fit[T, :n].copy(), self._fit[POSITION, :n].copy(), float(self.trigger_time)
+
     def fit_window(self, window_s: float) -> FitRecord:
         """The record the fit path (velab.fitting.prepare) takes (:class:`FitRecord`), the same samples as
         in the run file, from a few seconds before the trigger to the end of the clean part of the window.

@@ -99,6 +99,7 @@ class RunSummary:
     fit_error: str = ""
     faults: list = field(default_factory=list)  # one line per fault class seen (device: message)
     flagged_samples: int = 0  # pressure samples whose quality is not OK
+    stroke: Any = None  # velab.recording.stroke.Stroke: the sigmoid of the measured valve position, if any
 
     @property
     def exit_code(self) -> int:
@@ -115,6 +116,7 @@ class RunSummary:
             "best_model": self.best_model, "wave_speed_m_s": _num(self.wave_speed_m_s),
             "fit_latency_s": _num(self.fit_latency_s), "fit_error": self.fit_error or None,
             "faults": list(self.faults),
+            "stroke": self.stroke.to_dict() if self.stroke is not None else None,
         }
         if self.fit is not None:
             d["fit"] = self.fit.to_dict()
@@ -163,6 +165,7 @@ class RunHost(Protocol):
     roles: dict
     identities: dict
     profiles: dict
+    last_stroke: Any  # the last measured stroke (velab.recording.stroke.Stroke) on this connection, or None
 
     @property
     def phase(self) -> str: ...
