@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 
+from velab import complexops
+
 from velab.config import Material
 from velab.rig import GRAVITY_M_S2, Rig
 from velab.friction import unsteady_resistance
@@ -109,9 +111,17 @@ def _impedance_s(s: np.ndarray, a: float, phi_s: np.ndarray, rig: Rig, W=None,
     zero = s == 0
     s_safe = np.where(zero, 1.0, s)
     Y = s_safe * C * (1.0 + phi_s)  # shunt admittance per unit length
-    mu = np.sqrt(Y * (series_impedance(s_safe, rig) if W is None else W))  # principal branch: Re(mu) >= 0
+    fast = complexops.ENABLED and s.ndim == 1  # (numpy's complex ufuncs are scalar loops: velab.complexops)
+    w = list(np.empty((complexops.WORK, s.size))) if fast else None
+    mu = Y * (series_impedance(s_safe, rig) if W is None else W)
+    # principal branch: Re(mu) >= 0
+    mu = complexops.sqrt(mu, mu, w, np.empty(s.size, dtype=bool)) if fast else np.sqrt(mu)
     if x is None:
-        Z = -(mu / Y) * np.tanh(mu * p.length_m)
+        g = mu * p.length_m
+        if fast:
+            Z = -complexops.divide(mu, Y, mu, w) * complexops.tanh(g, g, w)
+        else:
+            Z = -(mu / Y) * np.tanh(g)
         return np.where(zero, -rig.linear_resistance * p.length_m, Z)
     Z = -(mu / Y) * section_ratio(mu, x, p.length_m)
     return np.where(zero, -rig.linear_resistance * x, Z)

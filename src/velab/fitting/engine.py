@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from velab.rig import GRAVITY_M_S2, Rig
+from velab import complexops
 from velab.fitting.parallel import both
 from velab.model import ValveHeadModel, series_impedance
 
@@ -116,6 +117,10 @@ class HeadEvaluator:
                   "w": np.empty((rr, self.model.n_fft))}
             for name in ("phi", "Y", "mu", "g", "th", "zc", "v"):
                 ws[name] = np.empty(nb, dtype=complex)
+            # real work buffers of velab.complexops (numpy's complex tanh, sqrt and division are
+            # scalar loops: most of an evaluation)
+            ws["r"] = np.empty((complexops.WORK, nb))
+            ws["mask"] = np.empty(nb, dtype=bool)
             self._work = ws
         view = dict(ws)
         for name in ("im", "den", "Ju"):
@@ -155,8 +160,13 @@ class HeadEvaluator:
         """Fill the half-spectrum rows of ``ws["buf"]`` on the bins ``sl``: Z times the summed flow
         spectrum, then (if jac) the Jacobian columns. Touches only those bins of the work buffers."""
         m = J_rel.size
-        ws = {k: (v[..., sl] if isinstance(v, np.ndarray) else v) for k, v in ws.items()}
-        omega, sgA, W, mq, q2 = self._omega[sl], self._sgA[sl], self.W[sl], self._mq[sl], self._q2[sl]
+        if sl.start or sl.stop != self._nb:  # (a half of a split evaluation: views of its bins)
+            ws = {k: (v[..., sl] if isinstance(v, np.ndarray) else v) for k, v in ws.items()}
+            omega, sgA, W, mq, q2 = self._omega[sl], self._sgA[sl], self.W[sl], self._mq[sl], self._q2[sl]
+        else:  # every bin: the per-bin buffers as they are, the spectrum's rows up to the band's last bin
+            ws = dict(ws, buf=ws["buf"][..., :sl.stop])
+            omega, sgA, W, mq, q2 = self._omega, self._sgA, self.W, self._mq, self._q2
+        r = list(ws["r"])
         Y = ws["Y"]
         c0 = 1.0 / a**2
         if m:
@@ -182,10 +192,16 @@ class HeadEvaluator:
             np.multiply(sgA, c0, out=Y)
         mu, g, th, zc = ws["mu"], ws["g"], ws["th"], ws["zc"]
         np.multiply(Y, W, out=mu)
-        np.sqrt(mu, out=mu)
-        np.multiply(mu, self.L, out=g)
-        np.tanh(g, out=th)
-        np.divide(mu, Y, out=zc)  # Zc
+        if complexops.ENABLED:
+            complexops.sqrt(mu, mu, r, ws["mask"])
+            np.multiply(mu, self.L, out=g)
+            complexops.tanh(g, th, r)
+            complexops.divide(mu, Y, zc, r)  # Zc
+        else:
+            np.sqrt(mu, out=mu)
+            np.multiply(mu, self.L, out=g)
+            np.tanh(g, out=th)
+            np.divide(mu, Y, out=zc)
         b = ws["buf"]
         if self.position_m is not None:
             self._section_columns(ws, b, sl, jac, m, J_rel, tau_free, mq, q2)
@@ -206,12 +222,18 @@ class HeadEvaluator:
             if m:
                 # dY/d ln J'_k = Y J'_k u_k / (1 + phi);  dY/d ln tau_k = -(dY/d ln J'_k) s tau_k u_k,
                 # and s tau_k u_k = 1 - u_k
-                P /= phi
+                if complexops.ENABLED:
+                    complexops.divide(P, phi, P, r)
+                else:
+                    P /= phi
                 cJ = b[2 : 2 + m]
                 np.multiply(Ju, P, out=cJ)
                 if tau_free:
+                    # Ju / J'_k - 1 (a complex divided by a real, part by part: what numpy's complex
+                    # division gives, without its scalar loop)
                     ct = b[2 + m :]
-                    np.divide(Ju, J_rel[:, None], out=ct)
+                    np.divide(Ju.real, J_rel[:, None], out=ct.real)
+                    np.divide(Ju.imag, J_rel[:, None], out=ct.imag)
                     ct -= 1.0
                     ct *= cJ
 
