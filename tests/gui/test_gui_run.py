@@ -145,17 +145,24 @@ def test_interlock_refusal_is_a_message(qtbot, tmp_path):
     rp = win.run_panel
     rp.margin_spin.setValue(50)  # Joukowsky surge + 50 % exceeds the transducer's full scale
     assert "REFUSED" in rp.prediction.text()
-    Operator(qtbot, win).press_when_enabled("arm", 10)
+    # Arm is not offered when the interlock will refuse (issue 50), and the phase line says why
+    qtbot.waitUntil(lambda: win.controller.state.refused != "", timeout=5000)
+    assert "EXCEEDS the transducer full scale" in win.controller.state.refused
+    assert not win.run_controls.arm_button.isEnabled()
+    assert "the interlock refuses these settings" in win.run_controls.phase_text().lower()
+    win.arm()  # the window's own Arm (File menu, a test) refuses before touching anything
     msg = win.log.texts("error")[-1]
     assert msg.startswith("Refused by the interlock") and "EXCEEDS the transducer full scale" in msg
     assert "Refused by the interlock" in win.banner.text()
-    # the engine refuses on its own too (a SafetyError through the arm Future)
+    # the engine refuses on its own too (a SafetyError through the arm Future), for a window that did not know
+    win.controller.set_refusal("")
     win.controller.arm(rp.settings())
     qtbot.waitUntil(lambda: len(win.log.texts("error")) >= 2, timeout=60000)
     assert "manoeuvre refused" in win.log.texts("error")[-1]
     assert "Traceback" not in win.log.toPlainText()
     assert not list(Path(rp.settings()["out_dir"]).glob("*.h5"))
-    qtbot.waitUntil(lambda: win.run_controls.arm_button.isEnabled(), timeout=10000)  # nothing is stuck
+    rp.margin_spin.setValue(10)  # a margin the interlock allows: Arm is offered again, nothing is stuck
+    qtbot.waitUntil(lambda: win.run_controls.arm_button.isEnabled(), timeout=10000)
 
 
 def test_device_fault_is_a_message(qtbot, tmp_path):

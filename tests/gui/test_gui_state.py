@@ -82,3 +82,35 @@ def test_countdowns_on_screen():
     st = _state(P.RECORDING, CLOSED, data={"fit_window_s": 20.0, "remaining_s": 20.0},
                 progress={"phase": P.ARMED, "what": "baseline", "remaining_s": 0.5})
     assert st.indicator()[1].startswith("fit window 20.0 s to go")
+
+
+def test_arm_not_offered_when_the_interlock_refuses():
+    from velab.gui.state import ControlState
+    from velab.recording import phases as P
+
+    for phase in (P.READY, P.DISCONNECTED, P.COMPLETED):
+        st = ControlState(phase=phase, allowed=P.allowed_commands(phase), refused="predicted peak EXCEEDS")
+        assert not st.controls()["arm"], phase
+        assert "interlock refuses" in st.indicator()[1].lower()
+        assert ControlState(phase=phase, allowed=P.allowed_commands(phase)).controls()["arm"] == (
+            "arm" in P.allowed_commands(phase))
+
+
+def test_fitting_shown_while_the_final_fit_runs_beside_the_recording():
+    from velab.gui.state import ControlState
+    from velab.recording import phases as P
+
+    run = {"duration_s": 30.0, "fit": True, "fit_window_s": 20.0, "final_fit": False}
+    base = dict(phase=P.RECORDING, allowed=P.allowed_commands(P.RECORDING), data={"trigger_time_s": 2.0}, run=run)
+    before = ControlState(**base, progress={"phase": P.RECORDING, "what": "fit window", "remaining_s": 5.0, "t_s": 17.0})
+    assert before.indicator()[0] == P.RECORDING and "fit window 5.0 s to go" in before.indicator()[1]
+    during = ControlState(**base, progress={"phase": P.RECORDING, "what": "fit window", "remaining_s": 0.0, "t_s": 23.8})
+    phase, detail = during.indicator()
+    assert phase == P.FITTING and "final fit of the 20 s window running" in detail and "ends in 8.2 s" in detail
+    assert during.controls()["stop"] and during.controls()["abort"]  # the engine still records
+    done = ControlState(**{**base, "run": {**run, "final_fit": True}},
+                       progress={"phase": P.RECORDING, "what": "fit window", "remaining_s": 0.0, "t_s": 28.0})
+    assert done.indicator() == (P.RECORDING, "final fit done; recording ends in 4.0 s (Stop keeps the run)")
+    no_fit = ControlState(**{**base, "run": {**run, "fit": False}},
+                         progress={"phase": P.RECORDING, "what": "fit window", "remaining_s": 0.0, "t_s": 28.0})
+    assert no_fit.indicator()[0] == P.RECORDING

@@ -104,7 +104,9 @@ class ControlState:
             return P.CONNECTING, "starting the bench and opening the devices…"
         if ph == P.DISCONNECTED:
             why = d.get("reason")
-            return ph, (f"{why}. " if why else "") + "Connect opens the devices (Arm connects first)."
+            tail = (" The interlock refuses these settings: change the manoeuvre or the margin to arm."
+                    if self.refused else "")
+            return ph, (f"{why}. " if why else "") + "Connect opens the devices (Arm connects first)." + tail
         if ph == P.CONNECTING:
             return ph, "opening and reading the devices…"
         if ph == P.READY or ph in P.END_PHASES:
