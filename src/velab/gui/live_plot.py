@@ -156,7 +156,7 @@ class LivePlot(QWidget):
         self.valve_plot.setXLink(self.head_plot)
         self.head_plot.setLabel("left", "head", units="m")
         self.head_plot.setTitle("pressure head at the valve")
-        self.valve_plot.setLabel("left", "valve position", units="%")
+        self.valve_plot.setLabel("left", "valve", units="%")  # short: the panel may be 70 px tall
         self.valve_plot.setYRange(-5, 105)
         for p in (self.head_plot, self.valve_plot):
             p.showGrid(x=True, y=True, alpha=0.25)

@@ -205,6 +205,9 @@ class StripChart(QWidget):
             p.translate(12, r.center().y())
             p.rotate(-90)
             text = f"{panel.label} ({panel.units})" if panel.units else panel.label
+            if fm.horizontalAdvance(text) > r.height():  # a short panel: its label's first word, not one
+                short = panel.label.split()[0]  # run into the next panel's: "valve (%)", "head (m)"
+                text = f"{short} ({panel.units})" if panel.units else short
             p.drawText(QRectF(-r.height() / 2, -10, r.height(), 16), Qt.AlignCenter, text)
             p.restore()
             if self.marker is not None and x0 <= self.marker[0] <= x1:
