@@ -116,7 +116,7 @@ class FiredValve:
 
     def __init__(self, name: str, line: DigitalLine, position: PositionInput, *, fire_level: bool = True,
                  reset_line: DigitalLine | None = None, closed_pct: float = 2.0, open_pct: float = 98.0,
-                 stroke_timeout_s: float = 1.0, reopen_timeout_s: float = 10.0, reset_pulse_s: float = 0.2,
+                 stroke_timeout_s: float = 3.0, reopen_timeout_s: float = 10.0, reset_pulse_s: float = 0.2,
                  clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep):
         if not 0.0 <= closed_pct < open_pct <= 100.0:
             raise ValueError(f"{name}: closed_pct {closed_pct} and open_pct {open_pct}: need 0 <= closed < open <= 100")

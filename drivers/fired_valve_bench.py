@@ -10,7 +10,7 @@
     reset_line = 1                    # optional: a line pulsed to reopen (double-acting); default: release fire_line
     closed_pct = 2.0                  # optional: the stroke's ends
     open_pct = 98.0
-    stroke_timeout_s = 1.0            # fired and no stroke seen after this: FAULT
+    stroke_timeout_s = 3.0            # fired and no stroke seen after this (host s): FAULT
     reopen_timeout_s = 10.0
 
 ``open_fired_valve(dev, connect, peers)``: ``peers(name)`` gives the driver of another bench device (opened
@@ -32,7 +32,7 @@ _SPEC = {
     "reset_line": Key(int, False, None, check=within(0, 31, "")),
     "closed_pct": Key(float, False, 2.0, check=within(0.0, 50.0, "%")),
     "open_pct": Key(float, False, 98.0, check=within(50.0, 100.0, "%")),
-    "stroke_timeout_s": Key(float, False, 1.0, check=above(0.0, 60.0, "s")),
+    "stroke_timeout_s": Key(float, False, 3.0, check=above(0.0, 60.0, "s")),
     "reopen_timeout_s": Key(float, False, 10.0, check=above(0.0, 600.0, "s")),
     "name": Key(str, False, None),
 }

@@ -15,12 +15,27 @@ def _velab(*argv, timeout=60):
 
 
 def test_velab_sim_prints_endpoints_and_stops():
-    out = _velab("sim", "--ephemeral", "--duration", "0.3", "-v")
+    out = _velab("sim", "--config", "default", "--ephemeral", "--duration", "0.3", "-v")
     assert out.returncode == 0, out.stderr
     for name in ("pressure_adc", "valve", "flowmeter"):
         assert name in out.stdout
     assert "tcp://127.0.0.1:" in out.stdout and "socket://127.0.0.1:" in out.stdout and "/dev/pts/" in out.stdout
     assert "stopped" in out.stderr
+
+
+def test_velab_sim_serves_a_bench_of_products_by_default():
+    """Without --config: the DATAQ DI-2108 on a pty (as a USB CDC device appears) and a socket, the valve fired
+    by its digital line, the SITRANS flowmeter."""
+    import json
+
+    out = _velab("sim", "--ephemeral", "--duration", "0.5", "--json")
+    assert out.returncode == 0, out.stderr
+    doc = json.loads(out.stdout.splitlines()[0])
+    kinds = {name: d["kind"] for name, d in doc["bench"]["devices"].items()}
+    assert kinds == {"daq": "dataq", "valve": "fired_valve", "flowmeter": "flowmeter"}, kinds
+    assert doc["bench"]["devices"]["valve"]["daq"] == "daq"
+    addresses = " ".join(e["address"] for e in doc["endpoints"])
+    assert "/dev/pts/" in addresses and "socket://127.0.0.1:" in addresses
 
 
 def test_sim_on_other_loopback_address_is_allowed():

@@ -22,6 +22,9 @@ EXPOSED = {
     "modbus_adc": "pressure and valve-position readings, acquisition start/stop (Modbus writes)",
     "streaming_adc": "pressure and valve-position streams, acquisition commands",
     "flowmeter": "flow readings, totaliser and settings (Modbus writes)",
+    "dataq": "pressure and valve-position streams, acquisition commands, the digital line that fires the valve",
+    "labjack": "pressure and valve-position streams, Modbus writes, the digital line that fires the valve",
+    "fired_valve": "the valve, fired through its DAQ's digital line",
 }
 
 

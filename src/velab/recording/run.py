@@ -122,6 +122,11 @@ class Run:
                              f"({lo:g}..{hi:g} Hz)")
         fs = float(s.sample_rate_hz)
         beta, gamma, end = self._manoeuvre()
+        if getattr(self._valve(), "kind", "") == "fired_valve" and (
+                s.beta_per_s is not None or s.gamma is not None or s.end_position_pct != 0.0):
+            raise VelabError(f"{self.rec.roles['valve']}: a valve fired by a digital line makes its own stroke: a "
+                             f"manoeuvre (beta, gamma, end position) cannot be commanded to it (leave them out: the "
+                             f"stroke is measured); nothing was armed")
         check_manoeuvre(self.rec.devices[self.rec.roles["valve"]], self.rec.roles["valve"], beta, gamma, end)
         ceiling = ceiling_head(self.rec.rig, s)
         if s.ceiling_head_m is not None and s.ceiling_head_m > ceiling:
