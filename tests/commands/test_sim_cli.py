@@ -39,7 +39,7 @@ def test_velab_sim_serves_a_bench_of_products_by_default():
 
 
 def test_sim_on_other_loopback_address_is_allowed():
-    out = _velab("sim", "--ephemeral", "--duration", "0.3", "--host", "127.0.0.2")
+    out = _velab("sim", "--config", "default", "--ephemeral", "--duration", "0.3", "--host", "127.0.0.2")
     assert out.returncode == 0, out.stderr
     assert "tcp://127.0.0.2:" in out.stdout
     assert out.stderr == ""  # loopback: no exposure notice, and nothing but errors on stderr
