@@ -16,7 +16,7 @@ import numpy as np
 
 from velab.drivers.base import DeviceError, Quality
 from velab.drivers.valve import ValveState
-from velab.recording.types import DeviceFailure, RunRefused
+from velab.recording.types import DeviceFailure, RunRefused, failed_how
 
 log = logging.getLogger(__name__)
 ROLE_KINDS = {"pressure": ("dataq", "labjack", "streaming_adc", "modbus_adc"), "valve": ("fired_valve", "valve_actuator"),
@@ -86,7 +86,7 @@ def check_steady_flow(read_flow, sleep, q0: float, tolerance: float, flow_name: 
         try:
             r = read_flow()
         except (DeviceError, ValueError, IndexError) as exc:
-            raise DeviceFailure(f"{flow_name}: flowmeter does not answer: {exc}") from None
+            raise DeviceFailure(f"{flow_name}: flowmeter {failed_how(exc)}: {exc}") from None
         if r.quality is not Quality.OK:
             raise RunRefused(f"steady flow not ready: flowmeter reading {r.value!r} is {r.quality.value}")
         flows.append(r.value)

@@ -36,7 +36,7 @@ from velab.recording.settings import RecordSettings
 from velab.recording.transducers import transducer_channels
 from velab.recording.slow import valve_event
 from velab.recording.types import (
-    DEVICE_ERRORS, DeviceFailure, DeviceStatus, EngineSnapshot, Fault, RecorderEvent, RunSummary)
+    DEVICE_ERRORS, DeviceFailure, DeviceStatus, EngineSnapshot, Fault, RecorderEvent, RunSummary, failed_how)
 
 log = logging.getLogger(__name__)
 
@@ -362,7 +362,7 @@ class Recorder:
                 try:
                     msg = self._DESCRIBE[role](self, drv, name)
                 except DEVICE_ERRORS as exc:
-                    raise DeviceFailure(f"{name} ({role}): does not answer: {exc}") from None
+                    raise DeviceFailure(f"{name} ({role}): {failed_how(exc)}: {exc}") from None
                 self.identities[name] = identity(drv)
                 self.profiles[name] = profile_contents(drv)
                 out.append(DeviceStatus(name, dev.kind, role, True, msg, self.identities[name]))
@@ -394,7 +394,7 @@ class Recorder:
         try:
             st = self.devices[self.roles["valve"]].read_status()
         except DEVICE_ERRORS as exc:
-            raise DeviceFailure(f"{self.roles['valve']}: actuator does not answer: {exc}") from None
+            raise DeviceFailure(f"{self.roles['valve']}: actuator {failed_how(exc)}: {exc}") from None
         self.emit_valve(st)
         check_valve_open(st)
 

@@ -17,7 +17,7 @@ import time
 from velab.drivers.base import DeviceFault
 from velab.drivers.valve import ValveState
 from velab.recording.ops import Slow
-from velab.recording.types import DEVICE_ERRORS
+from velab.recording.types import DEVICE_ERRORS, failed_how
 
 log = logging.getLogger(__name__)
 POLL_S = 0.15
@@ -140,7 +140,7 @@ class SlowChannels:
         except DEVICE_ERRORS as exc:
             now = time.monotonic()
             if self._set_link(False, str(exc)):
-                self.hooks.fault("valve", f"actuator does not answer: {exc}", "no_response")
+                self.hooks.fault("valve", f"actuator {failed_how(exc)}: {exc}", "no_response")
                 self._valve_silent_since = now
             if not self.triggered() and now - (self._valve_silent_since or now) > self.stall_timeout_s:
                 self.hooks.request_end("failed", f"{self.valve_name} (valve): no answer for "

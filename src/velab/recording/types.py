@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-from velab.drivers.base import DeviceError
+from velab.drivers.base import DeviceError, DeviceException
 from velab.errors import SafetyError, VelabError
 from velab.recording.phases import exit_code
 
@@ -15,6 +15,12 @@ from velab.recording.phases import exit_code
 # what a device call can raise: the drivers' named errors, and (until every bad reply has its named
 # exception in the drivers) the ValueError / IndexError a short or stale reply can still cause
 DEVICE_ERRORS = (DeviceError, ValueError, IndexError)
+
+
+def failed_how(exc: BaseException) -> str:
+    """How a device call failed, in words: a device that answered with an exception reply "refused"; anything else
+    (no reply, a reply that cannot be trusted, the link gone) "does not answer"."""
+    return "refused" if isinstance(exc, DeviceException) else "does not answer"
 
 
 class DeviceFailure(VelabError):
