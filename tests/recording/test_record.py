@@ -289,7 +289,9 @@ def _trigger_when_baseline_is_in(rec, timeout=30.0):
 def test_second_run_on_the_same_connection_after_reset_valve(tmp_path):
     """A finished recorder re-arms on the same connection once the valve is reset (reopened);
     the measured trigger instant is published as soon as it is known."""
-    s = RecordSettings(duration_s=3.0, pretrigger_s=0.5, fit=False, out_dir=tmp_path)
+    # records of 6 s of device time (0.5 s of host time at the fast clock): a 2-3 s one (0.17-0.25 s of host time)
+    # ended on a loaded host before the stroke its late TRIGGER started was in its samples ("no stroke seen")
+    s = RecordSettings(duration_s=6.0, pretrigger_s=0.5, fit=False, out_dir=tmp_path)
     with Recorder.simulated(s, clock="fast") as rec:
         events = []
         rec.add_listener(events.append)
@@ -316,8 +318,8 @@ def test_second_run_on_the_same_connection_after_reset_valve(tmp_path):
         assert st.state.name == "IDLE" and st.position.value >= 99.0 and rec.valve_open is True
         assert rec.sim.rig.state().name == "IDLE"
         # new settings go with the arm command; same driver objects (the same connection)
-        path = rec.arm(settings=s.with_changes(duration_s=2.0, run_number=2)).result(timeout=60)
-        assert rec.devices == devices and rec.settings.duration_s == 2.0
+        path = rec.arm(settings=s.with_changes(duration_s=5.0, run_number=2)).result(timeout=60)
+        assert rec.devices == devices and rec.settings.duration_s == 5.0
         second = _trigger_when_baseline_is_in(rec)
         assert second.status == "completed" and second.path == path != first.path, (second.status, second.reason)
         assert rec.sim.rig.trigger_count == 2

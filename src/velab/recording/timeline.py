@@ -38,6 +38,7 @@ PRE_TRIGGER_KEPT_S = BASELINE_S + 1.0
 # the stroke is measured from the feedback samples whose opening (the part of the stroke still to go, %)
 # lies in this band, at least this many of them; past the band's lower end the stroke is taken as seen
 STROKE_BAND_PCT = (10.0, 90.0)
+HOST_LAG_S = 0.1  # host seconds by which the trigger's latest start may be late (a descheduled acquisition thread)
 MIN_STROKE_SAMPLES = 3
 
 
@@ -278,7 +279,12 @@ class Timeline:
             self.ended = True
             if self.trigger_time is None or self.trigger_measured or not self.vch:
                 return
-            if self._in_band_samples() >= MIN_STROKE_SAMPLES or self._reached(self._stroke_by() + self._stroke_s()):
+            # the latest start is a lower bound of the device's index when the TRIGGER's reply came (the blocks
+            # still queued lag it): a record ending within a host hiccup (HOST_LAG_S of device time at this clock)
+            # after that start plus the stroke can hold none of it, which says nothing of the feedback
+            lag = HOST_LAG_S * self._rate / self.fs
+            if self._in_band_samples() >= MIN_STROKE_SAMPLES or \
+                    self._reached(self._stroke_by() + self._stroke_s() + lag):
                 self._measure_trigger()
             else:
                 self.hooks.log("trigger", "the record ended before the valve's stroke was in its samples: the "
