@@ -2,7 +2,8 @@
 
 Only this process (the client) writes run files, and only through the atomic
 :func:`velab.runfiles.fits.save_fit`: a run on shared storage is never written by two
-processes, and a run whose fit failed, or never came back, is left exactly as it was.
+processes, and a run whose fit failed, or never came back, or that was refused (open for
+writing, damaged: velab.batch.task), is left exactly as it was.
 """
 
 from __future__ import annotations
@@ -53,14 +54,15 @@ def run_batch(compute, paths: list[str], opts: dict, *, jobs: int = 1, scheduler
     pending = {}  # path -> indices still waiting for their outcome (a path may be given twice)
     for i, p in enumerate(paths):
         pending.setdefault(p, []).append(i)
-    failed = 0
+    failed = refused = 0
     for o in stream:
         if o["ok"]:
             o = _save(o, opts)
-        failed += not o["ok"]
+        refused += o.get("status") == "refused"
+        failed += not o["ok"] and o.get("status") != "refused"
         done[pending[o["path"]].pop(0)] = o
         if progress is not None:
-            progress.update(_bar(len(done), len(paths), failed, o["path"]), force=True)
+            progress.update(_bar(len(done), len(paths), failed, o["path"], refused), force=True)
     outcomes = [done.get(i) or failure(p, "scheduler lost", "no outcome came back for this run")
                 for i, p in enumerate(paths)]
     return Batch(outcomes, time.perf_counter() - t0, where, scheduler, None if scheduler else jobs)
@@ -73,9 +75,10 @@ def _save(o: dict, opts: dict) -> dict:
     try:
         name = save_fit(o["path"], o["fit"], opts.get("name"))
     except RunStillOpen as exc:
-        # an incomplete run can be fitted (that is the point) but not written to: as `velab fit RUN`
-        o["fit"].setdefault("notes", []).append(f"not saved: {exc}")
-        return {**o, "status": "fitted, run open", "fit_name": None}
+        # opened for writing after its fit was made (a recorder started on it meanwhile): refused as a run
+        # found open before its fit is (velab.batch.task), the fit not written
+        return failure(o["path"], "run open", f"{exc}: the fit made is not written", seconds=o["seconds"],
+                       worker=o.get("worker"))
     except (VelabError, OSError) as exc:
         code = {"exit_code": int(exc.exit_code)} if isinstance(exc, VelabError) else {}
         msg = str(exc) if isinstance(exc, VelabError) else f"cannot write the fit into the run: {exc.strerror or exc}"
@@ -83,9 +86,11 @@ def _save(o: dict, opts: dict) -> dict:
     return {**o, "status": "saved", "fit_name": name}
 
 
-def _bar(done: int, total: int, failed: int, last: str) -> str:
+def _bar(done: int, total: int, failed: int, last: str, refused: int = 0) -> str:
     full = BAR_WIDTH * done // max(total, 1)
     text = f"velab fit [{'#' * full}{'.' * (BAR_WIDTH - full)}] {done}/{total} runs"
     if failed:
         text += f", {failed} failed"
+    if refused:
+        text += f", {refused} refused"
     return f"{text}, last {Path(last).name}"

@@ -124,7 +124,8 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
     if work:
         raise DataError(f"{path}: --window {opts['window_s']:g} s: {work}")
     refused = _refused_save(run)
-    if refused and opts["save"]:  # said before the fit, not after it
+    # said before the fit, not after it; also when a batch's client is to save it (velab.batch.task)
+    if refused and (opts["save"] or opts.get("client_saves")):
         raise refused
     if refused:
         print(f"velab: {path}: {_save_note(run)}", file=sys.stderr)
@@ -162,12 +163,16 @@ def _refused_save(run):
     """The error a fit that would be saved into ``run`` gets, or None: a run still open for writing (the
     recorder running, or killed: a storage matter, exit 5) or a damaged one (velab.runfiles.soundness, exit 2)."""
     if run.open_for_write:
-        return UnavailableError(f"{run.path}: the run is still open for writing (being recorded, or its writer was "
-                                f"killed): nothing fitted; --no-save fits it without saving, `velab recover "
-                                f"{run.path}` writes a closed copy")
+        exc = UnavailableError(f"{run.path}: the run is still open for writing (being recorded, or its writer was "
+                               f"killed): nothing fitted; --no-save fits it without saving, `velab recover "
+                               f"{run.path}` writes a closed copy")
+        exc.refusal = "run open"  # a batch's reason (velab.batch.task.REFUSALS)
+        return exc
     if run.damage:
-        return DataError(f"{run.path}: damaged run ({run.damage}): velab fit does not write into it; "
-                         f"--no-save fits it without saving")
+        exc = DataError(f"{run.path}: damaged run ({run.damage}): velab fit does not write into it; "
+                        f"--no-save fits it without saving")
+        exc.refusal = "damaged run"
+        return exc
     return None
 
 
