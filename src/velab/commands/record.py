@@ -18,9 +18,13 @@ import threading
 import time
 from pathlib import Path
 
+from velab import bounds
 from velab.configpath import DEFAULT_SIM
-from velab.commands.common import add_json_option, float_range, int_range, positive_float, write_json
-from velab.errors import VelabError
+from velab.commands.common import add_json_option, bound_float, float_range, int_range, write_json
+from velab.errors import DataError, VelabError
+
+# the recorder's own floor: a baseline shorter than this gives no steady head (velab.recording.settings)
+MIN_PRETRIGGER_S = 0.05
 
 
 def register(subparsers) -> None:
@@ -48,14 +52,21 @@ def register(subparsers) -> None:
     clk.add_argument("--clock", dest="clock", metavar="KIND", help="realtime | fast | scaled:K")
     p.add_argument("--rig", default=None, help="rig config (with --simulate: the rig simulated; default: the "
                                                "sim config's rig, or perugia)")
-    p.add_argument("--duration", type=float_range(0, 3600, lo_open=True, units="s"), default=30.0, help="seconds recorded after the trigger (30)")
-    p.add_argument("--pretrigger", type=float_range(0, 600, lo_open=True, units="s"), default=2.0, help="baseline before the trigger, s (2)")
-    p.add_argument("--rate", type=float_range(0, 1e6, lo_open=True, units="Hz"), default=1000.0, help="pressure sample rate, Hz (1000; within the pressure source's range)")
-    p.add_argument("--beta", type=float_range(0, 1e4, lo_open=True, units="1/s"), default=None, help="manoeuvre beta, 1/s (default: the rig's)")
-    p.add_argument("--gamma", type=float_range(-100, 100), default=None, help="manoeuvre gamma (default: the rig's)")
+    # the bounds of `velab synth` (velab.bounds): what is physical is said once, whatever the door
+    p.add_argument("--duration", type=float_range(0, 3600, lo_open=True, units="s"), default=30.0,
+                   help="seconds recorded after the trigger (30)")
+    p.add_argument("--pretrigger", type=float_range(MIN_PRETRIGGER_S, 600, units="s"), default=2.0,
+                   help="baseline before the trigger, s (2)")
+    p.add_argument("--rate", "--sample-rate", dest="rate", type=bound_float(bounds.SAMPLE_RATE_HZ), default=1000.0,
+                   help="pressure sample rate, Hz (1000; within the pressure source's range)")
+    p.add_argument("--beta", type=bound_float(bounds.BETA_PER_S), default=None,
+                   help="manoeuvre beta, 1/s (default: the rig's)")
+    p.add_argument("--gamma", type=bound_float(bounds.GAMMA), default=None,
+                   help="manoeuvre gamma, -100..0 (default: the rig's)")
     p.add_argument("--end-position", type=float_range(0, 100, hi_open=True, units="%"), default=0.0, help="final valve opening, %% (0)")
     p.add_argument("--surge-margin", type=float_range(0, 10), default=0.1, help="interlock margin on the surge (0.1)")
-    p.add_argument("--ceiling", type=positive_float, default=None, metavar="M",
+    p.add_argument("--ceiling", type=float_range(0, bounds.HEAD_M.hi, lo_open=True, units="m"), default=None,
+                   metavar="M",
                    help="pressure ceiling, m of head (default: 95%% of the limiting pressure; never above it)")
     p.add_argument("--armed-timeout", type=float_range(0, 86400, lo_open=True, units="s"), default=None, metavar="S",
                    help="disarm an armed rig left without a trigger after S s (default: the bench's "
@@ -73,7 +84,8 @@ def register(subparsers) -> None:
     add_json_option(p)
     p.add_argument("--no-fit", action="store_true", help="record only")
     p.add_argument("--models", default="0-6", help="models to fit, e.g. 0-6 or 1,3,5 (0 = EL)")
-    p.add_argument("--window", type=float_range(0, 3600, lo_open=True, units="s"), default=20.0, help="fit window after the trigger, s (20)")
+    p.add_argument("--window", type=float_range(0, 3600, lo_open=True, units="s"), default=20.0,
+                   help="fit window after the trigger, s (20)")
     p.add_argument("--method", default="auto", help="fit method (auto, least-squares, nelder-mead, evolution)")
     p.set_defaults(func=run_command)
 
@@ -264,6 +276,22 @@ def _out_dir(args) -> Path:
     return out
 
 
+def check_arguments(args) -> None:
+    """What the options say together, by velab.bounds, before anything is created or connected: the record's
+    samples (rate x (pretrigger + duration)) and, when both are given, the manoeuvre's half closure. A value
+    outside is one line (DataError, exit 2). Each option alone is checked by its argparse type."""
+    samples = args.rate * (args.pretrigger + args.duration)
+    if samples > bounds.MAX_SAMPLES:
+        raise DataError(f"--rate {args.rate:g} Hz x (--pretrigger {args.pretrigger:g} s + --duration "
+                        f"{args.duration:g} s) is {samples:.3g} samples, more than the "
+                        f"{bounds.MAX_SAMPLES:,} of one record: lower --rate or shorten --duration")
+    if args.beta is not None and args.gamma is not None:
+        half = -args.gamma / args.beta
+        reason = bounds.HALF_CLOSURE_S(half)
+        if reason:
+            raise DataError(f"--gamma {args.gamma:g} with --beta {args.beta:g}: half closure {half:.3g} s: {reason}")
+
+
 def _settings_from_args(args, run_number: int):
     from velab.fitting import parse_models
     from velab.recording import RecordSettings
@@ -347,6 +375,7 @@ def run_command(args) -> int:
 
     if args.method not in ("auto", "least-squares", "nelder-mead", "evolution"):
         raise VelabError(f"unknown fit method {args.method!r}")
+    check_arguments(args)  # before the output folder is made or any device is touched
     settings = _settings_from_args(args, 1)
     out = sys.stderr if args.json else sys.stdout
 
