@@ -4,7 +4,11 @@ The file is opened by :func:`velab.runfiles.open_run_file` (the same checks and
 one-line errors as ``velab info``) and only its small datasets are read: no
 sample array is loaded, the duration comes from the time axis's length and last
 value. A file that cannot be read is a ``damaged`` row carrying the reader's
-one-line reason; an HDF5 file that is not a velab run is a row of kind ``other``.
+one-line reason; so is a run whose structure is not sound (:mod:`velab.runfiles.soundness`:
+its status, format version, NeXus classes, signal, manoeuvre or rig gone), which ``velab info``
+names damaged and ``velab fit`` will not write into: status ``damaged``, reason ``damaged run
+(what is wrong)``, and what can still be read of it (title, rig, fits...) in the other fields.
+An HDF5 file that is not a velab run is a row of kind ``other``.
 
 Runs in the catalogue's worker processes (:mod:`velab.catalogue.extract`), which
 give each file a deadline: a file that makes HDF5 loop is killed there.
@@ -28,7 +32,7 @@ COLUMNS = (
     "fit_name", "fit_date", "best_model", "wave_speed_m_s", "wave_speed_se_m_s", "misfit", "warnings",
     "noise_ratio", "elements", "size_bytes", "mtime",
 )
-ROW_VERSION = 1  # bump when a row gains or changes a field: the index re-reads every file
+ROW_VERSION = 2  # bump when a row gains or changes a field: the index re-reads every file (2: unsound runs damaged)
 
 
 def empty_row(path: str, kind: str, status: str, reason: str = "") -> dict:
@@ -102,51 +106,21 @@ def read_row(path: str | os.PathLike, walk: bool = False) -> dict:
 
 
 def _read(path: Path) -> dict:
-    import h5py
-
-    from velab.runfiles import layout as L
+    from velab.runfiles import soundness
     from velab.runfiles import superblock as sb_
     from velab.runfiles.reader import open_run_file
 
     row = empty_row(str(path), "run", "recording")
     with open_run_file(path) as fh:
-        e = fh["entry"]
-        row["status"] = L.read_str(e, "status", "recording") or "recording"
-        row["reason"] = L.read_str(e, "status_reason")
-        row["start_time"] = L.read_str(e, "start_time") or None
-        row["end_time"] = L.read_str(e, "end_time") or None
-        row["title"] = L.read_str(e, "title")
-        notes = e.get("notes")
-        if isinstance(notes, h5py.Group):
-            settings = L.read_json(notes, "settings_json", {})
-            source = L.read_json(notes, "source_json", {})
-            if isinstance(settings, dict):  # the recorder's RecordSettings: the operator's metadata
-                for k in ("operator", "specimen", "notes"):
-                    v = settings.get(k)
-                    row[k] = v if isinstance(v, str) else ""
-            if isinstance(source, dict):
-                row["source"] = str(source.get("kind") or "") or None
-        sample = e.get("sample")
-        if isinstance(sample, h5py.Group):
-            rig = L.read_json(sample, "rig_json", {})
-            row["rig"] = (rig.get("name") if isinstance(rig, dict) else None) or L.read_str(sample, "name") or None
-            row["steady_flow_l_s"] = _scalar(sample, "steady_flow")
-            mat = sample.get("material")
-            if isinstance(mat, h5py.Group):
-                row["material"] = L.read_str(mat, "name") or None
-        man = e.get("manoeuvre")
-        if isinstance(man, h5py.Group):
-            row["beta_per_s"], row["gamma"] = _scalar(man, "beta"), _scalar(man, "gamma")
-            q = _scalar(man, "steady_flow")
-            row["steady_flow_l_s"] = q if q is not None else row["steady_flow_l_s"]
-            row["measured_flow_l_s"] = _scalar(man, "measured_steady_flow")
-        for k in ("steady_flow_l_s", "measured_flow_l_s"):
-            row[k] = row[k] * 1e3 if row[k] is not None else None
-        trigger = _scalar(man, "trigger_time") if isinstance(man, h5py.Group) else None
-        _timing(row, e, trigger or 0.0)
-        _faults(row, e)
-        _fits(row, e)
+        found = soundness.defects(fh)
+        try:
+            _fill(row, fh)
+        except Exception:  # noqa: BLE001 - what is left of an unsound run may not read: its defects say why
+            if not found:
+                raise
     row["open_for_write"] = bool(sb_.read_superblock(path).open_for_write)
+    if found:  # as velab info names it, whatever status the file still claims
+        row["status"], row["reason"] = "damaged", f"damaged run ({soundness.describe_defects(found)})"
     flags = []
     if row["fault_events"] or row["status"] == "completed-with-faults":
         flags.append("faults")
@@ -158,6 +132,50 @@ def _read(path: Path) -> dict:
         flags.append("misfit")
     row["flags"] = flags
     return row
+
+
+def _fill(row: dict, fh) -> None:
+    """The row's fields from the open run ``fh`` (small datasets only)."""
+    import h5py
+
+    from velab.runfiles import layout as L
+
+    e = fh["entry"]
+    row["status"] = L.read_str(e, "status", "recording") or "recording"
+    row["reason"] = L.read_str(e, "status_reason")
+    row["start_time"] = L.read_str(e, "start_time") or None
+    row["end_time"] = L.read_str(e, "end_time") or None
+    row["title"] = L.read_str(e, "title")
+    notes = e.get("notes")
+    if isinstance(notes, h5py.Group):
+        settings = L.read_json(notes, "settings_json", {})
+        source = L.read_json(notes, "source_json", {})
+        if isinstance(settings, dict):  # the recorder's RecordSettings: the operator's metadata
+            for k in ("operator", "specimen", "notes"):
+                v = settings.get(k)
+                row[k] = v if isinstance(v, str) else ""
+        if isinstance(source, dict):
+            row["source"] = str(source.get("kind") or "") or None
+    sample = e.get("sample")
+    if isinstance(sample, h5py.Group):
+        rig = L.read_json(sample, "rig_json", {})
+        row["rig"] = (rig.get("name") if isinstance(rig, dict) else None) or L.read_str(sample, "name") or None
+        row["steady_flow_l_s"] = _scalar(sample, "steady_flow")
+        mat = sample.get("material")
+        if isinstance(mat, h5py.Group):
+            row["material"] = L.read_str(mat, "name") or None
+    man = e.get("manoeuvre")
+    if isinstance(man, h5py.Group):
+        row["beta_per_s"], row["gamma"] = _scalar(man, "beta"), _scalar(man, "gamma")
+        q = _scalar(man, "steady_flow")
+        row["steady_flow_l_s"] = q if q is not None else row["steady_flow_l_s"]
+        row["measured_flow_l_s"] = _scalar(man, "measured_steady_flow")
+    for k in ("steady_flow_l_s", "measured_flow_l_s"):
+        row[k] = row[k] * 1e3 if row[k] is not None else None
+    trigger = _scalar(man, "trigger_time") if isinstance(man, h5py.Group) else None
+    _timing(row, e, trigger or 0.0)
+    _faults(row, e)
+    _fits(row, e)
 
 
 def _timing(row: dict, e, trigger: float) -> None:
