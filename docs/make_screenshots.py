@@ -36,6 +36,7 @@ def main(argv=None) -> int:
     ap.add_argument("--clock", default="scaled:4")
     args = ap.parse_args(argv)
 
+    from velab.configpath import DEFAULT_SIM
     from velab.gui.app import ensure_app, recorder_factory
     from velab.gui.main_window import MainWindow, make_settings
     from velab.gui.eventloop import wait_until
@@ -44,7 +45,7 @@ def main(argv=None) -> int:
     tmp = tempfile.mkdtemp(prefix="velab-shots-")
     factory, rig = recorder_factory(simulate=True, clock=args.clock, material="A")
     win = MainWindow(settings=make_settings(os.path.join(tmp, "gui.ini")), recorder_factory=factory, rig=rig,
-                     source_label="simulated rig 'default', material A")
+                     source_label=f"simulated bench '{DEFAULT_SIM}', material A")
     rp, rc = win.run_panel, win.run_controls
     rp.title_edit.setText("closure 3, material A")
     rp.operator_edit.setText("M. Rossi")

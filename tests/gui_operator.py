@@ -62,13 +62,15 @@ class StallProbe:
 
 
 def make_window(qtbot, tmp_path, *, clock="fast", material="A", duration=2.5, pre=0.5, fit_window=2.0,
-                models="0-1", rate=1000.0, armed_timeout=0.0, fit=True, size=(1366, 768)):
+                models="0-1", rate=1000.0, armed_timeout=0.0, fit=True, size=(1366, 768), sim_config=None):
+    """The operator window on a simulated bench: ``sim_config`` (default: the commands' default, the DATAQ bench)."""
+    from velab.configpath import DEFAULT_SIM
     from velab.gui.app import ensure_app, recorder_factory
     from velab.gui.main_window import MainWindow, make_settings
 
     ensure_app()
     tmp_path.mkdir(parents=True, exist_ok=True)
-    factory, rig = recorder_factory(simulate=True, clock=clock, material=material)
+    factory, rig = recorder_factory(simulate=True, clock=clock, material=material, sim_config=sim_config or DEFAULT_SIM)
     w = MainWindow(settings=make_settings(tmp_path / "gui.ini"), recorder_factory=factory, rig=rig,
                    source_label="simulated rig")
     rp = w.run_panel

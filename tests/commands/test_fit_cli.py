@@ -73,7 +73,7 @@ def test_fit_json_schema_and_fit_group(run_a, capsys):
 def test_fit_table_and_plot(run_a, tmp_path, capsys):
     png = tmp_path / "report.png"
     code, out = _json(capsys, ["fit", str(run_a), "--models", "0-2", "--window", "5", "--no-save",
-                               "--plot", str(png)])
+                               "--plot", str(png), "-v"])  # (the statistics in full: -v; the default opens with the result)
     assert code == 0
     assert "best model (minimum AIC AR1)" in out.out and "lag-1" in out.out and "n = 5000" in out.out
     assert "bounds: tau in [" in out.out and "+-" in out.out

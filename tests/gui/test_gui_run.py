@@ -12,6 +12,10 @@ pytest.importorskip("pyqtgraph")
 
 from gui_operator import Operator, StallProbe, make_window, run_file, stall_limit_s  # noqa: E402
 
+# velab's own bench (the servo actuator): these tests read its simulated actuator's state and trigger count (a fired
+# valve's ARMED is the host's own; the window on the DATAQ bench: test_gui_operator.py, test_gui_screens.py)
+SERVO = "default"
+
 pytestmark = [pytest.mark.slow, pytest.mark.gui, pytest.mark.usefixtures("qt_cleanup")]  # the integration layer: the simulated bench (tests/recording: the stages alone)
 
 
@@ -34,7 +38,7 @@ CASES = [("fast", ph, act) for ph in PHASES["fast"] for act in ("stop", "abort")
 
 @pytest.mark.parametrize("clock,phase,action", CASES)
 def test_stop_and_abort_in_every_phase(qtbot, tmp_path, clock, phase, action):
-    win = make_window(qtbot, tmp_path, clock=clock, **PHASES[clock][phase])
+    win = make_window(qtbot, tmp_path, sim_config=SERVO, clock=clock, **PHASES[clock][phase])
     op = Operator(qtbot, win)
     probe = StallProbe().start()
     op.press_when_enabled("connect", 60)
@@ -64,7 +68,7 @@ def test_stop_and_abort_in_every_phase(qtbot, tmp_path, clock, phase, action):
 def test_armed_rig_left_alone_disarms_at_the_configured_time(qtbot, tmp_path):
     """The armed timeout (here 3 s, set in the form) disarms the rig; the window counts it down and
     says why the run ended; the run file says it too and keeps a bounded baseline."""
-    win = make_window(qtbot, tmp_path, clock="realtime", pre=0.5, armed_timeout=3.0, rate=1000.0)
+    win = make_window(qtbot, tmp_path, sim_config=SERVO, clock="realtime", pre=0.5, armed_timeout=3.0, rate=1000.0)
     op = Operator(qtbot, win)
     probe = StallProbe().start()
     op.press_when_enabled("connect", 60)
@@ -93,7 +97,7 @@ def test_armed_rig_left_alone_disarms_at_the_configured_time(qtbot, tmp_path):
 def test_second_run_on_the_same_connection(qtbot, tmp_path):
     """After a completed run the valve is closed: Arm becomes "Reopen + Arm" and carries both out on
     the same Recorder; Reset valve alone reopens it too; the measured trigger reaches the plot."""
-    win = make_window(qtbot, tmp_path, clock="fast", fit=False)
+    win = make_window(qtbot, tmp_path, sim_config=SERVO, clock="fast", fit=False)
     op = Operator(qtbot, win)
     marks = []
     win.controller.trigger_time.connect(lambda t, measured: marks.append((t, measured, win.last_summary is None)))
@@ -127,7 +131,7 @@ def test_second_run_on_the_same_connection(qtbot, tmp_path):
 
 def test_arm_without_connect_connects_and_arms(qtbot, tmp_path):
     """Arm is enabled before any connection (the engine connects first): one press, one armed run."""
-    win = make_window(qtbot, tmp_path, clock="fast")
+    win = make_window(qtbot, tmp_path, sim_config=SERVO, clock="fast")
     op = Operator(qtbot, win)
     assert win.run_controls.arm_button.isEnabled() and win.controller.recorder is None
     op.press_when_enabled("arm", 60)
@@ -141,7 +145,7 @@ def test_arm_without_connect_connects_and_arms(qtbot, tmp_path):
 def test_interlock_refusal_is_a_message(qtbot, tmp_path):
     from pathlib import Path
 
-    win = make_window(qtbot, tmp_path, clock="fast")
+    win = make_window(qtbot, tmp_path, sim_config=SERVO, clock="fast")
     rp = win.run_panel
     rp.margin_spin.setValue(50)  # Joukowsky surge + 50 % exceeds the transducer's full scale
     assert "REFUSED" in rp.prediction.text()
@@ -166,7 +170,7 @@ def test_interlock_refusal_is_a_message(qtbot, tmp_path):
 
 
 def test_device_fault_is_a_message(qtbot, tmp_path):
-    win = make_window(qtbot, tmp_path, clock="fast", pre=30.0, duration=60.0, fit_window=20.0)
+    win = make_window(qtbot, tmp_path, sim_config=SERVO, clock="fast", pre=30.0, duration=60.0, fit_window=20.0)
     op = Operator(qtbot, win)
     op.press_when_enabled("arm", 60)
     qtbot.waitUntil(lambda: win.controller.phase == "armed", timeout=60000)

@@ -140,6 +140,7 @@ def run_page_widgets(win) -> dict:
 
 
 def scenario_run(out: Path, clock: str, quick: bool = False) -> int:
+    from velab.configpath import DEFAULT_SIM
     from velab.gui.app import ensure_app, recorder_factory
     from velab.gui.eventloop import wait_until
     from velab.gui.main_window import MainWindow, make_settings
@@ -148,7 +149,7 @@ def scenario_run(out: Path, clock: str, quick: bool = False) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="velab-xvfb-"))
     factory, rig = recorder_factory(simulate=True, clock=clock, material="A")
     win = MainWindow(settings=make_settings(tmp / "gui.ini"), recorder_factory=factory, rig=rig,
-                     source_label="simulated rig 'default', material A")
+                     source_label=f"simulated bench '{DEFAULT_SIM}', material A")
     rp, rc = win.run_panel, win.run_controls
     rp.title_edit.setText("closure 3, material A")
     rp.operator_edit.setText("M. Rossi")

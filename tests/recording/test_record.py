@@ -217,8 +217,11 @@ def test_cli_a_manoeuvre_outside_the_actuators_profile_is_bad_input_and_writes_n
     for extra, code, said in ((["--beta", "5000"], 2, "beta = 5000.0 1/s is above the profile maximum 200"),
                               (["--ceiling", "40"], 3, "reaches the pressure ceiling 40.0 m")):
         out = subprocess.run(
-            [sys.executable, "-m", "velab.cli", "record", "--simulate", "--fast", "--duration", "3", "--no-fit",
-             "--out-dir", str(tmp_path), *extra], capture_output=True, text=True, timeout=120)
+            # the servo actuator's bench (its profile's range; a fired valve takes no manoeuvre at all:
+            # tests/recording/test_record_daq_benches.py)
+            [sys.executable, "-m", "velab.cli", "record", "--simulate", "--sim-config", "default", "--fast",
+             "--duration", "3", "--no-fit", "--out-dir", str(tmp_path), *extra], capture_output=True, text=True,
+            timeout=120)
         assert out.returncode == code, out.stderr
         errors = [line for line in out.stderr.splitlines() if line.startswith("velab:")]
         assert len(errors) == 1 and said in errors[0] and "Traceback" not in out.stderr, out.stderr

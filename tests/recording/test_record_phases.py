@@ -128,7 +128,9 @@ def test_halt_ends_now_without_a_fit(tmp_path):
 
 @pytest.mark.timeout(300)
 def test_run_is_self_describing_and_offline_fit_reproduces_the_online_fit(tmp_path):
-    rec = subprocess.run(CLI + ["record", "--simulate", "--fast", "--beta", "10", "--duration", "12", "--window", "12",
+    # velab's own bench: its servo actuator runs a commanded manoeuvre (beta 10), its streaming ADC has a serial
+    rec = subprocess.run(CLI + ["record", "--simulate", "--sim-config", "default", "--fast", "--beta", "10",
+                                "--duration", "12", "--window", "12",
                                 "--models", "1-3", "--json", "--out-dir", str(tmp_path / "new" / "runs")],
                          capture_output=True, text=True, timeout=240)
     assert rec.returncode == 0, rec.stderr

@@ -28,7 +28,7 @@ CLI = [sys.executable, "-m", "velab.cli"]
 
 
 def _start_sim(tmp_path: Path):
-    p = subprocess.Popen(CLI + ["sim", "--ephemeral"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(CLI + ["sim", "--config", "default", "--ephemeral"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     eps = {}
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:

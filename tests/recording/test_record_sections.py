@@ -160,7 +160,8 @@ def test_a_transducer_mapped_to_a_channel_that_is_not_a_pressure_is_one_line_and
 
 def test_a_rig_with_a_transducer_the_bench_does_not_map_is_refused_before_connecting(tmp_path, capsys):
     # the default simulated bench has no [recorder.transducers]: the two-section rig's "mid" has no channel
-    code = main(["record", "--simulate", "--rig", "perugia_two_sections", "--fast", "--out-dir", str(tmp_path)])
+    code = main(["record", "--simulate", "--sim-config", "default", "--rig", "perugia_two_sections", "--fast",
+                 "--out-dir", str(tmp_path)])
     err = capsys.readouterr().err
     assert code == 2 and "configs/sim/default.toml: [recorder.transducers]: no channel for the transducer 'mid'" in err
     assert "Traceback" not in err and not list(tmp_path.glob("*.h5"))

@@ -111,7 +111,7 @@ def test_exception_reply(sim):
     sim.faults["flowmeter"].set(exception_code=6)
     fm = connect(sim, "flowmeter", "rtu-pty", timeout_s=SOUND_TIMEOUT)
     try:
-        e = bounded(fm.read_flow, DeviceException, "exception 6 \\(server device busy\\)")
+        e = bounded(fm.read_flow, DeviceException, "refused \\(exception 6: server device busy\\)")
         assert e.code == 6
     finally:
         fm.close()

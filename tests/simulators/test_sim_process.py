@@ -55,7 +55,7 @@ def test_real_time_fault_window_is_consistent_with_the_clock():
 
 
 def _spawn_sim():
-    p = subprocess.Popen([sys.executable, "-m", "velab.cli", "sim", "--ephemeral", "--json"],
+    p = subprocess.Popen([sys.executable, "-m", "velab.cli", "sim", "--config", "default", "--ephemeral", "--json"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     ready, _, _ = select.select([p.stdout], [], [], 60)
     assert ready, "velab sim printed nothing"

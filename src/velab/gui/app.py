@@ -11,6 +11,7 @@ from PySide6.QtWidgets import QApplication
 
 from velab import recording as rec
 from velab.config import load_rig
+from velab.configpath import DEFAULT_SIM
 from velab.drivers.base import DeviceError
 from velab.drivers.bench import load_bench
 from velab.errors import VelabError
@@ -45,7 +46,7 @@ def preload(simulate: bool) -> None:
         warm_up()
 
 
-def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = "default", material=None, rig=None,
+def recorder_factory(*, config=None, simulate: bool = False, sim_config: str = DEFAULT_SIM, material=None, rig=None,
                      clock: str = "realtime"):
     """``(factory, rig)``: ``factory(**record_settings) -> velab.recording.Recorder`` and the rig it records;
     ``factory.make_settings(**record_settings) -> RecordSettings`` for the next arm on the same Recorder.

@@ -280,7 +280,9 @@ class RecorderController(QObject):
                 or not (self.state.phase == P.READY or self.state.phase in P.END_PHASES)):
             return
         self._last_look = now
-        self._look = rec.submit(lambda: spot_readings(rec))
+        submit = getattr(rec, "submit", None)  # (an engine without a command thread: no spot readings)
+        if callable(submit):
+            self._look = submit(lambda: spot_readings(rec))
 
     def _drain_events(self, q) -> None:
         deadline = time.perf_counter() + self.budget_s

@@ -285,6 +285,8 @@ class MainWindow(QMainWindow):
     def _devices_ready(self, devices: list) -> None:
         """The engine's ``ready`` phase lists the devices that answered (after Connect, or Arm connecting)."""
         self.devices.update_status([SimpleNamespace(**d) for d in devices])
+        # a valve fired by a digital line makes its own stroke: the form's manoeuvre is not a command to it
+        self.run_panel.set_fired_valve(any(d.get("role") == "valve" and d.get("kind") == "fired_valve" for d in devices))
         self.update_prediction()
         self.show_message("Devices connected: " + ", ".join(f"{d['name']} ({d['role']})" for d in devices) + ".")
 

@@ -58,6 +58,8 @@ class RunPanel(QWidget):
         mf.addRow("notes", self.notes_edit)
         lay.addWidget(meta)
 
+        self.fired_valve = False  # (set_fired_valve: the connected bench's valve is fired by a digital line)
+        self._active = False
         man = QGroupBox("Manoeuvre and recording")
         g = QFormLayout(man)
         beta0 = rig.manoeuvre.beta_per_s if rig is not None else 0.0
@@ -112,14 +114,31 @@ class RunPanel(QWidget):
             w.valueChanged.connect(self.changed)
         self.fit_check.toggled.connect(self.changed)
 
+    FIRED_TIP = ("the valve is fired by a digital line: its actuator makes its own stroke, measured on the position "
+                 "channel (the interlock predicts from the last measured stroke, or the rig's nominal one)")
+
+    def set_fired_valve(self, fired: bool) -> None:
+        """A fired valve's stroke is its own: the manoeuvre fields show the rig's default and take no input."""
+        self.fired_valve = bool(fired)
+        for w in (self.beta_spin, self.gamma_spin, self.end_spin):
+            if fired:
+                w.setValue(w.minimum())  # the special value: "rig default" (beta, gamma), 0 % (end)
+            w.setToolTip(self.FIRED_TIP if fired else "")
+        self._manoeuvre_enabled(not self._active)
+
+    def _manoeuvre_enabled(self, on: bool) -> None:
+        for w in (self.beta_spin, self.gamma_spin, self.end_spin):
+            w.setEnabled(on and not self.fired_valve)
+
     def settings(self) -> dict:
-        """RecordSettings keyword arguments from the form."""
-        beta = self.beta_spin.value() or None
-        gamma = self.gamma_spin.value() or None
+        """RecordSettings keyword arguments from the form (no manoeuvre for a fired valve: its stroke is its own)."""
+        fired = self.fired_valve
+        beta = None if fired else (self.beta_spin.value() or None)
+        gamma = None if fired else (self.gamma_spin.value() or None)
         return dict(
             duration_s=self.duration_spin.value(), pretrigger_s=self.pre_spin.value(),
             sample_rate_hz=float(self.rate_combo.currentData()), beta_per_s=beta, gamma=gamma,
-            end_position_pct=self.end_spin.value(), out_dir=self.out_edit.text().strip() or "runs",
+            end_position_pct=0.0 if fired else self.end_spin.value(), out_dir=self.out_edit.text().strip() or "runs",
             title=self.title_edit.text().strip(), operator=self.operator_edit.text().strip(),
             specimen=self.specimen_edit.text().strip(), notes=self.notes_edit.text().strip(),
             fit=self.fit_check.isChecked(), fit_window_s=self.fit_window_spin.value(),
@@ -173,7 +192,9 @@ class RunPanel(QWidget):
     def set_phase(self, phase: str) -> None:
         """The form is read-only while a run is armed, recording or fitting (its settings went with Arm)."""
         active = phase in ACTIVE_PHASES
-        for w in (self.beta_spin, self.gamma_spin, self.end_spin, self.margin_spin, self.duration_spin, self.pre_spin,
+        self._active = active
+        for w in (self.margin_spin, self.duration_spin, self.pre_spin,
                   self.armed_timeout_spin, self.rate_combo, self.out_edit, self.fit_check, self.fit_window_spin,
                   self.models_edit):
             w.setEnabled(not active)
+        self._manoeuvre_enabled(not active)
