@@ -54,7 +54,8 @@ def test_fit_opens_with_the_result_within_100_columns(fitted):
     lines = text.splitlines()
     assert lines[0] == str(path)
     _first_lines_name_the_result(lines[1:], _stored(path))
-    assert max(map(len, lines)) <= 100, max(lines, key=len)
+    report = [line for line in lines if not line.startswith("run: ")]  # (a path is as long as the folder makes it)
+    assert max(map(len, report)) <= 100, max(report, key=len)
     for detail in ("AIC AR1", "n_eff", "J_rel", "lag-1"):  # the detail only with -v
         assert detail not in text
     assert lines[-1].startswith("saved as /entry/fits/")
@@ -100,7 +101,8 @@ def test_record_report_opens_with_the_result_within_100_columns(tmp_path):
         lines.pop(0)
     path = next(line.removeprefix("run: ") for line in lines if line.startswith("run: "))
     _first_lines_name_the_result(lines, _stored(path))
-    assert max(map(len, lines)) <= 100, max(lines, key=len)
+    report = [line for line in lines if not line.startswith("run: ")]  # (a path is as long as the folder makes it)
+    assert max(map(len, report)) <= 100, max(report, key=len)
     assert "AIC AR1" not in p.stdout and "n_eff" not in p.stdout
 
 

@@ -101,16 +101,21 @@ def test_a_commanded_manoeuvre_is_refused_for_a_fired_valve(tmp_path):
     assert not list(tmp_path.glob("*.h5"))
 
 
-def test_velab_record_config_against_velab_sim_serving_the_dataq_bench(tmp_path):
-    """velab sim serves the DATAQ bench (a pty, as a USB CDC device appears); velab record --config reaches it by the
-    bench config velab sim prints; the run completes."""
-    sim = subprocess.Popen([sys.executable, "-m", "velab.cli", "sim", "--config", "dataq", "--ephemeral", "--json"],
+@pytest.mark.parametrize("config", ["dataq", "labjack"])
+def test_velab_record_config_against_velab_sim_serving_the_bench(tmp_path, config):
+    """velab sim serves the DATAQ bench (a pty, as a USB CDC device appears) or the LabJack one (Modbus TCP and the
+    stream port); velab record --config reaches it by the bench config velab sim prints; the run completes."""
+    sim = subprocess.Popen([sys.executable, "-m", "velab.cli", "sim", "--config", config, "--ephemeral", "--json"],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = sim.stdout.readline()
         assert line, sim.stderr.read()
         doc = json.loads(line)
-        assert doc["bench"]["devices"]["daq"]["url"].startswith("/")  # the pty's link
+        daq = doc["bench"]["devices"]["daq"]
+        if config == "dataq":
+            assert daq["url"].startswith("/")  # the pty's link
+        else:
+            assert daq["port"] and daq["stream_port"] and daq["host"] == "127.0.0.1"
         bench = tmp_path / "bench.toml"
         bench.write_text(doc["bench_toml"])
         out = subprocess.run([sys.executable, "-m", "velab.cli", "record", "--config", str(bench), "--no-fit",

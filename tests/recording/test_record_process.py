@@ -38,7 +38,10 @@ def _start_sim(tmp_path: Path):
         tok = line.split()
         if len(tok) >= 4 and tok[0] in ("streaming_adc", "valve", "flowmeter", "pressure_adc"):
             eps.setdefault(tok[0], []).append((tok[2], tok[3]))
-    assert {"streaming_adc", "valve", "flowmeter"} <= set(eps), eps
+    if not {"streaming_adc", "valve", "flowmeter"} <= set(eps):
+        p.kill()  # (never left running behind a failed test)
+        p.wait(10)
+        raise AssertionError(f"velab sim did not list its endpoints: {eps}")
     pick = lambda dev, tr: next(a for t, a in eps[dev] if t == tr)  # noqa: E731
     valve = pick("valve", "tcp").split("//")[1]
     flow = pick("flowmeter", "rtu-socket")
