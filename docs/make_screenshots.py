@@ -34,6 +34,7 @@ def main(argv=None) -> int:
     ap.add_argument("--expect-best", default="S3", help="the best model the run must give (default S3; '' for any)")
     ap.add_argument("--out", type=Path, default=OUT, help=f"folder for the images (default {OUT})")
     ap.add_argument("--clock", default="scaled:4")
+    ap.add_argument("--rate", type=float, default=10000.0, help="sample rate, Hz (10000)")
     args = ap.parse_args(argv)
 
     from velab.configpath import DEFAULT_SIM
@@ -55,7 +56,7 @@ def main(argv=None) -> int:
     rp.pre_spin.setValue(2.0)
     rp.fit_window_spin.setValue(20.0)
     rp.models_edit.setText("0-6")
-    rp.rate_combo.setCurrentIndex(rp.rate_combo.findData(10000.0))
+    rp.rate_combo.setCurrentIndex(rp.rate_combo.findData(args.rate))
     rp.out_edit.setText(os.path.join(tmp, "runs"))
     win.resize(*SIZES[""])
     win.show()
@@ -82,7 +83,7 @@ def main(argv=None) -> int:
     grab("gui-run")
     if not wait_until(lambda: win.last_summary is not None, 600) or not wait_until(
             lambda: win.fit_panel.result is not None and "final fit" in win.fit_panel.title, 120):
-        print("the run did not end with its fit", file=sys.stderr)
+        print(f"the run did not end with its fit: {win.log.texts()[-6:]}", file=sys.stderr)
         return 1
     win.tabs.setCurrentWidget(win.fit_panel)
     wait_until(lambda: win.fit_panel.data is not None, 120)

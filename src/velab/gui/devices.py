@@ -98,7 +98,9 @@ class DevicePanel(QWidget):
         """A ``valve`` event from the engine: the actuator's state and position in the summary line."""
         name = str(info.get("device") or "valve")
         pos = info.get("position_pct")
-        msg = f"{info.get('state', '?')}" + (f", {pos:.1f} % open" if isinstance(pos, (int, float)) else "")
+        # (a measured position's noise around the closed end reads -0.0 at one decimal: shown as 0.0)
+        msg = f"{info.get('state', '?')}" + (f", {pos:.1f} % open".replace("-0.0 %", "0.0 %")
+                                            if isinstance(pos, (int, float)) else "")
         if info.get("faults"):
             msg += f", faults {', '.join(map(str, info['faults']))}"
         entry = self.devices.setdefault(name, {"state": "connected", "message": ""})
