@@ -141,7 +141,7 @@ def test_configure_writes_the_stream_registers_in_labjacks_order():
     spp = auto_samples_per_packet(2000.0, 2)
     writes = [(4990, u32(0)), (40000, f32(10.0)), (41000, [199]), (40002, f32(10.0)), (41001, [199]),
               (4002, f32(2000.0)), (4004, u32(2)), (4006, u32(spp)), (4008, f32(0.0)), (4010, u32(0)),
-              (4012, u32(0)), (4016, u32(1)), (4020, u32(0)), (4100, u32(0) + u32(2)), (4018, u32(0))]
+              (4012, u32(32768)), (4016, u32(1)), (4020, u32(0)), (4100, u32(0) + u32(2)), (4018, u32(0))]
     pairs = [(write_req(i + 1, a, w), write_ack(i + 1, a, len(w))) for i, (a, w) in enumerate(writes)]
     n = len(pairs) + 1
     pairs.append((read_req(n, 4002, 2), read_rep(n, f32(2000.0))))

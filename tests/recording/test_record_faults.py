@@ -325,7 +325,9 @@ def test_valve_reply_corrupted_mid_stroke_is_a_position_mismatch(tmp_path, threa
     # against the ADC's channel (2 % of stroke) or, mid-stroke, against the commanded stroke the channel
     # recorded at the reply's own time since trigger (2 % plus the stroke's following lag)
     assert f["device"] == "valve" and f["role"] == "valve" and f["deviation_pct"] > f["tolerance_pct"] >= 2.0
-    assert 0.0 < f["t_s"] < 6.0 and f["polls_compared"] >= 5
+    # (inside the run: after the trigger, before its end plus the last slow poll, which a loaded host delays: the
+    # axis runs 3 x host time here; 6.67 s was seen with another command beside the suite)
+    assert 0.0 < f["t_s"] < 6.0 + 3.0 and f["polls_compared"] >= 5
     assert run.status == CWF and "position mismatch" in run.status_reason
     assert any(k == "fault" and "position mismatch" in m for _, k, m in run.events)
 

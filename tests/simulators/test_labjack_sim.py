@@ -1,6 +1,7 @@
 """The LabJack driver against the simulated T7 over real sockets (Modbus TCP + the stream port), and the
 simulator read by clients that are not velab's (pyModbusTCP; a raw socket decoding the stream by hand)."""
 
+import dataclasses
 import socket
 import struct
 import time
@@ -160,7 +161,14 @@ def test_digital_output_reaches_the_valve_callback(sim, lj):
     assert got[-1] == (0, False) and lj.read_digital()[0] is False
 
 
+def _device_default_buffer(lj) -> None:
+    """The T7's own default FIFO (STREAM_BUFFER_SIZE_BYTES = 0: 4096 bytes), not the profile's 32768: the overflow
+    tests hold packets for a time that fills the small one."""
+    lj.profile = dataclasses.replace(lj.profile, buffer_size_bytes=0)
+
+
 def test_overflow_is_auto_recovered_with_the_skipped_scans_counted(sim, lj):
+    _device_default_buffer(lj)
     lj.configure(RATE, ["pressure", "valve_position"])
     lj.start()
     collect(lj, 200)
@@ -176,6 +184,7 @@ def test_overflow_is_auto_recovered_with_the_skipped_scans_counted(sim, lj):
 
 
 def test_overflow_without_auto_recovery_is_a_named_fault(sim, lj):
+    _device_default_buffer(lj)
     lj.configure(RATE, ["pressure", "valve_position"])
     lj.bus.write_registers(4028, [0, 1])  # STREAM_AUTORECOVER_DISABLE
     lj.start()
