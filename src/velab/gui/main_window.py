@@ -247,7 +247,15 @@ class MainWindow(QMainWindow):
         self.run_controls.apply(st)
         self.reset_valve_action.setEnabled(st.controls()["reset_valve"])
         self.run_panel.set_phase(st.phase)
-        self.phase_label.setText(status_text(st))
+        text = status_text(st)
+        if text != self.phase_label.text():
+            self.phase_label.setText(text)
+            # wide enough for its text at once (a countdown that grows by a digit was drawn cut until the status
+            # bar's next layout pass), and never narrower again (no jitter while the countdown runs)
+            need = self.phase_label.fontMetrics().horizontalAdvance(text) + 24  # (+ the style's padding)
+            if need > self.phase_label.minimumWidth():
+                self.phase_label.setMinimumWidth(need)
+                self.statusBar().layout().activate()
         style = f"background:{COLORS.get(st.indicator()[0], 'transparent')}; padding:2px 6px;"
         if self.phase_label.styleSheet() != style:
             self.phase_label.setStyleSheet(style)
