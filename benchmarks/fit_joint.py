@@ -27,7 +27,7 @@ import numpy as np
 from velab.config import load_material, load_rig
 from velab.fitting.campaignrun import CampaignRun, head_sha256
 from velab.fitting.joint import fit_joint
-from velab.fitting.prepare import fit_record
+from velab.fitting.entry import fit_record
 from velab.model import creep_scale
 from velab.moc import moc_head
 from velab.valvelaw import commanded_position_pct

@@ -34,7 +34,7 @@ import numpy as np
 
 from velab.config import load_material, load_rig
 from velab.fitting import sweep as fit_sweep_module
-from velab.fitting.prepare import fit_record
+from velab.fitting.entry import fit_record
 from velab.model import creep_scale
 from velab.moc import moc_head
 from velab.valvelaw import commanded_position_pct

@@ -15,7 +15,7 @@ import pytest
 from record_helpers import assert_halted_fit, run_bounded
 from velab.config import load_rig
 from velab import fit_worker as worker
-from velab.fitting.prepare import fit_record
+from velab.fitting.entry import fit_record
 from velab.model import valve_head
 from velab.recording import Recorder, RecordSettings
 

@@ -98,7 +98,7 @@ def test_fit_of_the_run_file_uses_both_sections(two):
 
 
 def test_velab_fit_of_a_run_with_two_sections(two, capsys):
-    """velab fit of the run file: the fit path (velab.fitting.prepare.fit_run) takes every section; the JSON
+    """velab fit of the run file: the fit path (velab.fitting.entry.fit_run) takes every section; the JSON
     has `sections`; a single sweep's search option is refused in one line."""
     import json
 

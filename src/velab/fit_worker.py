@@ -85,7 +85,7 @@ def _warm_up() -> None:
 
 def serve(inp, out) -> int:
     """The child's loop: jobs one at a time; cancels read on a thread of their own."""
-    from velab.fitting.prepare import fit_lead, fit_record  # the one fit path
+    from velab.fitting.entry import fit_lead, fit_record  # the one fit path
 
     calls = {"record": fit_record, "lead": fit_lead}
 

@@ -81,17 +81,17 @@ def _fits(p: Path) -> list[str]:
 
 @pytest.fixture
 def fitted(monkeypatch):
-    """The paths the fit path fitted (velab.fitting.prepare.fit_run, spied on, in this process: --jobs 1)."""
-    import velab.fitting.prepare as prepare
+    """The paths the fit path fitted (velab.fitting.entry.fit_run, spied on, in this process: --jobs 1)."""
+    import velab.fitting.entry as entry
 
     seen: list[str] = []
-    real = prepare.fit_run
+    real = entry.fit_run
 
     def spy(run, *a, **k):
         seen.append(str(run.path))
         return real(run, *a, **k)
 
-    monkeypatch.setattr(prepare, "fit_run", spy)
+    monkeypatch.setattr(entry, "fit_run", spy)
     return seen
 
 

@@ -9,6 +9,7 @@ import pytest
 from velab.cli import main
 from velab.config import load_rig
 from velab.runfiles import read_run, write_run
+from velab.fitting.report import format_report
 
 
 @pytest.fixture(scope="module")
@@ -211,4 +212,4 @@ def test_result_round_trip_and_old_documents(run_a, capsys):
          "elements": [{"E": 1e10, "eta": 1e9, "tau": 0.1, "J": 1e-10}]}]}
     r = SweepResult.from_dict(old)
     assert r.best.name == "S1" and r["S1"].tau_s == pytest.approx((0.1,)) and r["S1"].negligible == (False,)
-    assert "S1" in r.report()
+    assert "S1" in format_report(r)

@@ -15,7 +15,7 @@ from velab.cli import main as velab_main  # noqa: E402
 
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
-    from velab.fitting.prepare import fit_run
+    from velab.fitting.entry import fit_run
     from velab.runfiles import read_run
 
     d = tmp_path_factory.mktemp("fig")

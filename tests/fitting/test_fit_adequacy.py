@@ -25,6 +25,7 @@ from velab.fitting.prepare import prepare_record
 from velab.fitting.results import SweepResult
 from velab.runfiles import read_run
 from velab.runfiles.fits import read_fit_group
+from velab.fitting.report import format_report
 
 RIG = "configs/rigs/perugia.toml"
 WINDOW = ["--window", "5", "--models", "0-3"]
@@ -170,7 +171,7 @@ def test_baseline_noise_and_the_chance_bound():
 def test_bound_warning_and_old_stored_fits(moc_record):
     """Parameters of the best model on a bound become a ``bound`` warning (the report's line stays); a fit
     stored before the warnings existed reads back with its bound warning and no noise ratio."""
-    from velab.fitting.prepare import fit_record
+    from velab.fitting.entry import fit_record
 
     _, run, _ = moc_record
     r = read_run(run)
@@ -183,7 +184,7 @@ def test_bound_warning_and_old_stored_fits(moc_record):
     assess(result, rec, r.rig)
     bound = [w for w in result.warnings if w["code"] == "bound"]
     assert len(bound) == 1 and f"{best.name}: tau_1 on the lower bound 0.0137 s (try --tau-min 0.002)" in bound[0]["message"]
-    assert "on a bound: " + best.name in result.report()
+    assert "on a bound: " + best.name in format_report(result)
     old = result.to_dict()
     for key in ("warnings", "baseline_noise_m", "baseline_lag1", "adequacy"):
         del old[key]
@@ -192,13 +193,13 @@ def test_bound_warning_and_old_stored_fits(moc_record):
     back = SweepResult.from_dict(old)
     assert [w["code"] for w in back.warnings] == ["bound"] and back.baseline_noise_m is None
     assert all(f.noise_ratio is None for f in back.models) and not is_misfit(back, back.best)
-    assert "WARNING bound" in back.report()
+    assert "WARNING bound" in format_report(back)
 
 
 def test_fit_panel_shows_the_warnings_and_the_residuals(qtbot, moc_record, tmp_path, capsys):
     pytest.importorskip("PySide6")
     pytest.importorskip("pyqtgraph")
-    from velab.fitting.prepare import fit_run
+    from velab.fitting.entry import fit_run
     from velab.gui.fit_panel import FitPanel
     from velab.gui.fit_rows import COLUMNS
 
@@ -257,7 +258,7 @@ def _stroke_record(exact_position: bool):
 @pytest.mark.slow
 @pytest.mark.parametrize("exact", [False, True])
 def test_an_element_faster_than_the_closure_from_the_strokes_noise_is_noted(exact):
-    from velab.fitting.prepare import fit_record
+    from velab.fitting.entry import fit_record
 
     rig, t, h, trigger, position = _stroke_record(exact)
     r = fit_record(t, h, trigger, rig, 20.0, record_rate_hz=1000.0, models=[1, 2], position_pct=position)
@@ -265,7 +266,7 @@ def test_an_element_faster_than_the_closure_from_the_strokes_noise_is_noted(exac
     if exact:  # the same record with the exact position: S1, no note
         assert r.best.name == "S1" and not note
         return
-    assert r.best.name == "S2" and r["S1"].delta_aic > 7, r.report(elements=True)
+    assert r.best.name == "S2" and r["S1"].delta_aic > 7, format_report(r, elements=True)
     k = int(np.argmin(r.best.J_rel))
     assert r.best.tau_s[k] < rig.manoeuvre.closure_time_s
     assert len(note) == 1 and "S1's within" in note[0], r.notes

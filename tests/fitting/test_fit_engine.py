@@ -11,7 +11,8 @@ from velab.errors import DataError
 from velab.fitting import fit_sweep, parse_models, support_category
 from velab.fitting.engine import HeadEvaluator
 from velab.fitting.params import ParamMap, bound_hits, creep_const, derive_bounds
-from velab.fitting.results import ModelFit, apply_criteria
+from velab.fitting.results import ModelFit
+from velab.fitting.selection import apply_criteria
 from velab.fitting.data import lowpass_decimate, prepare_window
 from velab.model import valve_head
 

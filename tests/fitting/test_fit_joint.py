@@ -21,6 +21,7 @@ from velab.fitting.engine import HeadEvaluator
 from velab.fitting.campaignrun import head_sha256
 from velab.fitting.stacked import StackedEvaluator
 from velab.runfiles import read_run
+from velab.fitting.report import format_report
 
 WINDOW = 8.0
 RIG = Path(__file__).resolve().parents[2] / "configs" / "rigs" / "perugia.toml"
@@ -332,7 +333,7 @@ def test_runs_may_differ_in_rate_manoeuvre_and_valve_input():
         pos = position(t) + np.random.default_rng(40 + i).normal(0.0, 0.02, t.size) if with_position else None
         sources.append(CampaignRun(f"run{i}", t, h, 0.0, rig, fs, pos, head_sha256(t, h)))
     r = fit_joint(sources, 6.0, models="1-4")
-    assert r.best.name == "S3" and abs(r.best.wave_speed_m_s - 353.73) <= 0.5, r.report()
+    assert r.best.name == "S3" and abs(r.best.wave_speed_m_s - 353.73) <= 0.5, format_report(r)
     assert [x["record_rate_hz"] for x in r.runs] == [2000.0, 1000.0]
     assert [x["sample_rate_hz"] for x in r.runs] == [1000.0, 1000.0]  # 2 kHz fitted at 1 kHz (prepare_record)
     assert [x["manoeuvre"]["source"] for x in r.runs] == ["position", "fitted"]

@@ -30,6 +30,7 @@ from velab.recording.online_fit import HALTED
 from velab.runfiles.reader import read_run
 from velab.runfiles.summary import read_fits
 from velab.simulators.bench import load_sim_config
+from velab.fitting.report import format_report
 
 WINDOW_S = 8.0  # the reference rig's period is 1.16 s: the lead's 6.4 s hold 5.5 periods
 MODELS = [0, 1, 2, 3]
@@ -111,7 +112,7 @@ def test_the_continuation_names_what_a_one_step_sweep_names(rig_name, truth):
     two = fit_record(**kw)
     one = fit_record(lead=False, **kw)
     assert two.settings["lead"] is not None and one.settings["lead"] is None
-    assert two.best.name == one.best.name == truth, two.report(elements=False)
+    assert two.best.name == one.best.name == truth, format_report(two, elements=False)
     assert abs(two.best.wave_speed_m_s - one.best.wave_speed_m_s) < 0.01
     assert two.best.F / SIGMA**2 <= 1.05
     # the fitted closure (velab.fitting.manoeuvre) is refined with the best wall over the lead's 16 s in

@@ -17,6 +17,7 @@ from velab.cli import main
 from velab.config import KelvinVoigt, Material, load_rig
 from velab.fitting import METHODS, fit_sweep
 from velab.model import creep_scale, valve_head
+from velab.fitting.report import format_report
 
 REL = 1e-9
 # a fixed (derandomised) sample of cases, 0.4 s each: 37 in the default suite, scaled with the suite's
@@ -88,7 +89,7 @@ def test_larger_models_never_fit_worse(elements, rig_kind, noise, m_lo, n_models
         models = [m_lo - 1, m_lo]
     r = fit_sweep(t, h, rig, models=models, window_s=2.25, method=method, reduced=reduced, polish=polish,
                   starts=2 if method != "least-squares" else None, threads=1)
-    assert not _chain_ok(r.models), (_chain_ok(r.models), r.report(elements=False))
+    assert not _chain_ok(r.models), (_chain_ok(r.models), format_report(r, elements=False))
     for f in r.models:
         assert math.isfinite(f.F) and f.F > 0
         assert len(f.negligible) == f.m == len(f.E_pa)

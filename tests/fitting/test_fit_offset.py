@@ -7,6 +7,7 @@ import pytest
 
 from velab.fitting.engine import gram, sumsq
 from velab.fitting.offset import fitted, objective, offset, project, project_gram
+from velab.fitting.report import format_report
 
 
 def test_the_projection_is_the_minimum_over_the_offset():
@@ -67,13 +68,13 @@ def test_a_baseline_four_standard_errors_high_leaves_the_truth_named_and_the_off
     slowest element on the 200 s bound (a ramp) and S3 16.4 AIC units behind (on the simulated bench,
     2.3 standard errors had put S3 18 behind S5 the same way); with the offset fitted, every model takes
     it back and S3 is named, S4 3.8 behind without a ramp."""
-    from velab.fitting.prepare import fit_record
+    from velab.fitting.entry import fit_record
 
     shift = 4 * 0.012 / np.sqrt(2000)
     rig, t, h, trigger, position = _record(shift)
     r = fit_record(t, h, trigger, rig, 20.0, record_rate_hz=1000.0, models=[3, 4], position_pct=position)
     assert r.settings["record"]["steady_samples"] == pytest.approx(2000, abs=2)
-    assert r.best.name == "S3" and r["S4"].tau_s[-1] < r.window_s, r.report(elements=True)
+    assert r.best.name == "S3" and r["S4"].tau_s[-1] < r.window_s, format_report(r, elements=True)
     assert abs(r["S3"].wave_speed_m_s - 353.73) < 0.05
     # the baseline's mean is off by the shift and its own noise's mean; the window's 20000 samples and the
     # baseline's 2000 weigh in: the offset takes back 20000 / 22000 of it, give or take 12 mm / sqrt(22000)
@@ -81,9 +82,9 @@ def test_a_baseline_four_standard_errors_high_leaves_the_truth_named_and_the_off
     assert error > 3 * 0.012 / np.sqrt(2000)
     for name in ("S3", "S4"):
         assert r[name].steady_head_offset_m == pytest.approx(-error * 20000 / 22000, abs=0.25e-3), name
-    assert "steady head: the baseline's mean" in r.report()
+    assert "steady head: the baseline's mean" in format_report(r)
     # the residuals shown are from the model's own steady head: they average out
-    from velab.fitting.adequacy import best_residuals
+    from velab.fitting.residuals import best_residuals
 
     w = (t >= trigger - 0.5e-3) & (t < trigger + 20.0 - 0.5e-3)
     _, res = best_residuals(t[w] - trigger, h[w] - r.settings["record"]["steady_head_m"], rig, r,
@@ -106,7 +107,7 @@ def test_a_joint_fit_takes_each_runs_steady_head_offset():
         errors.append(float(h[base].mean()) - rig.steady_head_m)
         sources.append(CampaignRun(f"run{seed}", t, h, trigger, rig, 1000.0, position, head_sha256(t, h)))
     r = fit_joint(sources, 20.0, models=[3, 4])
-    assert r.best.name == "S3" and r["S4"].tau_s[-1] < r.window_s, r.report()
+    assert r.best.name == "S3" and r["S4"].tau_s[-1] < r.window_s, format_report(r)
     for run, error in zip(r.runs, errors):
         assert run["steady_head_offset"] == pytest.approx(-error * 20000 / 22000, abs=0.25e-3), (run["path"], error)
     assert abs(r.runs[0]["steady_head_offset"]) > 3 * 0.012 / np.sqrt(2000)

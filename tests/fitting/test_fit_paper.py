@@ -8,6 +8,7 @@ import pytest
 from velab.config import load_material, load_rig
 from velab.fitting import fit_sweep
 from velab.model import valve_head
+from velab.fitting.report import format_report
 
 TRUE_A = 353.73
 # F of S1..S5 on this test's records with the fitter of commit 6c5e3eb (E, eta in the paper's box)
@@ -39,7 +40,7 @@ def test_paper_synthetic_experiment(rig, noise, material):
     noise_var = float(np.mean(noise**2))
     F = {f.name: f.F for f in r.models}
     d = {f.name: f.delta_aic for f in r.models}
-    print(r.report())
+    print(format_report(r))
 
     assert r.n == 20000 and r.window_s == pytest.approx(20.0)
     assert r.best.name == "S3"

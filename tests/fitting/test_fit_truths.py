@@ -26,6 +26,7 @@ from velab.fitting import fit_sweep
 from velab.fitting.friction import fitted_head
 from velab.moc import moc_head
 from velab.model import creep_scale
+from velab.fitting.report import format_report
 
 SIGMA = 0.1
 # truth -> (J'_k, tau_k / T)
@@ -55,9 +56,9 @@ def test_default_fit_names_the_truth(rig_name, truth):
     t, h = _record(rig, truth)
     r = fit_sweep(t, h, rig)
     best = r.best
-    assert best.name == truth, r.report(elements=False)
+    assert best.name == truth, format_report(r, elements=False)
     assert abs(best.wave_speed_m_s - rig.nominal_wave_speed_m_s) <= 1.0
-    assert best.F / SIGMA**2 <= 1.05, r.report(elements=False)
+    assert best.F / SIGMA**2 <= 1.05, format_report(r, elements=False)
     assert not best.at_bounds
     # the friction was carried by the time-domain model, not by the Kelvin-Voigt elements
     assert r.settings["friction"]["time_domain"] and best.friction["refreshes"] >= 1
@@ -153,7 +154,7 @@ def test_brunone_unsteady_friction_in_the_time_domain_model():
     t, h = _record(rig, "S3")
     r = fit_sweep(t, h, rig, models=[2, 3, 4])
     assert r.settings["friction"]["time_domain"]
-    assert r.best.name in ("S3", "S4") and r["S3"].delta_aic <= 2.0, r.report(elements=False)
+    assert r.best.name in ("S3", "S4") and r["S3"].delta_aic <= 2.0, format_report(r, elements=False)
     assert abs(r["S3"].wave_speed_m_s - rig.nominal_wave_speed_m_s) <= 1.0
     assert r["S3"].F / SIGMA**2 <= 1.05
     r0 = fit_sweep(t, h, rig, models=[3], friction_unsteady="none")

@@ -18,6 +18,7 @@ from velab.fitting.campaignrun import CampaignRun, head_sha256
 from velab.fitting.joint import fit_joint
 from velab.rig import Section
 from velab.runfiles import read_run
+from velab.fitting.report import format_report
 
 FLOWS = (3.0, 4.2)  # l/s
 
@@ -46,7 +47,7 @@ def test_a_joint_fit_uses_every_section_of_every_run(runs, both):
     """The true model and wave speed; one closure per run counted (not one per section); every section of
     every run reported at its own noise; and a more precise wall than the same runs' valve sections alone."""
     r = both
-    assert r.best.name == "S3" and abs(r.best.wave_speed_m_s - 353.73) <= 0.5, r.report()
+    assert r.best.name == "S3" and abs(r.best.wave_speed_m_s - 353.73) <= 0.5, format_report(r)
     # one closure per run (five parameters, two with its shape held at the rig's valve), not one per section
     closures = [x["manoeuvre"]["nuisance_parameters"] for x in r.runs]
     assert all(k in (2, 5) for k in closures) and r.settings["k_nuisance"] == sum(closures)

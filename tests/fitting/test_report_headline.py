@@ -12,7 +12,8 @@ import pytest
 
 from velab.fitting.headline import Headline, headline, headline_lines
 from velab.fitting.report import format_report
-from velab.fitting.results import ModelFit, SweepResult, apply_criteria
+from velab.fitting.results import ModelFit, SweepResult
+from velab.fitting.selection import apply_criteria
 
 
 def _fit(name, m, F, a, E=(), eta=(), se=0.01, negligible=None, noise=1.0e-4):

@@ -20,6 +20,7 @@ from record_helpers import rate_clock
 from velab.errors import SafetyError, VelabError
 from velab.recording import Recorder, RecordSettings, RunRefused
 from velab.runfiles.reader import read_run
+from velab.fitting.report import format_report
 
 pytestmark = pytest.mark.slow  # the integration layer: the simulated bench (tests/recording: the stages alone)
 
@@ -85,10 +86,10 @@ def test_material_A_online_fit_names_S3(tmp_path):
     # the 63 refitted (the worst 30 and 33 others) more than 6.0. S1 and S2 are ruled out every time.
     assert summary.best_model in ("S3", "S4", "S5")
     if summary.best_model == "S5":
-        assert _stroke_element(fit, "S4"), fit.report(elements=True)
-    assert fit["S3"].delta_aic <= 10.0 or _stroke_element(fit, "S3"), fit.report(elements=True)
+        assert _stroke_element(fit, "S4"), format_report(fit, elements=True)
+    assert fit["S3"].delta_aic <= 10.0 or _stroke_element(fit, "S3"), format_report(fit, elements=True)
     # the steady head's offset is the baseline mean's error: a few of its standard errors at most
-    assert abs(fit.best.steady_head_offset_m) < 4 * 0.012 / np.sqrt(2000), fit.report()
+    assert abs(fit.best.steady_head_offset_m) < 4 * 0.012 / np.sqrt(2000), format_report(fit)
     assert fit["S2"].delta_aic > 10 and fit["S1"].delta_aic > 10
     assert abs(fit["S3"].wave_speed_m_s - A_TRUE) < 0.5
     # the simulated valve is a real one (orifice law): the fit took the manoeuvre from the measured
@@ -145,8 +146,8 @@ def test_s1_material_is_not_named_s3(tmp_path):
     # flow at the valve, and the wavefront error it leaves repeats every period; in 2 of 100 simulated records
     # an element faster than the closure fitted it, S1 16-21 behind (docs/fitting.md, "position"). That
     # element holds ~1e-4 of the compliance: the creep function is S1's either way, and nothing else may win.
-    assert summary.best_model in ("S1", "S2"), fit.report(elements=True)
-    assert s1.delta_aic < 12.0 or _stroke_element(fit, "S1"), fit.report(elements=True)
+    assert summary.best_model in ("S1", "S2"), format_report(fit, elements=True)
+    assert s1.delta_aic < 12.0 or _stroke_element(fit, "S1"), format_report(fit, elements=True)
     assert fit["EL"].delta_aic > 10
     assert abs(s1.wave_speed_m_s - A_TRUE) < 0.5
 

@@ -23,6 +23,7 @@ from velab.fitting.sections import SectionsResult
 from velab.recording import RecordSettings, RunRefused
 from velab.runfiles.reader import read_run
 from velab.runfiles.summary import read_fits
+from velab.fitting.report import format_report
 
 pytestmark = pytest.mark.slow  # the integration layer: the simulated bench (tests/recording: the stages alone)
 
@@ -85,7 +86,7 @@ def test_two_sections_recorded_and_fitted_online_as_velab_fit_does(tmp_path, sou
 
     # the online fit: every section, material A's S3, each section's noise ratio
     online = s.fit
-    assert online.method == "sections" and s.best_model == "S3", online.report(elements=False)
+    assert online.method == "sections" and s.best_model == "S3", format_report(online, elements=False)
     assert abs(online["S3"].wave_speed_m_s - A_TRUE) < 0.1 and online["S2"].delta_aic > 100
     assert [(x["name"], x["position_m"]) for x in online.sections] == [("valve", 102.58), ("mid", MID_X)]
     assert all(0.8 < x["noise_ratio"] < 1.25 and not x["disagrees"] for x in online.sections), online.sections

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from velab.cli import main
-from velab.fitting.results import ModelFit, SweepResult, apply_criteria
+from velab.fitting.results import ModelFit, SweepResult
+from velab.fitting.selection import apply_criteria
 from velab.runfiles import open_run_file, read_fit_dict, read_fit_group, read_run, save_fit
 
 

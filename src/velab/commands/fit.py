@@ -10,6 +10,7 @@ from velab import bounds
 from velab.batch.address import scheduler_address
 from velab.commands.common import ProgressLine, add_json_option, check_output_path, float_range, int_range, write_json
 from velab.errors import DataError, ExitCode, UnavailableError
+from velab.fitting.report import format_report
 
 # velab.fitting.sweep.METHODS, named here so that building the parser does not import the
 # fitter (scipy); run() checks the option against the fitter's own list.
@@ -115,7 +116,7 @@ def _plot_path(template: str, run_path: str, many: bool) -> str:
 
 def fit_file(path: str, opts: dict, many: bool = False, progress=None):
     """Fit one run file; returns (SweepResult, fit group name or None). Raises VelabError."""
-    from velab.fitting.prepare import fit_run
+    from velab.fitting.entry import fit_run
     from velab.runfiles.fits import save_fit
     from velab.runfiles import RunStillOpen, read_run
 
@@ -196,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
             write_json({"path": path, "fit_name": name, **result.to_dict(), "headline": _headline(result)})
         else:
             print(f"{path}")
-            print(result.report(verbose=bool(getattr(args, "verbose", 0))))
+            print(format_report(result, verbose=bool(getattr(args, "verbose", 0))))
             if name:
                 print(f"saved as /entry/fits/{name}")
         return ExitCode.OK
@@ -280,7 +281,7 @@ def _run_joint(args, opts: dict) -> int:
                     "headline": _headline(result)})
     else:
         print("joint fit of " + ", ".join(s.path for s in sources))
-        print(result.report(verbose=bool(getattr(args, "verbose", 0))))
+        print(format_report(result, verbose=bool(getattr(args, "verbose", 0))))
         print(runs_report(result))
         if name:
             print(f"saved as /entry/fits/{name} in each of the {len(sources)} runs")

@@ -5,7 +5,7 @@ Public API (pure computation, no Qt, no I/O, thread-safe)::
     from velab.fitting import fit_sweep
     result = fit_sweep(t, h, rig, models=range(7), window_s=20, method="auto",
                        reduced=False, progress=None, initial=None)
-    result.best, result.report(), result.to_dict(), result["S3"].tau_s
+    result.best, format_report(result), result.to_dict(), result["S3"].tau_s
 
 One fit path for recorded runs (velab fit, the recorder's online fit, the GUI re-fit)::
 
@@ -22,10 +22,11 @@ import importlib
 # the public names and their modules, imported on first use (PEP 562): the recorder reads the fit
 # path's policy (velab.fitting.lead) without loading scipy, which only the fit itself needs
 _EXPORTS = {
-    "SELECTIONS": "results", "ModelFit": "results", "SweepResult": "results", "support_category": "results",
+    "SELECTIONS": "selection", "ModelFit": "results", "SweepResult": "results", "support_category": "selection",
+    "format_report": "report",
     "METHODS": "sweep", "fit_sweep": "sweep", "parse_models": "sweep",
-    "PreparedRecord": "prepare", "prepare_record": "prepare", "fit_record": "prepare", "fit_lead": "prepare",
-    "fit_run": "prepare",
+    "PreparedRecord": "prepare", "prepare_record": "prepare", "fit_record": "entry", "fit_lead": "entry",
+    "fit_run": "entry",
 }
 __all__ = list(_EXPORTS)
 

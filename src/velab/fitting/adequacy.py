@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from velab.cavitation import DETECTION_MARGIN_M, cavitating, rig_temperature_c, rig_vapour_head_m
+from velab.fitting.creep import creep_of
 from velab.fitting.stats import effective_n, lag1
 
 MIN_BASELINE_SAMPLES = 200  # at the fit rate: fewer give a noise variance too uncertain to judge by
@@ -92,9 +93,22 @@ def misfit_message(name: str, ratio: float, F: float, variance: float, bound: fl
             f"not the pipe's; check the rig, the valve, air, friction")
 
 
-def bound_message(best) -> str:
-    from velab.fitting.report import bounds_line  # (report imports nothing of this module)
+def bounds_line(f) -> str:
+    """One line for the parameters of model ``f`` that ended on a bound, grouped by bound."""
+    groups: dict = {}
+    for b in f.at_bounds:
+        groups.setdefault((b["bound"], b["limit"], b.get("hint") or b.get("option"), b["parameter"].split("_")[0]),
+                          []).append(b)
+    parts = []
+    for (side, limit, option, kind), bs in groups.items():
+        unit = " m/s" if kind == "wave" else (" s" if kind == "tau" else "")
+        names = ", ".join(b["parameter"] for b in bs)
+        text = f"{names} on the {side} bound {limit:.4g}{unit}"
+        parts.append(text + (f" (try {option})" if option else ""))
+    return f"{f.name}: " + "; ".join(parts)
 
+
+def bound_message(best) -> str:
     return f"parameters of the best model on a bound: {bounds_line(best)}"
 
 
@@ -145,8 +159,6 @@ def stroke_element_note(result, rig) -> str:
     element faster than the closure that holds under STROKE_SHARE of the compliance: the position's noise
     during the stroke enters the flow and leaves a wavefront error every period that such an element fits
     (docs/fitting.md, the "position" manoeuvre); the note gives how far the two creep functions differ."""
-    from velab.fitting.creep import creep_of  # (creep imports nothing of this module)
-
     if ((result.settings or {}).get("manoeuvre") or {}).get("source") != "position" or not result.models:
         return ""
     best = result.best
@@ -172,26 +184,3 @@ def is_misfit(result, f) -> bool:
     bound = (getattr(result, "adequacy", None) or {}).get("misfit_bound")
     r = getattr(f, "noise_ratio", None)
     return bound is not None and r is not None and math.isfinite(r) and r > bound
-
-
-def best_residuals(t, h, rig, result, model=None, position_pct=None) -> tuple[np.ndarray, np.ndarray]:
-    """(t, residual) of the best model (or ``model``) on a window ``t``, ``h`` (s from the trigger, head
-    perturbation, m, at the record's rate), taken to the fit rate as the fit path does (the result's
-    ``settings["record"]["decimation"]``), so that they compare with the baseline noise band; the model
-    is driven by the fit's own flow at the valve (velab.fitting.manoeuvre.result_flow; ``position_pct``
-    the recorded valve position on t, if the fit took it). ``h`` is taken from the baseline's steady head;
-    the residual is from the model's own (its ``steady_head_offset_m`` added)."""
-    from velab.fitting.friction import fitted_head
-    from velab.fitting.manoeuvre import result_flow
-    from velab.fitting.prepare import decimate_head  # (prepare imports this module)
-
-    t = np.asarray(t, dtype=float)
-    h = np.asarray(h, dtype=float)
-    q = int(((result.settings or {}).get("record") or {}).get("decimation") or 1)
-    hd = decimate_head(h, q)
-    td = t[::q][: hd.size]
-    f = model if model is not None else result.best
-    pd = None if position_pct is None else np.asarray(position_pct, dtype=float)[::q][: td.size]
-    flow = result_flow(result.settings, td, hd[: td.size], rig, pd)
-    # (the model's head over the steady head it fitted: the baseline's plus its offset, velab.fitting.offset)
-    return td, hd[: td.size] - fitted_head(td, rig, f, flow=flow) - f.steady_head_offset_m

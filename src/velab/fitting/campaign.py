@@ -4,6 +4,7 @@ each run's wave speed against its steady flow (matplotlib, no GUI; velab.fitting
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -97,6 +98,4 @@ def _recorded(path) -> str:
 
 
 def _run_label(r: dict) -> str:
-    from pathlib import Path
-
     return Path(str(r.get("path", "?"))).name

@@ -22,9 +22,7 @@ contribute no variance: the band is conditional on them, and says nothing about 
 the fit could not see. The band is the calibration's own uncertainty (noise, correlated
 residuals), not the model's: a wrong model is wrong with a narrow band.
 
-The model-averaged curve (``averaged_creep_of``; JSON ``creep_averaged``) weighs every model's curve by
-its Akaike weight and widens the band by the models' spread (Burnham & Anderson 2002): the uncertainty
-of the choice between models that describe the record alike, which no single model's band holds.
+The model-averaged curve over the models' Akaike weights is velab.fitting.selection's.
 
 Pure computation on a ModelFit; no I/O.
 """
@@ -38,9 +36,6 @@ import numpy as np
 
 CREEP_POINTS = 50  # points of the curve in JSON, plots and the GUI (log-spaced)
 Z95 = 1.959963984540054  # two-sided 95 % of the normal distribution
-# the model-averaged creep is shown (report, figure) where the best model holds less than this share of the
-# Akaike weight: the choice between models is then part of the uncertainty
-AVERAGED_BELOW = 0.99
 
 
 @dataclass(frozen=True, eq=False)  # arrays: no element-wise __eq__
@@ -61,7 +56,7 @@ class CreepCurve:
                 "upper": self.upper.tolist()}
 
 
-def _empty() -> CreepCurve:
+def empty_curve() -> CreepCurve:
     z = np.zeros(0)
     return CreepCurve(z, z, z, z)
 
@@ -122,7 +117,7 @@ def creep_curve(fit, t_s=None, *, t_min_s: float | None = None, t_max_s: float |
     before it was kept, or not computable): the curve with NaN bounds."""
     m = len(fit.E_pa)
     if m == 0:
-        return _empty()
+        return empty_curve()
     E = np.asarray(fit.E_pa, dtype=float)
     J = 1.0 / E
     tau = np.asarray(fit.eta_pa_s, dtype=float) / E
@@ -140,79 +135,6 @@ def creep_curve(fit, t_s=None, *, t_min_s: float | None = None, t_max_s: float |
     var = np.einsum("ij,jk,ik->i", g, C, g)
     sd = np.sqrt(np.maximum(var, 0.0))
     return CreepCurve(t, G, G * np.exp(-Z95 * sd), G * np.exp(Z95 * sd))
-
-
-@dataclass(frozen=True, eq=False)
-class AveragedCreep:
-    """The model-averaged J(t) - J0 (``curve``, its band unconditional on the model) and the Akaike weights it
-    used (``weights``: model name -> weight, renormalised over the models with a creep band), ``left_out``:
-    the weight of the models without one (EL, a fit without a covariance)."""
-
-    curve: CreepCurve
-    weights: dict
-    left_out: float
-
-    def to_dict(self) -> dict:
-        return {**self.curve.to_dict(), "weights": dict(self.weights), "weight_left_out": self.left_out}
-
-
-def averaged_creep(weighted) -> CreepCurve:
-    """Model averaging of creep curves on one time grid: ``weighted`` [(Akaike weight, CreepCurve)]. On
-    theta = ln(J(t) - J0) (the scale of the bands), theta_avg = sum w_m theta_m, and the unconditional standard
-    error sum w_m sqrt(var_m + (theta_m - theta_avg)^2) (Burnham & Anderson 2002, section 4.3.2, eq. 4.9):
-    each model's own variance plus its spread about the average. A record that two models describe alike (a
-    fourth element that trades with the fast one) gets a band holding both; one model of weight ~1 gives its
-    own curve and band. Curves without a band are not averaged (the caller leaves them out); weights are
-    renormalised over those given."""
-    pairs = [(float(w), c) for w, c in weighted if w > 0 and c.has_band and c.t_s.size]
-    if not pairs:
-        return _empty()
-    total = sum(w for w, _ in pairs)
-    t = pairs[0][1].t_s
-    theta = np.array([np.log(c.J_per_pa) for _, c in pairs])
-    sd = np.array([(np.log(c.upper) - np.log(c.lower)) / (2 * Z95) for _, c in pairs])
-    w = np.array([w / total for w, _ in pairs])[:, None]
-    mean = (w * theta).sum(axis=0)
-    se = (w * np.sqrt(sd**2 + (theta - mean) ** 2)).sum(axis=0)
-    G = np.exp(mean)
-    return CreepCurve(t, G, G * np.exp(-Z95 * se), G * np.exp(Z95 * se))
-
-
-def averaged_creep_of(result, t_s=None, points: int = CREEP_POINTS) -> AveragedCreep:
-    """The model-averaged creep of a sweep (its models' Akaike ``weight`` under its selection criterion) over
-    the sweep's range (:func:`creep_range`), or on ``t_s``; ``weights`` name the models averaged."""
-    lo, hi = creep_range(result)
-    t = creep_times(lo, hi, points) if t_s is None else np.asarray(t_s, dtype=float).reshape(-1)
-    # a model that is a smaller one plus a vanished element (``equivalent_to``) has that one's curve: its weight
-    # is that model's (else the best model of material A, S3, would hold 0.88 and "S4 = S3 + ..." the rest)
-    own = {f.name: 0.0 for f in result.models}
-    for f in result.models:
-        w = float(f.weight) if math.isfinite(f.weight) else 0.0
-        own[f.equivalent_to if f.equivalent_to in own else f.name] += w
-    weighted, names, left = [], {}, 0.0
-    for f in result.models:
-        if f.equivalent_to in own:
-            continue
-        w = own[f.name]
-        c = creep_curve(f, t) if len(f.E_pa) else _empty()
-        if c.has_band and c.t_s.size:
-            weighted.append((w, c))
-            names[f.name] = w
-        else:
-            left += w
-    kept = sum(names.values())
-    weights = {k: (v / kept if kept > 0 else math.nan) for k, v in names.items()}
-    return AveragedCreep(averaged_creep(weighted), weights, left)
-
-
-def averaged_creep_shown(result, t_s=None) -> AveragedCreep | None:
-    """The model-averaged creep where the report, the figure and the GUI show it -- the choice of model uncertain
-    (the best model's Akaike weight, its vanished-element twins' included, below AVERAGED_BELOW) and a band to
-    show -- else None."""
-    avg = averaged_creep_of(result, t_s)
-    if not avg.curve.has_band or avg.weights.get(result.best.name, 0.0) >= AVERAGED_BELOW:
-        return None
-    return avg
 
 
 def creep_range(result) -> tuple[float, float]:
@@ -241,5 +163,5 @@ def decades(t_min_s: float, t_max_s: float) -> list[float]:
     return [10.0 ** k for k in range(k0, k1 + 1)]
 
 
-__all__ = ["AVERAGED_BELOW", "AveragedCreep", "CreepCurve", "CREEP_POINTS", "averaged_creep", "averaged_creep_of", "averaged_creep_shown", "creep_curve", "creep_of", "creep_range", "creep_times", "decades",
-           "log_creep_gradient", "retarded_compliance"]
+__all__ = ["CreepCurve", "CREEP_POINTS", "Z95", "creep_curve", "creep_of", "creep_range", "creep_times", "decades",
+           "empty_curve", "log_creep_gradient", "retarded_compliance"]

@@ -14,6 +14,8 @@ import math
 import textwrap
 from dataclasses import asdict, dataclass
 
+from velab.fitting.adequacy import is_misfit
+
 # the element table's width: narrower reports wrap each element on lines of their own
 _TABLE_WIDTH = 93
 
@@ -81,8 +83,6 @@ def _num(v) -> float:
 
 
 def _support_words(result, best) -> str:
-    from velab.fitting.adequacy import is_misfit
-
     others = sorted((f for f in result.models if f is not best), key=lambda f: _num(f.delta_aic))
     w = _num(best.weight)
     lead = f"Akaike weight {w:.2f}" if math.isfinite(w) else "Akaike weight -"

@@ -44,14 +44,15 @@ from velab.fitting.parallel import map_each
 from velab.fitting.jointresult import JointResult
 from velab.fitting.params import ParamMap, derive_bounds
 from velab.fitting.parts import Part, Record
-from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
+from velab.fitting.results import ModelFit, SweepResult, model_name
+from velab.fitting.selection import SELECTIONS, aic_of, apply_criteria, pays, pooled_ar1
 from velab.fitting.solvers import Sol, Stage
 from velab.fitting.starts import (RACE_KEEP, distinct, nested_starts, race_starts, reduced_then_full, scan_wave_speed,
                                   tau_grids)
 from velab.fitting.stacked import StackedEvaluator
 from velab.fitting.stats import ar1_innovation_var, lag1
 from velab.fitting.summary import summarise
-from velab.fitting.sweep import MAX_M, SATURATED_GAIN, parse_models
+from velab.fitting.sweep import MAX_M, parse_models
 
 REFRESHES = 3  # time-domain (friction) refreshes of each model's optimum, at most
 REFRESH_GAIN = 0.05
@@ -84,7 +85,7 @@ class _Model:
 
     def white_aic(self, runs) -> float:
         """sum_r n_r ln F_r + 2 (2m + 1): the wall's AIC with white residuals (the runs' nuisance is common)."""
-        return self.loglik(runs) + 2 * self.sol.pm.size
+        return aic_of(self.loglik(runs), self.sol.pm.size)
 
 
 def baseline_blocks(parts, st: StackedEvaluator) -> tuple:
@@ -259,7 +260,7 @@ class _JointSweep:
         f1, f2 = self.final.get(m - 1), self.final.get(m - 2)
         if f1 is None or f2 is None:
             return False
-        return f2.loglik(self.runs) - f1.loglik(self.runs) < SATURATED_GAIN
+        return not pays(f2.loglik(self.runs) - f1.loglik(self.runs))
 
     def reweight(self, model: _Model) -> None:
         for r, F in zip(self.runs, model.F_runs):
@@ -297,24 +298,21 @@ class _JointSweep:
                              objective(res, st.baseline) / res.size, lag1(fitted(res, st.baseline)), self.runs[0].rig)
         for r, v in zip(self.runs, saved):
             r.var = v
-        # per run: its residual's lag-1 and AR(1) innovation variance; pooled so that apply_criteria's
-        # N ln s_e^2 - ln(1 - rho^2) is the sum of the runs' AR(1) terms
-        ar, rhos = 0.0, []
+        # per run: its residual's lag-1 and AR(1) innovation variance, pooled (velab.fitting.selection.pooled_ar1)
+        terms = []
         for r, h in zip(self.runs, fin.heads):
             raw = h - r.rec.h
             res = fitted(raw, r.steady_n)  # (with the part's steady head offset, velab.fitting.offset)
             rho = lag1(res)
-            rhos.append(rho)
-            rho_c = float(np.clip(rho, -0.999, 0.999))
             base_term = (objective(raw, r.steady_n) - sumsq(res)) / r.n
-            ar += r.n * math.log(ar1_innovation_var(res, rho) + base_term) - math.log(1 - rho_c * rho_c)
-        rho_p = float(np.clip(np.average(rhos, weights=[r.n for r in self.runs]), -0.999, 0.999))
+            terms.append((r.n, rho, ar1_innovation_var(res, rho) + base_term))
+        rho_p, innovation_var = pooled_ar1(terms, n_tot)
         F = math.exp(fin.loglik(self.runs) / n_tot)
         ratio = None
         if all(r.noise_var for r in self.runs):
             ratio = math.exp(sum(r.n * math.log(F_r / r.noise_var) for r, F_r in zip(self.runs, fin.F_runs)) / n_tot)
         return replace(f, n=n_tot, F=F, k=f.k + k_nuisance, lag1_autocorr=rho_p,
-                       innovation_var=math.exp((ar + math.log(1 - rho_p * rho_p)) / n_tot), noise_ratio=ratio)
+                       innovation_var=innovation_var, noise_ratio=ratio)
 
 
 def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, models=range(MAX_M + 1),

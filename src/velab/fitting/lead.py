@@ -1,6 +1,6 @@
 """The lead fit: the default sweep searches the window's first part, then continues on the whole window.
 
-A fit window of T seconds is calibrated in two steps (velab.fitting.prepare.fit_record):
+A fit window of T seconds is calibrated in two steps (velab.fitting.entry.fit_record):
 
 1. the *lead fit*: the full multi-start sweep (velab.fitting.sweep) on the first
    (1 - LEAD_FRACTION) T seconds after the trigger, prepared like any record;

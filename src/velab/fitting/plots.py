@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from velab.rig import Rig
-from velab.fitting.adequacy import best_residuals
-from velab.fitting.creep import averaged_creep_shown, creep_curve, creep_of
+from velab.fitting.creep import creep_curve, creep_of
+from velab.fitting.residuals import best_residuals
+from velab.fitting.selection import averaged_creep_shown
 from velab.fitting.results import SweepResult
 from velab.fitting.friction import fitted_head
 from velab.fitting.manoeuvre import result_flow
@@ -31,8 +34,6 @@ DAIC_LINES = ((2.0, ":", "ΔAIC = 2: substantial support below"), (10.0, "--", "
 
 def figure_title(result, rig: Rig | None = None, run=None, runs: int = 1) -> str:
     """What makes a printout traceable: the run (file, title), the rig, the date recorded, the best model."""
-    from pathlib import Path
-
     parts = []
     if run is not None:
         name = Path(str(getattr(run, "path", "") or "")).name

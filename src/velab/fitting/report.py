@@ -1,8 +1,15 @@
-"""The plain-text report of a calibration sweep (``SweepResult.report()``, ``velab fit``)."""
+"""The plain-text report of a calibration sweep (``format_report``: ``velab fit``, ``velab info``): the headline
+first, then the models' table, creep, bounds and notes."""
 
 from __future__ import annotations
 
 import math
+import textwrap
+
+from velab.fitting.adequacy import bounds_line, is_misfit
+from velab.fitting.creep import creep_curve, creep_range, decades
+from velab.fitting.selection import averaged_creep_shown
+from velab.fitting.headline import headline, headline_lines
 
 _SELECTION_TEXT = {
     "ar1": "AIC of an AR(1) likelihood of the residuals (robust to correlated residuals)",
@@ -14,21 +21,6 @@ def _pm(value: float, se: float, fmt: str) -> str:
     if math.isfinite(se):
         return f"{value:{fmt}} +- {se:.2g}"
     return f"{value:{fmt}}"
-
-
-def bounds_line(f) -> str:
-    """One line for the parameters of model ``f`` that ended on a bound, grouped by bound."""
-    groups: dict = {}
-    for b in f.at_bounds:
-        groups.setdefault((b["bound"], b["limit"], b.get("hint") or b.get("option"), b["parameter"].split("_")[0]),
-                          []).append(b)
-    parts = []
-    for (side, limit, option, kind), bs in groups.items():
-        unit = " m/s" if kind == "wave" else (" s" if kind == "tau" else "")
-        names = ", ".join(b["parameter"] for b in bs)
-        text = f"{names} on the {side} bound {limit:.4g}{unit}"
-        parts.append(text + (f" (try {option})" if option else ""))
-    return f"{f.name}: " + "; ".join(parts)
 
 
 def warning_lines(result) -> list[str]:
@@ -69,16 +61,12 @@ def _ratio(f) -> str:
 
 def _support(result, f) -> str:
     # support among models that do not describe the record is not support: say so in the cell
-    from velab.fitting.adequacy import is_misfit
-
     return f.support + (" (misfit)" if is_misfit(result, f) else "")
 
 
 def creep_lines(result) -> list[str]:
     """The best model's retarded creep compliance J(t) - J0 with its 95 % band at the decades between
     the lower retardation-time bound and the window (velab.fitting.creep), one line each."""
-    from velab.fitting.creep import creep_curve, creep_range, decades
-
     best = result.best
     if not best.m:
         return [f"creep of {best.name}: none (an elastic wall: J(t) = J0)"]
@@ -101,8 +89,6 @@ def creep_lines(result) -> list[str]:
 def averaged_creep_lines(result, times) -> list[str]:
     """The model-averaged J(t) - J0 at ``times`` where the choice of model is uncertain
     (velab.fitting.creep.averaged_creep_shown): its band holds the models' spread."""
-    from velab.fitting.creep import averaged_creep_shown
-
     avg = averaged_creep_shown(result, times)
     if avg is None:
         return []
@@ -140,18 +126,30 @@ def statistics_lines(result, width: int = 100) -> list[str]:
 
 
 def _wrapped(text: str, width: int, indent: str = "") -> list[str]:
-    import textwrap
-
     return textwrap.wrap(text, width=width, initial_indent=indent, subsequent_indent=indent + "  ",
                          break_long_words=True, break_on_hyphens=False) or [""]
+
+
+def sections_lines(result) -> list[str]:
+    """The sections' table of a fit of several sections (velab.fitting.sections), each under the best model's
+    wall; none for another fit."""
+    sections = getattr(result, "sections", None) or []
+    if not sections:
+        return []
+    lines = [f"sections (each under the {result.best.name} wall):",
+             f"  {'section':<16}{'x (m)':>9}{'n':>8}{'F/noise':>9}{'bound':>7}  disagrees"]
+    for s in sections:
+        ratio, bound = s.get("noise_ratio"), s.get("misfit_bound")
+        lines.append(f"  {s['name']:<16}{s['position_m']:>9.2f}{s['n']:>8}"
+                     f"{'-' if ratio is None else format(ratio, '.3f'):>9}{'-' if bound is None else format(bound, '.2f'):>7}"
+                     f"  {'yes' if s['disagrees'] else 'no'}")
+    return lines
 
 
 def format_report(result, elements: bool = True, verbose: bool = True, width: int = 100) -> str:
     """The text report: the headline (velab.fitting.headline) first; then, ``verbose``, every statistic
     (both AICs, lag-1, n_eff, J_rel, bounds, creep, the record's noise); else the models' table and the
     notes, no line wider than ``width``."""
-    from velab.fitting.headline import headline, headline_lines
-
     if not result.models:
         return "\n".join(["no model fitted", *warning_lines(result), *result.notes])
     top = headline_lines(headline(result), width)
@@ -159,8 +157,8 @@ def format_report(result, elements: bool = True, verbose: bool = True, width: in
         lines = [*top, "", *statistics_lines(result, width)]
         for note in result.notes:
             lines.extend(_wrapped(note, width))
-        return "\n".join(lines)
-    return "\n".join([*top, "", _detail(result, elements)])
+        return "\n".join([*lines, *sections_lines(result)])
+    return "\n".join([*top, "", _detail(result, elements), *sections_lines(result)])
 
 
 def _detail(result, elements: bool = True) -> str:

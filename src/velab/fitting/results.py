@@ -1,11 +1,9 @@
-"""Result types of a calibration sweep, and the information criteria (physics.md section 7).
+"""Result types of a calibration: ``ModelFit`` (one model) and ``SweepResult`` (every model of one record
+window, ranked), with their JSON form (``to_dict`` / ``from_dict``, tolerant of older documents).
 
-``ModelFit.aic`` is the paper's white-noise AIC, n ln F + 2k (with AICc and BIC);
-``ModelFit.aic_ar1`` the AIC of the AR(1) likelihood of the residuals (velab.fitting.stats).
-``delta_aic``, ``weight`` and ``support`` follow the sweep's selection criterion
-(``SweepResult.selection``: ``"ar1"`` by default, ``"white"`` for the paper's rule), and
-``SweepResult.best`` is the model with the minimum of that criterion;
-``delta_aic_white`` is always the paper's.
+``ModelFit.aic`` is the paper's white-noise AIC, ``aic_ar1`` the AR(1) likelihood's; ``delta_aic``, ``weight``
+and ``support`` follow the result's selection criterion, ``SweepResult.best`` its least: all set by
+velab.fitting.selection. Results hold numbers, not text: the report is velab.fitting.report's.
 """
 
 from __future__ import annotations
@@ -16,27 +14,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from velab.config import KelvinVoigt, Material
-from velab.fitting.report import format_report
-from velab.fitting.stats import aic_ar1, lag1
-
-SELECTIONS = ("ar1", "white")
-
-
-def support_category(delta_aic: float) -> str:
-    """Burnham & Anderson's rule of thumb for the support of a model given its delta AIC.
-
-    0-2 substantial; 4-7 considerably less; > 10 essentially none. The gaps of the
-    rule are named "moderate" (2-4) and "little" (7-10).
-    """
-    if delta_aic <= 2:
-        return "substantial"
-    if delta_aic <= 4:
-        return "moderate"
-    if delta_aic <= 7:
-        return "considerably less"
-    if delta_aic <= 10:
-        return "little"
-    return "essentially none"
+from velab.fitting.adequacy import bound_message
+from velab.fitting.creep import creep_of
+from velab.fitting.selection import SELECTIONS, averaged_creep_of, best_of
 
 
 def model_name(m: int, reduced: bool = False) -> str:
@@ -232,38 +212,6 @@ class ModelFit:
         )
 
 
-def apply_criteria(fits: list[ModelFit], selection: str = "ar1") -> None:
-    """Fill AIC (white and AR(1)), AICc, BIC, delta AIC, Akaike weights and support in place.
-
-    ``selection`` names the criterion behind delta_aic, weight and support (and the best
-    model): "ar1" (default) or "white" (the paper's). A fit without an AR(1) innovation
-    variance gets F (1 - rho^2), its value for the Yule-Walker rho at large n.
-    """
-    if selection not in SELECTIONS:
-        raise ValueError(f"selection must be one of {SELECTIONS}, got {selection!r}")
-    for f in fits:
-        nlf = f.n * math.log(f.F) if f.F > 0 else -math.inf
-        f.aic = nlf + 2 * f.k
-        f.aicc = f.aic + (2 * f.k * (f.k + 1) / (f.n - f.k - 1) if f.n - f.k - 1 > 0 else math.inf)
-        f.bic = nlf + f.k * math.log(f.n)
-        rho = f.lag1_autocorr if math.isfinite(f.lag1_autocorr) else 0.0
-        if not math.isfinite(f.innovation_var):
-            f.innovation_var = f.F * (1 - min(rho * rho, 0.998))
-        f.aic_ar1 = aic_ar1(f.n, f.k, f.innovation_var, rho)
-    if not fits:
-        return
-    best_white = min(f.aic for f in fits)
-    crit = [f.aic_ar1 if selection == "ar1" else f.aic for f in fits]
-    best = min(crit)
-    rel = np.array([math.exp(-(c - best) / 2) for c in crit])
-    w = rel / rel.sum()
-    for f, c, wi in zip(fits, crit, w):
-        f.delta_aic = c - best
-        f.delta_aic_white = f.aic - best_white
-        f.weight = float(wi)
-        f.support = support_category(f.delta_aic)
-
-
 @dataclass
 class SweepResult:
     """All models calibrated on one record window, ranked by the selection criterion."""
@@ -294,14 +242,8 @@ class SweepResult:
 
     @property
     def best(self) -> ModelFit:
-        # ties (equal criterion) go to the smaller model: the order of self.models is EL, S1, ...
-        if self.selection == "ar1":
-            if all(math.isfinite(f.aic_ar1) for f in self.models):
-                return min(self.models, key=lambda f: f.aic_ar1)
-            if all(math.isfinite(f.delta_aic) for f in self.models):
-                # read back from a store that kept only delta AIC (by this selection)
-                return min(self.models, key=lambda f: f.delta_aic)
-        return min(self.models, key=lambda f: f.aic)
+        """The model with the least selection criterion (velab.fitting.selection.best_of)."""
+        return best_of(self.models, self.selection)
 
     @property
     def bounds(self) -> dict:
@@ -345,15 +287,11 @@ class SweepResult:
     def creep(self, fit: ModelFit | None = None, t_s=None):
         """J(t) - J0 of ``fit`` (default: the best model) with its 95 % band, from the lower
         retardation-time bound to the window (velab.fitting.creep)."""
-        from velab.fitting.creep import creep_of
-
         return creep_of(self, fit if fit is not None else self.best, t_s)
 
     def creep_averaged(self, t_s=None):
         """The model-averaged J(t) - J0 over the models' Akaike weights, its band unconditional on the model
         (velab.fitting.creep.averaged_creep_of)."""
-        from velab.fitting.creep import averaged_creep_of
-
         return averaged_creep_of(self, t_s)
 
     def _model_dict(self, f: ModelFit) -> dict:
@@ -379,18 +317,11 @@ class SweepResult:
         )
         if "warnings" not in d and r.models and r.best.at_bounds:
             # a fit stored before the warnings existed: its parameters on a bound are the one it can have
-            from velab.fitting.adequacy import bound_message
-
             r.warnings = [{"code": "bound", "message": bound_message(r.best)}]
         return r
 
     def warning_codes(self) -> list[str]:
         return [w["code"] for w in self.warnings]
 
-    def report(self, elements: bool = True, verbose: bool = True) -> str:
-        """The headline (velab.fitting.headline), then (``verbose``) every statistic, the parameters per
-        element, bounds, notes; not ``verbose``: the models' table and the notes within 100 columns."""
-        return format_report(self, elements=elements, verbose=verbose)
 
-
-__all__ = ["ModelFit", "SweepResult", "apply_criteria", "support_category", "model_name", "lag1", "SELECTIONS"]
+__all__ = ["ModelFit", "SweepResult", "model_name"]

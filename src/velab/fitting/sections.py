@@ -22,7 +22,8 @@ from velab.fitting.campaignrun import run_heads
 from velab.fitting.joint import _JointSweep, assess_parts, closure_groups, pool_baseline, refine_closures
 from velab.fitting.params import derive_bounds
 from velab.fitting.parts import Record
-from velab.fitting.results import SELECTIONS, SweepResult, apply_criteria
+from velab.fitting.results import SweepResult
+from velab.fitting.selection import SELECTIONS, apply_criteria
 from velab.fitting.sweep import MAX_M, parse_models
 from velab.rig import Rig
 
@@ -39,17 +40,6 @@ class SectionsResult(SweepResult):
         d["sections"] = [dict(s) for s in self.sections]
         return d
 
-    def report(self, elements: bool = True, verbose: bool = True) -> str:
-        """The single fit's report and the sections' table (each under the best model's wall)."""
-        lines = [f"sections (each under the {self.best.name} wall):",
-                 f"  {'section':<16}{'x (m)':>9}{'n':>8}{'F/noise':>9}{'bound':>7}  disagrees"]
-        for s in self.sections:
-            ratio, bound = s.get("noise_ratio"), s.get("misfit_bound")
-            lines.append(f"  {s['name']:<16}{s['position_m']:>9.2f}{s['n']:>8}"
-                         f"{'-' if ratio is None else format(ratio, '.3f'):>9}{'-' if bound is None else format(bound, '.2f'):>7}"
-                         f"  {'yes' if s['disagrees'] else 'no'}")
-        return super().report(elements, verbose) + "\n" + "\n".join(lines)
-
 
 def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: float | None = 20.0, *,
                  record_rate_hz: float, position_pct=None, models=range(MAX_M + 1), selection: str = "ar1",
@@ -57,7 +47,7 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
                  progress=None) -> SectionsResult:
     """Calibrate one wall on every section of one record. ``heads``: transducer name -> absolute head on
     ``t_s`` (one per ``rig.sections``, named as in the rig; one at the valve, whose head drives the valve's
-    orifice law); the rest as ``velab.fitting.prepare.fit_record``. DataError (one line) for a missing or
+    orifice law); the rest as ``velab.fitting.entry.fit_record``. DataError (one line) for a missing or
     unknown section, a rig without a transducer at the valve, or what fit_record refuses."""
     t0 = time.perf_counter()
     if selection not in SELECTIONS:

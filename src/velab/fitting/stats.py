@@ -48,13 +48,6 @@ def ar1_innovation_var(res: np.ndarray, rho: float) -> float:
     return ((1 - rho * rho) * float(r[0]) ** 2 + sumsq(e)) / r.size
 
 
-def aic_ar1(n: int, k: int, innovation_var: float, rho: float) -> float:
-    rho = float(np.clip(rho, -0.999, 0.999))
-    if not innovation_var > 0:
-        return -math.inf
-    return n * math.log(innovation_var) - math.log(1 - rho * rho) + 2 * (k + 1)
-
-
 def effective_n(n: int, rho: float) -> float:
     """n (1 - rho) / (1 + rho) for positively correlated residuals, n otherwise."""
     if not rho > 0:

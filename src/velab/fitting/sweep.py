@@ -45,7 +45,8 @@ from velab.fitting.offset import counted_on, project
 from velab.fitting.friction import EquivalentFriction, TimeDomainModel, anderson, equivalent_friction, fit_rig, rms
 from velab.fitting.parallel import map_each
 from velab.fitting.params import FitBounds, ParamMap, creep_const, derive_bounds
-from velab.fitting.results import SELECTIONS, ModelFit, SweepResult, apply_criteria, model_name
+from velab.fitting.results import ModelFit, SweepResult, model_name
+from velab.fitting.selection import ELEMENT_PRICE, SELECTIONS, apply_criteria, pays, white_aic
 from velab.fitting.solvers import Sol, Stage, levenberg_marquardt
 from velab.fitting.starts import (fan_out, nested_starts, race_starts, reduced_then_full, scan_wave_speed, split_all,
                                   tau_grids)
@@ -66,10 +67,9 @@ MAX_REFRESH = 8
 # starts (stopping S2 early sent S3 of the Brunone truth, tests/fitting/test_fit_truths.py, to a worse basin).
 STALL_GAIN = 0.002
 STALL_FROM_M = 4
-# S(m) is searched from S(m-1) only when S(m-1)'s element gained less than this in n ln F over
-# S(m-2) (its AIC price): see _Sweep.saturated
+# S(m) is searched from S(m-1)'s nested starts only when S(m-1)'s element did not pay its AIC price
+# (velab.fitting.selection.pays): see _Sweep.saturated
 SATURATION = True
-SATURATED_GAIN = 4.0
 # from S4 on, a saturated S(m) is not searched at all: it is S(m-1) plus a vanished element (_Sweep.nothing_left)
 NOTHING_LEFT = True
 # with two threads: full-band evaluations split over both (HeadEvaluator workers=2), coarse starts
@@ -391,15 +391,15 @@ class _Sweep:
         return cands
 
     def saturated(self, m: int) -> bool:
-        """S(m-1)'s element did not pay for itself: n ln(F(S(m-2)) / F(S(m-1))) < SATURATED_GAIN (the
-        AIC price of its two parameters). The data then hold no structure for one more element, and
+        """S(m-1)'s element did not pay for itself: n ln(F(S(m-2)) / F(S(m-1))) below the AIC price of its
+        two parameters (velab.fitting.selection.pays). The data then hold no structure for one more element, and
         S(m) is searched from S(m-1)'s nested starts only (no tau-grid starts)."""
         if not SATURATION or m < 3:
             return False
         f1, f2 = self.final.get((m - 1, False)), self.final.get((m - 2, False))
         if f1 is None or f2 is None:
             return False
-        return self.d.size * math.log(f2.sol.F / f1.sol.F) < SATURATED_GAIN
+        return not pays(self.d.size * math.log(f2.sol.F / f1.sol.F))
 
     def nothing_left(self, m: int) -> bool:
         """From S4 on: S(m-1)'s element did not pay its AIC price (``saturated``), so S(m) is not searched.
@@ -664,7 +664,7 @@ def fit_sweep(
         first = sw.not_searched[0]
         result.notes.append(f"{names}: not searched, {model_name(first - 1, False)} plus vanished elements "
                             f"({model_name(first - 1, False)}'s element did not pay its AIC price: n ln F gained "
-                            f"< {SATURATED_GAIN:g} over {model_name(first - 2, False)})")
+                            f"< {ELEMENT_PRICE:g} over {model_name(first - 2, False)})")
     if sw.as_in_lead:
         names = ", ".join(model_name(m, False) for m in sw.as_in_lead)
         smaller = model_name(sw.as_in_lead[0] - 1, False)
@@ -684,7 +684,7 @@ def _polish_candidates(sw: _Sweep, order) -> list[str]:
     time-domain model (``_Sweep.polish_time_domain``), in order of m; a model that is a smaller one plus
     vanished elements is that smaller one's polish again (so F never increases with m)."""
     n = sw.d.size
-    aic = {job: n * math.log(sw.final[job].sol.F) + 2 * sw.final[job].sol.pm.size for job in order}
+    aic = {job: white_aic(n, sw.final[job].sol.F, sw.final[job].sol.pm.size) for job in order}
     best = min(aic.values())
     done: list[str] = []
     for family in ([j for j in order if not j[1]], [j for j in order if j[1]]):

@@ -22,7 +22,8 @@ from PySide6.QtGui import QBrush, QColor, QFont
 from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QSizePolicy, QTableWidget,
                                QTableWidgetItem, QVBoxLayout, QWidget)
 
-from velab.fitting.creep import averaged_creep_shown, creep_of
+from velab.fitting.creep import creep_of
+from velab.fitting.selection import averaged_creep_shown
 from velab.fitting.friction import fitted_head
 from velab.fitting.manoeuvre import result_flow
 from velab.gui import tasks
@@ -69,7 +70,7 @@ def fit_view_data(t, h, rig, result) -> dict:
     avg = averaged_creep_shown(result)
     creep_averaged = avg.curve if avg is not None else None
     try:  # the best model's residuals at the fit rate, as the fitter saw them (comparable to the noise band)
-        from velab.fitting.adequacy import best_residuals
+        from velab.fitting.residuals import best_residuals
 
         res_t, res = best_residuals(t, h, rig, result)
     except Exception:  # a model the time grid cannot hold: no residual plot

@@ -1,6 +1,6 @@
 """The online fit: the recorded window -> the fitter, on its own thread, with intermediate fits.
 
-``fit_arguments`` makes the one call into the fitter (velab.fitting.prepare.fit_record, the
+``fit_arguments`` makes the one call into the fitter (velab.fitting.entry.fit_record, the
 fit path ``velab fit`` and the GUI's re-fit take too); everything else here is scheduling: intermediate quick fits on the growing
 window while the fitter is idle, cancelled when the lead or the final fit starts; the fit path's
 lead fit (velab.fitting.lead: the sweep of the window's first part) as soon as that part is in,
@@ -51,7 +51,7 @@ class FitError(Exception):
 def fit_arguments(t_s: np.ndarray, head_m: np.ndarray, trigger_time_s: float, rig: Rig, *, models, window_s: float,
                   method: str, sample_rate_hz: float, quick: bool = False, position_pct=None,
                   section_heads: dict | None = None) -> dict:
-    """The arguments of velab.fitting.prepare.fit_record for a recorded head record (the run's axis,
+    """The arguments of velab.fitting.entry.fit_record for a recorded head record (the run's axis,
     absolute head, from before the trigger): the one fit path, as ``velab fit`` of the run file takes
     it; ``quick`` = no polish, 2 starts (intermediate fits); ``position_pct`` the recorded valve position
     on ``t_s`` (the manoeuvre's input, as ``velab fit`` takes it from the file); ``section_heads`` the
