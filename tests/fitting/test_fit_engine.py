@@ -8,7 +8,7 @@ import pytest
 
 from velab.config import load_material, load_rig
 from velab.errors import DataError
-from velab.fitting import fit_sweep, parse_models, support_category
+from velab.fitting import SweepContext, fit_sweep, parse_models, support_category
 from velab.fitting.engine import HeadEvaluator
 from velab.fitting.params import ParamMap, bound_hits, creep_const, derive_bounds
 from velab.fitting.results import ModelFit
@@ -206,7 +206,7 @@ def test_reduced_models_warm_start_and_threads(rig):
     assert doc["best"] == r.best.name and doc["n"] == 5000
     # warm start from the previous result on a longer window (online use)
     calls = []
-    r2 = fit_sweep(t, h, rig, models="0-2", window_s=5.5, initial=r, progress=lambda *a: calls.append(a))
+    r2 = fit_sweep(t, h, rig, models="0-2", window_s=5.5, context=SweepContext(initial=r), progress=lambda *a: calls.append(a))
     assert [c[2] for c in calls] == ["EL", "S1", "S2"] and calls[-1][:2] == (3, 3)
     assert r2.n == 5500 and r2["S2"].F == pytest.approx(r["S2"].F, rel=0.05)
     # thread safety: concurrent fits give the sequential result

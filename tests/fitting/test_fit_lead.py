@@ -23,6 +23,7 @@ from velab.commands.fit import fit_file
 from velab.config import load_material, load_rig
 from velab.fitting import fit_lead, fit_record, fit_run
 from velab.fitting.lead import LEAD_FRACTION, MIN_LEAD_PERIODS, lead_window_s
+from velab.fitting.options import FitOptions
 from velab.fitting.results import SweepResult
 from velab.model import valve_head
 from velab.recording import Recorder, RecordSettings
@@ -53,14 +54,14 @@ def _record(rate=1000.0, window=WINDOW_S, pre=1.0, seed=5):
 
 def test_which_fits_have_a_lead():
     perugia, imperial = load_rig("perugia"), load_rig("imperial")
-    assert lead_window_s(perugia, 20.0, {}) == 20.0 * (1 - LEAD_FRACTION)
-    assert lead_window_s(perugia, 20.0, {"models": [0, 1], "method": "auto"}) == 16.0
+    assert lead_window_s(perugia, 20.0, FitOptions()) == 20.0 * (1 - LEAD_FRACTION)
+    assert lead_window_s(perugia, 20.0, FitOptions(models=(0, 1), method="auto")) == 16.0
     period = 4 * imperial.pipe.length_m / imperial.nominal_wave_speed_m_s
-    assert lead_window_s(imperial, 20.0, {}) == 16.0 >= MIN_LEAD_PERIODS * period
+    assert lead_window_s(imperial, 20.0, FitOptions()) == 16.0 >= MIN_LEAD_PERIODS * period
     # too few wave periods in the lead's part: one step
-    assert lead_window_s(imperial, 15.0, {}) is None and lead_window_s(perugia, 4.0, {}) is None
-    # only the default sweep: another method, no polish, capped starts or a warm start are one step
-    for opts in ({"method": "nelder-mead"}, {"polish": False}, {"starts": 2}, {"initial": object()}):
+    assert lead_window_s(imperial, 15.0, FitOptions()) is None and lead_window_s(perugia, 4.0, FitOptions()) is None
+    # only the default search: another method, no polish or capped starts are one step
+    for opts in (FitOptions(method="nelder-mead"), FitOptions(polish=False), FitOptions(starts=2)):
         assert lead_window_s(perugia, 20.0, opts) is None, opts
 
 

@@ -22,7 +22,7 @@ from velab.fitting.params import FitBounds
 from velab.fitting.entry import fit_record
 from velab.fitting.prepare import prepare_record
 from velab.fitting.refine import refine_closure
-from velab.fitting.sweep import fit_sweep
+from velab.fitting.sweep import SweepContext, fit_sweep
 from velab.model import ValveHeadModel, flow_perturbation
 from velab.moc import moc_head
 from velab.valvelaw import Valve, commanded_position_pct
@@ -315,7 +315,7 @@ def test_a_quick_valve_head_only_record_names_s3_with_margin_and_its_own_closure
         rec = prepare_record(t, x, 0.0, rig, 20.0, record_rate_hz=1000.0)
         vi = valve_input(rec.t, rec.h, rig, rec.window_s, closure=r.settings["manoeuvre"])
         again = refine_closure(rec.t, rec.h, rig, vi, r.best, FitBounds.from_dict(r.settings["bounds"]))
-        r2 = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=again.flow, lead=r, trust_lead=False)
+        r2 = fit_sweep(rec.t, rec.h, rig, window_s=None, context=SweepContext(flow=again.flow, lead=r, trust_lead=False))
         assert r.n * math.log(r.best.F / r2["S3"].F) < 8.0, seed
         assert abs(r2["S3"].wave_speed_m_s - r.best.wave_speed_m_s) < 1.5 * r.best.wave_speed_se_m_s, seed
     assert abs(a[0][0] - a[1][0]) <= 2 * max(se for _, se in a)

@@ -24,7 +24,8 @@ import importlib
 _EXPORTS = {
     "SELECTIONS": "selection", "ModelFit": "results", "SweepResult": "results", "support_category": "selection",
     "format_report": "report",
-    "METHODS": "sweep", "fit_sweep": "sweep", "parse_models": "sweep",
+    "METHODS": "options", "FitOptions": "options", "parse_models": "options",
+    "fit_sweep": "sweep", "SweepContext": "sweep",
     "PreparedRecord": "prepare", "prepare_record": "prepare", "fit_record": "entry", "fit_lead": "entry",
     "fit_run": "entry",
 }

@@ -11,81 +11,72 @@ from __future__ import annotations
 
 import numpy as np
 
-from velab.errors import DataError
 from velab.fitting.lead import lead_window_s, matches, options_key
 from velab.fitting.prepare import PreparedRecord, fit_prepared, prepare_record
 from velab.fitting.results import SweepResult
-from velab.fitting.sections import SWEEP_ONLY, fit_run_sections, fit_sections
+from velab.fitting.options import FitOptions
+from velab.fitting.sections import fit_run_sections, fit_sections
 from velab.rig import Rig
 
 
 def fit_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | None, *, record_rate_hz: float,
-               lead: bool | SweepResult = True, position_pct=None, section_heads: dict | None = None,
-               **sweep_options) -> SweepResult:
+               options: FitOptions | None = None, lead: bool | SweepResult = True, position_pct=None,
+               section_heads: dict | None = None, progress=None, **choices) -> SweepResult:
     """Prepare a record (``prepare_record``) and calibrate on it: the one fit path of velab.
 
-    The default sweep of a long enough window runs as a lead fit on its first part and a
+    ``window_s``: seconds after the trigger (None: all); ``options``: the user's choices
+    (velab.fitting.options.FitOptions; ``choices`` by name change them, e.g. ``models=[3]``).
+    The default search of a long enough window runs as a lead fit on its first part and a
     continuation on the whole (velab.fitting.lead). ``lead``: True (compute it here), a SweepResult
     (the recorder's, computed while the window's last part was being recorded: used if it is the
     lead this call would compute, else computed again), or False (one step; not the fit path's
     result, for comparisons). ``position_pct``: the recorded valve position on ``t_s`` (or None).
     A rig with several transducers: ``head_m`` is the valve's (``rig.head_section``), ``section_heads``
     the others' by name, and every section is fitted at once, as ``fit_run`` does (no lead)."""
+    opts = FitOptions.of(options, **choices).replace(window_s=window_s)
     if len(rig.sections) > 1:
-        return _fit_record_sections(t_s, head_m, section_heads or {}, trigger_time_s, rig, window_s,
-                                    record_rate_hz=record_rate_hz, position_pct=position_pct, **sweep_options)
+        heads = {rig.head_section.name: head_m, **(section_heads or {})}
+        return fit_sections(t_s, heads, trigger_time_s, rig, record_rate_hz=record_rate_hz, options=opts,
+                            position_pct=position_pct, progress=progress)
     rec = prepare_record(t_s, head_m, trigger_time_s, rig, window_s, record_rate_hz=record_rate_hz,
                          position_pct=position_pct)
-    lw = lead_window_s(rig, rec.window_s, sweep_options) if lead is not False else None
+    lw = lead_window_s(rig, rec.window_s, opts) if lead is not False else None
     if lw is None:
-        return fit_prepared(rec, rig, **sweep_options)
-    progress = sweep_options.pop("progress", None)
+        return fit_prepared(rec, rig, opts, progress=progress)
     rec_lead = prepare_record(t_s, head_m, trigger_time_s, rig, lw, record_rate_hz=record_rate_hz,
                               position_pct=position_pct)
-    computed = not matches(lead, rec.window_s, sweep_options, rec_lead.describe())
+    computed = not matches(lead, rec.window_s, opts, rec_lead.describe())
     if computed:
-        lead = _fit_lead_record(rec_lead, rig, rec.window_s,
-                                progress=_stage_progress(progress, 0, f" (lead fit, {lw:.6g} s)"), **sweep_options)
-    result = fit_prepared(rec, rig, lead=lead, progress=_stage_progress(progress, 1, ""), **sweep_options)
+        lead = _fit_lead_record(rec_lead, rig, rec.window_s, opts,
+                                progress=_stage_progress(progress, 0, f" (lead fit, {lw:.6g} s)"))
+    result = fit_prepared(rec, rig, opts, lead=lead, progress=_stage_progress(progress, 1, ""))
     result.settings["lead"]["computed_in_this_fit"] = computed
     if computed:
         result.duration_s += lead.duration_s  # this call's time: both steps
     return result
 
 
-def _fit_record_sections(t_s, head_m, section_heads: dict, trigger_time_s: float, rig: Rig, window_s, *,
-                         record_rate_hz: float, position_pct, **options) -> SweepResult:
-    """``fit_record`` of a record with several sections: velab.fitting.sections.fit_sections, its search options
-    the joint sweep's (the single sweep's ``SWEEP_ONLY`` at their defaults, else one line), as fit_run_sections."""
-    for key, default in SWEEP_ONLY.items():
-        value = options.pop(key, default)
-        if value != default and not (key == "starts" and value is None):
-            raise DataError(f"{key} = {value!r}: not for a fit of several sections (the rig has {len(rig.sections)} "
-                            f"transducers; the search is the joint fit's)")
-    heads = {rig.head_section.name: head_m, **section_heads}
-    return fit_sections(t_s, heads, trigger_time_s, rig, window_s, record_rate_hz=record_rate_hz,
-                        position_pct=position_pct, **options)
-
-
 def fit_lead(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float, *, record_rate_hz: float,
-             position_pct=None, **sweep_options) -> SweepResult | None:
+             options: FitOptions | None = None, position_pct=None, progress=None, **choices) -> SweepResult | None:
     """The lead fit of a ``window_s`` fit of this record (None if it has none): what ``fit_record``
     computes first, for the recorder to run as soon as the lead's part of the window is in. ``t_s``
     and ``head_m`` need only reach the end of that part."""
-    lw = lead_window_s(rig, window_s, sweep_options)
+    opts = FitOptions.of(options, **choices).replace(window_s=window_s)
+    lw = lead_window_s(rig, window_s, opts)
     if lw is None:
         return None
     if position_pct is not None:  # the recorder passes the record up to now; the lead needs its part
         position_pct = np.asarray(position_pct, dtype=float)[: np.size(t_s)]
     rec_lead = prepare_record(t_s, head_m, trigger_time_s, rig, lw, record_rate_hz=record_rate_hz,
                               position_pct=position_pct)
-    return _fit_lead_record(rec_lead, rig, window_s, **sweep_options)
+    return _fit_lead_record(rec_lead, rig, window_s, opts, progress=progress)
 
 
-def _fit_lead_record(rec_lead: PreparedRecord, rig: Rig, window_s: float, **sweep_options) -> SweepResult:
+def _fit_lead_record(rec_lead: PreparedRecord, rig: Rig, window_s: float, opts: FitOptions,
+                     progress=None) -> SweepResult:
     """The lead fit on its prepared record, marked with what it was made for (``matches``)."""
-    lead = fit_prepared(rec_lead, rig, refine="only", **sweep_options)
-    lead.settings["lead_for"] = options_key(window_s, sweep_options)  # (progress is not part of the key)
+    lead = fit_prepared(rec_lead, rig, opts, refine="only", progress=progress)
+    lead.settings["lead_for"] = options_key(window_s, opts)
     return lead
 
 
@@ -96,12 +87,14 @@ def _stage_progress(progress, stage: int, suffix: str):
     return lambda done, total, name: progress(stage * total + done, 2 * total, name + suffix)
 
 
-def fit_run(run, window_s: float | None, **sweep_options) -> SweepResult:
+def fit_run(run, window_s: float | None, options: FitOptions | None = None, *, progress=None,
+            **choices) -> SweepResult:
     """``fit_record`` on a run read back from its file (velab.runfiles.reader.Run): what ``velab fit`` and the
     GUI archive's re-fit call. Lost samples inside the window are refused (a gap cannot be fitted)."""
+    opts = FitOptions.of(options, **choices).replace(window_s=window_s)
     if len(run.rig.sections) > 1:  # several transducers: every section at once (velab.fitting.sections)
-        return fit_run_sections(run, window_s, **sweep_options)
+        return fit_run_sections(run, window_s, opts, progress=progress)
     run.fit_window(window_s)  # the reader's own checks of the window (gaps, NaN), with the file's name
     return fit_record(run.time_s, run.head_m, run.trigger_time_s, run.rig, window_s,
-                      record_rate_hz=run.sample_rate_hz, position_pct=run.channels.get("valve_position"),
-                      **sweep_options)
+                      record_rate_hz=run.sample_rate_hz, options=opts, position_pct=run.channels.get("valve_position"),
+                      progress=progress)

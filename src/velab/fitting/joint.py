@@ -45,14 +45,14 @@ from velab.fitting.jointresult import JointResult
 from velab.fitting.params import ParamMap, derive_bounds
 from velab.fitting.parts import Part, Record
 from velab.fitting.results import ModelFit, SweepResult, model_name
-from velab.fitting.selection import SELECTIONS, aic_of, apply_criteria, pays, pooled_ar1
+from velab.fitting.selection import aic_of, apply_criteria, pays, pooled_ar1
 from velab.fitting.solvers import Sol, Stage
 from velab.fitting.starts import (RACE_KEEP, distinct, nested_starts, race_starts, reduced_then_full, scan_wave_speed,
                                   tau_grids)
 from velab.fitting.stacked import StackedEvaluator
 from velab.fitting.stats import ar1_innovation_var, lag1
 from velab.fitting.summary import summarise
-from velab.fitting.sweep import MAX_M, parse_models
+from velab.fitting.options import FitOptions, stacked_search
 
 REFRESHES = 3  # time-domain (friction) refreshes of each model's optimum, at most
 REFRESH_GAIN = 0.05
@@ -315,20 +315,20 @@ class _JointSweep:
                        innovation_var=innovation_var, noise_ratio=ratio)
 
 
-def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, *, models=range(MAX_M + 1),
-              selection: str = "ar1", manoeuvre: str = "auto", tau_min_s=None, tau_max_s=None, friction=None,
-              friction_unsteady=None, progress=None) -> JointResult:
+def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options: FitOptions | None = None, *,
+              progress=None, **choices) -> JointResult:
     """Calibrate one wall on several runs of one pipe (see the module docstring), every section of each.
-    ``sources``: the runs (``CampaignRun``), two or more; the other options as ``fit_record``. Raises
-    DataError (one line, naming the run) for runs of different pipes, a window a run does not hold, bad
-    options, a run whose heads do not match its rig's transducers."""
+    ``sources``: the runs (``CampaignRun``), two or more; ``options`` / ``choices`` as ``fit_record`` (the
+    stacked search: velab.fitting.options.stacked_search). Raises DataError (one line, naming the run) for runs
+    of different pipes, a window a run does not hold, bad options, a run whose heads do not match its rig's
+    transducers."""
     if len(sources) < 2:
         raise DataError("a joint fit needs two or more runs")
-    if selection not in SELECTIONS:
-        raise DataError(f"unknown model selection {selection!r} (choose from {', '.join(SELECTIONS)})")
+    opts = stacked_search(FitOptions.of(options, **choices).replace(window_s=window_s), f"{len(sources)} runs")
+    ms, selection, manoeuvre = list(opts.models), opts.selection, opts.manoeuvre
+    tau_min_s, tau_max_s, friction, friction_unsteady = opts.tau_min_s, opts.tau_max_s, opts.friction, opts.friction_unsteady
     check_same_pipe(sources)
     t0 = time.perf_counter()
-    ms = parse_models(list(models) if isinstance(models, range) else models)
 
     def make(s):
         return Record(s.path, s.time_s, s.heads(), s.trigger_time_s, s.rig, window_s, record_rate_hz=s.record_rate_hz,

@@ -19,39 +19,37 @@ samples; the online fit's lead is checked against what the offline one would com
 (``matches``) and recomputed if it differs, so a re-fit reproduces the online fit exactly.
 
 This module is light (no scipy): the recorder reads ``lead_window_s`` to know when to start the
-lead. The lead applies to the default sweep (method "auto", polish on, all starts, no warm start) of a
+lead. The lead applies to the default search (FitOptions.default_search: method "auto", polish on, all starts) of a
 window whose first part holds at least MIN_LEAD_PERIODS wave periods 4L/a: a shorter one is
 fitted in one step.
 """
 
 from __future__ import annotations
 
+from velab.fitting.options import FitOptions
 from velab.rig import Rig
 
 LEAD_FRACTION = 0.2  # the lead fit leaves out this fraction of the window (its last part)
 MIN_LEAD_PERIODS = 5.0  # the lead's part must hold this many wave periods 4 L / a (nominal)
-# sweep options under which a fit has a lead (the default sweep); anything else is fitted in one step
-_DEFAULTS = {"method": "auto", "polish": True, "starts": None, "initial": None}
 
 
-def lead_window_s(rig: Rig, window_s: float, options: dict) -> float | None:
-    """The lead fit's window (s after the trigger) for a fit of ``window_s`` with these sweep
-    options, or None (fitted in one step)."""
-    if any(options.get(k, v) != v for k, v in _DEFAULTS.items()):
+def lead_window_s(rig: Rig, window_s: float, options: FitOptions) -> float | None:
+    """The lead fit's window (s after the trigger) for a fit of ``window_s`` with these options, or None
+    (fitted in one step: not the default search, or too short a window)."""
+    if not options.default_search:
         return None
     lead = window_s * (1.0 - LEAD_FRACTION)
     period = 4.0 * rig.pipe.length_m / rig.nominal_wave_speed_m_s
     return lead if lead >= MIN_LEAD_PERIODS * period else None
 
 
-def options_key(window_s: float, options: dict) -> str:
-    """What a lead fit was made for: the final window and the sweep options (stored with the lead as
+def options_key(window_s: float, options: FitOptions) -> str:
+    """What a lead fit was made for: the final window and the options (stored with the lead as
     ``settings["lead_for"]``; a lead made for anything else is not used)."""
-    kept = sorted((k, v) for k, v in options.items() if k not in ("progress", "threads", "lead"))
-    return repr((float(window_s), kept))
+    return repr((float(window_s), options.key()))
 
 
-def matches(lead: object, window_s: float, options: dict, record: dict) -> bool:
+def matches(lead: object, window_s: float, options: FitOptions, record: dict) -> bool:
     """``lead`` is the lead fit of a ``window_s`` fit with these options, on the samples that
     ``record`` (the lead window's preparation, PreparedRecord.describe()) names: trigger, steady
     head, rates, window and sample count."""

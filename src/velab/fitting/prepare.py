@@ -39,7 +39,8 @@ from velab.fitting.refine import refine_closure
 from velab.fitting.window import MIN_WINDOW_SAMPLES, baseline_slice, steady_head, window_slice
 from velab.fitting.results import SweepResult
 from velab.fitting.selection import criterion
-from velab.fitting.sweep import fit_sweep
+from velab.fitting.options import FitOptions
+from velab.fitting.sweep import SweepContext, fit_sweep
 from velab.model import manoeuvre_band_hz
 
 # the fit rate is at least this multiple of the manoeuvre's band (the frequency above which the
@@ -186,11 +187,11 @@ def _window_position(position_pct, t: np.ndarray, i0: int, i1: int, q: int, n: i
     return decimate_head(pw, q)[:n], []
 
 
-def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refine: str = "continue",
-                 **sweep_options) -> SweepResult:
+def fit_prepared(rec: PreparedRecord, rig: Rig, options: FitOptions | None = None, *, lead: SweepResult | None = None,
+                 refine: str = "continue", progress=None) -> SweepResult:
     """``fit_sweep`` on a prepared record, driven by the flow at the valve built from it
-    (velab.fitting.manoeuvre; ``manoeuvre``: "auto", "fitted" or "rig"); the preparation goes into
-    the result.
+    (velab.fitting.manoeuvre; ``options.manoeuvre``: "auto", "fitted" or "rig"); the preparation goes into
+    the result (``options.window_s`` is the record's: it is prepared).
 
     A fitted closure is refined on the whole window with the best model's wall
     (velab.fitting.refine). ``refine``: "continue" -- then every model is calibrated again
@@ -199,29 +200,29 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
     (``lead`` given) takes the closure its lead refined. When the continuation names another model
     than the one the closure was refined with, the closure is refined again with that model's wall and
     every model continued once more (``CLOSURE_ROUNDS``): the closure is the named model's."""
-    lead = sweep_options.get("lead")
+    opts = (options if options is not None else FitOptions()).replace(window_s=None)
     closure = None
     if isinstance(lead, SweepResult):
         closure = lead.settings.get("manoeuvre_refined") or lead.settings.get("manoeuvre")
-    frig = fit_rig(rig, sweep_options.get("friction"), sweep_options.get("friction_unsteady"))
-    vi = valve_input(rec.t, rec.h, frig, rec.window_s, position_pct=rec.position, mode=manoeuvre, closure=closure,
-                     shape=CLOSURE_SHAPE)
+    frig = fit_rig(rig, opts.friction, opts.friction_unsteady)
+    vi = valve_input(rec.t, rec.h, frig, rec.window_s, position_pct=rec.position, mode=opts.manoeuvre,
+                     closure=closure, shape=CLOSURE_SHAPE)
     # a closure still to be refined: this sweep only seeds a continuation (the lead's, or this fit's
     # own), which makes the time-domain polish
     refining = vi.source == "fitted" and closure is None
-    # every model fits the steady head's offset, the baseline its prior (velab.fitting.offset)
-    sweep_options = sweep_options | {"baseline_n": rec.steady_samples}
+    # every model fits the steady head's offset, the baseline its prior (velab.fitting.offset);
     # a continuation under a closure its lead refined: the lead's early-window closure had taken up
     # what a fast element does, so what vanished there is searched again
-    result = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=vi.flow, time_domain_polish=not refining,
+    ctx = SweepContext(lead=lead, flow=vi.flow, time_domain_polish=not refining,
                        marginalise=None if refining else marginalise_single(frig, rec.t, rec.h, vi),
-                       trust_lead=vi.source != "fitted", **sweep_options)
+                       trust_lead=vi.source != "fitted", baseline_n=rec.steady_samples)
+    result = fit_sweep(rec.t, rec.h, rig, opts, progress=progress, context=ctx)
     if refining and result.models:
         refined = refine_closure(rec.t, rec.h, frig, vi, result.best, _bounds(result))
         if refine == "only":
             result.settings["manoeuvre_refined"] = refined.describe()
         else:
-            result, vi = _continue(rec, rig, frig, refined, result, None, sweep_options), refined
+            result, vi = _continue(rec, rig, frig, refined, result, None, opts, progress), refined
     if refine != "only":
         for _ in range(CLOSURE_ROUNDS):
             if not (vi.source == "fitted" and vi.refined_with and result.models and result.best.name != vi.refined_with):
@@ -230,10 +231,9 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
             if refined.params == vi.params:  # (the refinement found no better closure for that model)
                 vi = refined
                 break
-            result, vi = _continue(rec, rig, frig, refined, result, result.settings["lead"],
-                                   sweep_options | {"progress": None}), refined
+            result, vi = _continue(rec, rig, frig, refined, result, result.settings["lead"], opts), refined
     if refine != "only" and vi.source == "fitted" and vi.refined_with and result.models:
-        result, vi = _own_closures(rec, rig, frig, vi, result, sweep_options)
+        result, vi = _own_closures(rec, rig, frig, vi, result, opts)
     result.settings["manoeuvre"] = vi.describe()
     result.notes.append(vi.text)
     # the rates as the record states them (fit_sweep measures its step from the time axis)
@@ -246,7 +246,7 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, manoeuvre: str = "auto", *, refi
     return result
 
 
-def _own_closures(rec: PreparedRecord, rig: Rig, frig: Rig, vi, result: SweepResult, sweep_options: dict):
+def _own_closures(rec: PreparedRecord, rig: Rig, frig: Rig, vi, result: SweepResult, opts: FitOptions):
     """(result, closure): the named model against its nearest smaller rival, each under the closure refined
     with its own wall (``RIVAL_DAIC``). The closure is a nuisance shared by every model, so AIC compares the
     models at their own optimum over it; a closure refined with one wall favours that model. The rival wins
@@ -261,7 +261,7 @@ def _own_closures(rec: PreparedRecord, rig: Rig, frig: Rig, vi, result: SweepRes
     refined = refine_closure(rec.t, rec.h, frig, vi, rival, _bounds(result))
     if refined.params == vi.params:
         return result, vi
-    again = _continue(rec, rig, frig, refined, result, result.settings["lead"], sweep_options | {"progress": None})
+    again = _continue(rec, rig, frig, refined, result, result.settings["lead"], opts)
     if again.best.name == rival.name and criterion(again.best, again.selection) < criterion(best, result.selection):
         again.notes.append(f"{rival.name} under the closure refined with its own wall is better than {best.name} "
                            f"under its own: the closure is {rival.name}'s")
@@ -270,13 +270,13 @@ def _own_closures(rec: PreparedRecord, rig: Rig, frig: Rig, vi, result: SweepRes
     return result, vi
 
 
-def _continue(rec: PreparedRecord, rig: Rig, frig: Rig, vi, result: SweepResult, lead_settings,
-              sweep_options: dict) -> SweepResult:
+def _continue(rec: PreparedRecord, rig: Rig, frig: Rig, vi, result: SweepResult, lead_settings, opts: FitOptions,
+              progress=None) -> SweepResult:
     """Every model of ``result`` calibrated again from its optimum under the refined closure ``vi``; the
     result says ``lead_settings`` (None: this fit had no lead) and counts both sweeps' time and work."""
-    again = fit_sweep(rec.t, rec.h, rig, window_s=None, flow=vi.flow,
-                      marginalise=marginalise_single(frig, rec.t, rec.h, vi), trust_lead=False,
-                      **(sweep_options | {"lead": result}))
+    ctx = SweepContext(lead=result, flow=vi.flow, marginalise=marginalise_single(frig, rec.t, rec.h, vi),
+                       trust_lead=False, baseline_n=rec.steady_samples)
+    again = fit_sweep(rec.t, rec.h, rig, opts, progress=progress, context=ctx)
     again.settings["lead"] = lead_settings
     again.duration_s += result.duration_s
     again.evaluations += result.evaluations
@@ -287,5 +287,3 @@ def _bounds(result: SweepResult) -> FitBounds | None:
     """The sweep's box for the wall (its ``settings["bounds"]``)."""
     b = result.settings.get("bounds")
     return FitBounds.from_dict(b) if b else None
-
-

@@ -16,15 +16,14 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-from velab.errors import DataError
 from velab.fitting.adequacy import bound_message
 from velab.fitting.campaignrun import run_heads
 from velab.fitting.joint import _JointSweep, assess_parts, closure_groups, pool_baseline, refine_closures
 from velab.fitting.params import derive_bounds
 from velab.fitting.parts import Record
 from velab.fitting.results import SweepResult
-from velab.fitting.selection import SELECTIONS, apply_criteria
-from velab.fitting.sweep import MAX_M, parse_models
+from velab.fitting.selection import apply_criteria
+from velab.fitting.options import FitOptions, stacked_search
 from velab.rig import Rig
 
 
@@ -41,18 +40,19 @@ class SectionsResult(SweepResult):
         return d
 
 
-def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: float | None = 20.0, *,
-                 record_rate_hz: float, position_pct=None, models=range(MAX_M + 1), selection: str = "ar1",
-                 manoeuvre: str = "auto", tau_min_s=None, tau_max_s=None, friction=None, friction_unsteady=None,
-                 progress=None) -> SectionsResult:
+def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: float | None = 20.0,
+                 options: FitOptions | None = None, *, record_rate_hz: float, position_pct=None, progress=None,
+                 **choices) -> SectionsResult:
     """Calibrate one wall on every section of one record. ``heads``: transducer name -> absolute head on
     ``t_s`` (one per ``rig.sections``, named as in the rig; one at the valve, whose head drives the valve's
-    orifice law); the rest as ``velab.fitting.entry.fit_record``. DataError (one line) for a missing or
-    unknown section, a rig without a transducer at the valve, or what fit_record refuses."""
+    orifice law); ``options`` / ``choices`` as ``velab.fitting.entry.fit_record`` (the stacked search:
+    ``stacked_search``). DataError (one line) for a missing or unknown section, a rig without a transducer
+    at the valve, or what fit_record refuses."""
+    opts = stacked_search(FitOptions.of(options, **choices).replace(window_s=window_s),
+                          f"the rig has {len(rig.sections)} transducers")
+    ms, selection, manoeuvre = list(opts.models), opts.selection, opts.manoeuvre
+    tau_min_s, tau_max_s, friction, friction_unsteady = opts.tau_min_s, opts.tau_max_s, opts.friction, opts.friction_unsteady
     t0 = time.perf_counter()
-    if selection not in SELECTIONS:
-        raise DataError(f"unknown model selection {selection!r} (choose from {', '.join(SELECTIONS)})")
-    ms = parse_models(list(models) if isinstance(models, range) else models)
     record = Record("", t_s, heads, trigger_time_s, rig, window_s, record_rate_hz=record_rate_hz,
                     position_pct=position_pct, manoeuvre=manoeuvre, friction=friction, friction_unsteady=friction_unsteady)
     runs, valve_rec = record.parts, record.valve.rec
@@ -91,22 +91,16 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
     return result
 
 
-# the single sweep's search options (velab.fitting.sweep.fit_sweep): the sections' fit is the joint sweep's
-SWEEP_ONLY = {"method": "auto", "reduced": False, "starts": None, "polish": True}
-
-
-def fit_run_sections(run, window_s: float | None, **options) -> SectionsResult:
-    """:func:`fit_sections` on a run read back from its file, every transducer of its rig (velab.fitting.prepare
-    .fit_run calls it for a rig with several). The single sweep's search options (``SWEEP_ONLY``) are accepted
-    at their defaults; another value is one line (DataError): this fit searches as a joint fit does."""
-    for key, default in SWEEP_ONLY.items():
-        value = options.pop(key, default)
-        if value != default and not (key == "starts" and value is None):
-            raise DataError(f"{run.path}: {key} = {value!r}: not for a fit of several sections (its rig has "
-                            f"{len(run.rig.sections)} transducers; the search is the joint fit's)")
+def fit_run_sections(run, window_s: float | None, options: FitOptions | None = None, *, progress=None,
+                     **choices) -> SectionsResult:
+    """:func:`fit_sections` on a run read back from its file, every transducer of its rig (velab.fitting.entry
+    .fit_run calls it for a rig with several)."""
+    opts = stacked_search(FitOptions.of(options, **choices), f"{run.path}: its rig has {len(run.rig.sections)} "
+                                                              f"transducers")
     run.fit_window(window_s)  # the reader's own checks of the window (gaps, NaN), with the file's name
-    return fit_sections(run.time_s, run_heads(run), run.trigger_time_s, run.rig, window_s,
-                        record_rate_hz=run.sample_rate_hz, position_pct=run.channels.get("valve_position"), **options)
+    return fit_sections(run.time_s, run_heads(run), run.trigger_time_s, run.rig, window_s, opts,
+                        record_rate_hz=run.sample_rate_hz, position_pct=run.channels.get("valve_position"),
+                        progress=progress)
 
 
 def _per_section(runs, fin, best):

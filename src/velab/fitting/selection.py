@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from velab.fitting.options import SELECTIONS
 from velab.fitting.creep import CREEP_POINTS, Z95, CreepCurve, creep_curve, creep_range, creep_times, empty_curve
 
-SELECTIONS = ("ar1", "white")
 # an element's two parameters cost 2 x 2 in AIC: one that gains less than this in n ln F does not pay for itself
 ELEMENT_PRICE = 4.0
 # the model-averaged creep is shown (report, figure) where the best model holds less than this share of the

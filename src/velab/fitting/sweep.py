@@ -32,7 +32,7 @@ import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable, Iterable
+from typing import Callable
 
 import numpy as np
 
@@ -42,11 +42,12 @@ from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate, prepare_window
 from velab.fitting.engine import HeadEvaluator, sumsq
 from velab.fitting.offset import counted_on, project
+from velab.fitting.options import MAX_M, METHODS, FitOptions, parse_models
 from velab.fitting.friction import EquivalentFriction, TimeDomainModel, anderson, equivalent_friction, fit_rig, rms
 from velab.fitting.parallel import map_each
 from velab.fitting.params import FitBounds, ParamMap, creep_const, derive_bounds
 from velab.fitting.results import ModelFit, SweepResult, model_name
-from velab.fitting.selection import ELEMENT_PRICE, SELECTIONS, apply_criteria, pays, white_aic
+from velab.fitting.selection import ELEMENT_PRICE, apply_criteria, pays, white_aic
 from velab.fitting.solvers import Sol, Stage, levenberg_marquardt
 from velab.fitting.starts import (fan_out, nested_starts, race_starts, reduced_then_full, scan_wave_speed, split_all,
                                   tau_grids)
@@ -54,8 +55,6 @@ from velab.fitting.nesting import hand_back
 from velab.fitting.summary import summarise
 from velab.model import manoeuvre_band_hz
 
-METHODS = ("auto", "least-squares", "nelder-mead", "evolution")
-MAX_M = 6
 # friction correction: refreshed until it moves less than this fraction of the residual rms,
 # or a refresh gains less than this in n ln F (the objective has stopped moving)
 REFRESH_TOL = 0.01
@@ -96,32 +95,6 @@ MOC_POLISH_GAIN = 1e-3
 MOC_POLISH_BROYDEN = True
 
 __all__ = ["fit_sweep", "parse_models", "METHODS", "MAX_M", "prepare_window", "lowpass_decimate"]
-
-
-def parse_models(spec) -> list[int]:
-    """'0-6', '1,3,5', '3' or an iterable of ints -> sorted list of m in 0..6."""
-    if isinstance(spec, str):
-        out: set[int] = set()
-        for part in spec.replace(" ", "").split(","):
-            if not part:
-                continue
-            try:
-                if "-" in part:
-                    a, b = part.split("-", 1)
-                    lo, hi = int(a), int(b)
-                    if not 0 <= lo <= hi <= MAX_M:  # before range(): "0-10**12" must not build a huge set
-                        raise DataError(f"bad model list {spec!r}: ranges must be within 0..{MAX_M} (0 = EL)")
-                    out.update(range(lo, hi + 1))
-                else:
-                    out.add(int(part.upper().lstrip("S").replace("EL", "0") or 0))
-            except ValueError:
-                raise DataError(f"bad model list {spec!r}: use e.g. 0-6 or 1,3,5 (0 = EL)") from None
-        ms = sorted(out)
-    else:
-        ms = sorted(set(int(v) for v in spec))
-    if not ms or ms[0] < 0 or ms[-1] > MAX_M:
-        raise DataError(f"bad model list {spec!r}: m must be within 0..{MAX_M} (0 = EL)")
-    return ms
 
 
 @dataclass
@@ -528,71 +501,54 @@ def _pack_fit(pm: ParamMap, old: ModelFit, rig: Rig) -> np.ndarray:
     return pm.pack(a, J, np.array(old.tau_s) if not pm.fixed_tau else None)
 
 
-def fit_sweep(
-    t_s,
-    h_m,
-    rig: Rig,
-    models: Iterable[int] | str = range(7),
-    window_s: float | None = 20.0,
-    method: str = "auto",
-    reduced: bool = False,
-    progress: Callable[[int, int, str], None] | None = None,
-    initial: SweepResult | None = None,
-    *,
-    polish: bool = True,
-    starts: int | None = None,
-    seed: int = 0,
-    tau_min_s: float | None = None,
-    tau_max_s: float | None = None,
-    threads: int | None = None,
-    selection: str = "ar1",
-    friction: str | None = None,
-    friction_unsteady: str | None = None,
-    lead: SweepResult | None = None,
-    flow=None,
-    time_domain_polish: bool = True,
-    marginalise: Callable | None = None,
-    trust_lead: bool = True,
-    baseline_n: float = 0.0,
-) -> SweepResult:
+@dataclass(frozen=True)
+class SweepContext:
+    """What the fit path derives for a sweep (velab.fitting.prepare), not a user's choice (FitOptions).
+
+    ``lead``: the sweep of this record's first part (velab.fitting.lead): each model is then calibrated from
+    the lead's optimum alone (no multi-start search), and a model that ended there as a smaller one plus a
+    vanished element is that again here (unless ``trust_lead`` is False: the lead was driven by another flow,
+    a closure fitted on the early window and refined since, under which the closure had taken up what a fast
+    element does). ``initial``: a previous SweepResult (e.g. on a shorter window) whose parameters are added
+    as starts. ``flow``: the flow at the valve q(t) on the record's samples (velab.fitting.manoeuvre: from the
+    recorded position or a fitted closure); None: the rig's sigmoid imposed as the flow (the paper's).
+    ``time_domain_polish``: with a nonlinear friction law the competitive models end on the time-domain model's
+    own optimum (False: where the defect correction stops; a sweep that only seeds a continuation).
+    ``marginalise``: f, stage, sol -> f, applied to each model's summary (velab.fitting.nuisance: the covariance
+    marginalised over a closure fitted from the same record). ``baseline_n``: the samples before the trigger
+    that set the steady head (``h_m``'s zero), counted at the window's rate; then every model also fits the
+    steady head's offset, the baseline its prior (velab.fitting.offset); 0: the steady head as ``h_m`` has it."""
+
+    lead: SweepResult | None = None
+    initial: SweepResult | None = None
+    flow: object = None
+    time_domain_polish: bool = True
+    marginalise: Callable | None = None
+    trust_lead: bool = True
+    baseline_n: float = 0.0
+
+
+def fit_sweep(t_s, h_m, rig: Rig, options: FitOptions | None = None, *,
+              progress: Callable[[int, int, str], None] | None = None, context: SweepContext | None = None,
+              **choices) -> SweepResult:
     """Calibrate EL/Sm models on a head record and rank them.
 
-    ``t_s`` is time from the trigger (s, may start negative), ``h_m`` the head
-    perturbation (m, head minus its steady pre-trigger value). ``models`` lists m
-    (0 = EL). ``reduced`` adds the reduced S1r..S5r (tau fixed at 0.01, 0.1, 1, 10,
-    100 s). ``progress(done, total, name)`` is called after each model. ``initial``
-    (a previous SweepResult, e.g. on a shorter window) adds its parameters as starts.
-    ``starts`` caps the number of coarse starts per model (None: all). ``threads``: 2 (the
-    default on a machine with two or more cores) polishes two full-band candidates at
-    once, 1 keeps everything in the calling thread; the result is the same either way.
-    ``tau_min_s``/``tau_max_s`` override the retardation-time bounds (default: the rig's
-    ``[fit]`` table, else derived from the data, velab.fitting.params.derive_bounds).
-    ``selection``: "ar1" (default; AIC of an AR(1) likelihood of the residuals) or "white"
-    (the paper's AIC). ``friction``/``friction_unsteady`` override the rig's friction laws.
-    ``lead``: the sweep of this record's first part (velab.fitting.lead): each model is then
-    calibrated from the lead's optimum alone (no multi-start search), and a model that ended there
-    as a smaller one plus a vanished element is that again here.
-    ``flow``: the flow at the valve q(t) on the window's samples (velab.fitting.manoeuvre: from the
-    recorded position or a fitted closure); None: the rig's sigmoid imposed as the flow (the paper's).
-    ``time_domain_polish``: with a nonlinear friction law the competitive models end on the time-domain
-    model's own optimum (False: where the defect correction stops; a lead fit, which only seeds its
-    continuation).
-    ``trust_lead``: False -- a model that vanished in the lead fit is searched again here (the lead
-    was driven by another flow: a closure fitted on the early window, refined since; under it the
-    closure had taken up what a fast element does).
-    ``marginalise``: f, stage, sol -> f, applied to each model's summary (velab.fitting.nuisance:
-    the covariance marginalised over a closure fitted from the same record).
-    ``baseline_n``: the samples before the trigger that set the steady head (``h_m``'s zero), counted at
-    the window's rate; then every model also fits the steady head's offset, the baseline its prior
-    (velab.fitting.offset). 0: the steady head as ``h_m`` has it.
-    Pure computation: no I/O, no shared state; safe to call from worker threads.
+    ``t_s`` is time from the trigger (s, may start negative), ``h_m`` the head perturbation (m, head minus its
+    steady pre-trigger value); the window is ``options.window_s`` after the trigger (None: all of ``t_s``).
+    ``options``: the user's choices (velab.fitting.options.FitOptions; ``choices`` by name, e.g.
+    ``models=[1, 2]``, change them). ``progress(done, total, name)`` is called after each model. ``context``:
+    what the fit path derived (SweepContext; default: none of it). The result is the same whatever
+    ``options.threads``. Pure computation: no I/O, no shared state; safe to call from worker threads.
     """
-    if method not in METHODS:
-        raise DataError(f"unknown fit method {method!r} (choose from {', '.join(METHODS)})")
-    if selection not in SELECTIONS:
-        raise DataError(f"unknown model selection {selection!r} (choose from {', '.join(SELECTIONS)})")
+    opts = FitOptions.of(options, **choices)
+    ctx = context if context is not None else SweepContext()
+    models, window_s, method, reduced, polish = opts.models, opts.window_s, opts.method, opts.reduced, opts.polish
+    starts, seed, tau_min_s, tau_max_s, threads = opts.starts, opts.seed, opts.tau_min_s, opts.tau_max_s, opts.threads
+    selection, friction, friction_unsteady = opts.selection, opts.friction, opts.friction_unsteady
+    lead, initial, flow, time_domain_polish = ctx.lead, ctx.initial, ctx.flow, ctx.time_domain_polish
+    marginalise, trust_lead, baseline_n = ctx.marginalise, ctx.trust_lead, ctx.baseline_n
     t0 = time.perf_counter()
-    ms = parse_models(models) if not isinstance(models, range) else parse_models(list(models))
+    ms = list(models)
     t, d = prepare_window(t_s, h_m, window_s)
     n = d.size
     if flow is not None:  # given on t_s: the window's part of it

@@ -32,6 +32,7 @@ import numpy as np
 from velab.rig import Rig
 from velab import fit_worker
 from velab.fitting.lead import lead_window_s
+from velab.fitting.options import FitOptions
 
 log = logging.getLogger(__name__)
 MIN_FIT_WINDOW_S = 2.0
@@ -102,7 +103,7 @@ class OnlineFit:
         """The fit path's lead part of the final window (velab.fitting.lead) for this run's fit options."""
         if not (self.s.fit and self.s.online_fit) or self.sections:
             return None
-        return lead_window_s(self.rig, self.s.fit_window_s, {"method": self.s.fit_method})
+        return lead_window_s(self.rig, self.s.fit_window_s, FitOptions(method=self.s.fit_method))
 
     @property
     def busy(self) -> bool:
