@@ -136,7 +136,7 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
                      progress=progress, tau_min_s=opts["tau_min_s"], tau_max_s=opts["tau_max_s"],
                      selection=opts["selection"], friction=opts["friction"],
                      friction_unsteady=opts["friction_unsteady"], manoeuvre=opts.get("manoeuvre", "auto"))
-    result.settings["window_s_requested"] = opts["window_s"]
+    result.settings = result.settings.replace(window_s_requested=opts["window_s"])
     if refused:
         result.notes.append(_save_note(run))
     name = None
@@ -264,7 +264,7 @@ def _run_joint(args, opts: dict) -> int:
         result = fit_joint(sources, opts["window_s"], models=opts["models"], selection=opts["selection"],
                            manoeuvre=opts["manoeuvre"], tau_min_s=opts["tau_min_s"], tau_max_s=opts["tau_max_s"],
                            friction=opts["friction"], friction_unsteady=opts["friction_unsteady"], progress=cb)
-    result.settings["window_s_requested"] = opts["window_s"]
+    result.settings = result.settings.replace(window_s_requested=opts["window_s"])
     name = None
     if opts["save"]:
         name = opts["name"] or default_name(opts["window_s"])

@@ -50,7 +50,7 @@ def fit_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | N
         lead = _fit_lead_record(rec_lead, rig, rec.window_s, opts,
                                 progress=_stage_progress(progress, 0, f" (lead fit, {lw:.6g} s)"))
     result = fit_prepared(rec, rig, opts, lead=lead, progress=_stage_progress(progress, 1, ""))
-    result.settings["lead"]["computed_in_this_fit"] = computed
+    result.settings = result.settings.replace(lead={**result.settings.lead, "computed_in_this_fit": computed})
     if computed:
         result.duration_s += lead.duration_s  # this call's time: both steps
     return result
@@ -76,7 +76,7 @@ def _fit_lead_record(rec_lead: PreparedRecord, rig: Rig, window_s: float, opts: 
                      progress=None) -> SweepResult:
     """The lead fit on its prepared record, marked with what it was made for (``matches``)."""
     lead = fit_prepared(rec_lead, rig, opts, refine="only", progress=progress)
-    lead.settings["lead_for"] = options_key(window_s, opts)
+    lead.settings = lead.settings.replace(lead_for=options_key(window_s, opts))
     return lead
 
 

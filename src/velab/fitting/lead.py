@@ -26,6 +26,8 @@ fitted in one step.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from velab.fitting.options import FitOptions
 from velab.rig import Rig
 
@@ -54,5 +56,5 @@ def matches(lead: object, window_s: float, options: FitOptions, record: dict) ->
     ``record`` (the lead window's preparation, PreparedRecord.describe()) names: trigger, steady
     head, rates, window and sample count."""
     settings = getattr(lead, "settings", None)  # (a SweepResult; True/None: no lead given)
-    return (isinstance(settings, dict) and settings.get("lead_for") == options_key(window_s, options)
+    return (isinstance(settings, Mapping) and settings.get("lead_for") == options_key(window_s, options)
             and settings.get("record") == record)

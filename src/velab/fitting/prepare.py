@@ -220,7 +220,7 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, options: FitOptions | None = Non
     if refining and result.models:
         refined = refine_closure(rec.t, rec.h, frig, vi, result.best, _bounds(result))
         if refine == "only":
-            result.settings["manoeuvre_refined"] = refined.describe()
+            result.settings = result.settings.replace(manoeuvre_refined=refined.describe())
         else:
             result, vi = _continue(rec, rig, frig, refined, result, None, opts, progress), refined
     if refine != "only":
@@ -234,13 +234,13 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, options: FitOptions | None = Non
             result, vi = _continue(rec, rig, frig, refined, result, result.settings["lead"], opts), refined
     if refine != "only" and vi.source == "fitted" and vi.refined_with and result.models:
         result, vi = _own_closures(rec, rig, frig, vi, result, opts)
-    result.settings["manoeuvre"] = vi.describe()
+    result.settings = result.settings.replace(manoeuvre=vi.describe())
     result.notes.append(vi.text)
     # the rates as the record states them (fit_sweep measures its step from the time axis)
     result.sample_rate_hz = rec.fit_rate_hz
     result.record_rate_hz = rec.record_rate_hz
     result.anti_alias_filter = rec.filter
-    result.settings["record"] = rec.describe()
+    result.settings = result.settings.replace(record=rec.describe())
     result.notes.extend(rec.notes)
     assess(result, rec, rig)  # noise ratios and warnings (misfit, cavitation, bound)
     return result
@@ -277,7 +277,7 @@ def _continue(rec: PreparedRecord, rig: Rig, frig: Rig, vi, result: SweepResult,
     ctx = SweepContext(lead=result, flow=vi.flow, marginalise=marginalise_single(frig, rec.t, rec.h, vi),
                        trust_lead=False, baseline_n=rec.steady_samples)
     again = fit_sweep(rec.t, rec.h, rig, opts, progress=progress, context=ctx)
-    again.settings["lead"] = lead_settings
+    again.settings = again.settings.replace(lead=lead_settings)
     again.duration_s += result.duration_s
     again.evaluations += result.evaluations
     return again

@@ -17,6 +17,7 @@ from velab.config import KelvinVoigt, Material
 from velab.fitting.adequacy import bound_message
 from velab.fitting.creep import creep_of
 from velab.fitting.selection import SELECTIONS, averaged_creep_of, best_of
+from velab.fitting.settings import FitSettings
 
 
 def model_name(m: int, reduced: bool = False) -> str:
@@ -220,7 +221,7 @@ class SweepResult:
     window_s: float
     sample_rate_hz: float
     method: str
-    settings: dict
+    settings: FitSettings  # (a dict given is read as one: FitSettings.from_dict)
     models: list[ModelFit]
     duration_s: float = 0.0
     evaluations: int = 0  # head-model evaluations over the whole sweep
@@ -235,6 +236,15 @@ class SweepResult:
     baseline_lag1: float | None = None
     adequacy: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
+
+    def __post_init__(self):
+        if not isinstance(self.settings, FitSettings):
+            self.settings = FitSettings.from_dict(self.settings)
+
+    def __setattr__(self, name, value):
+        if name == "settings" and not isinstance(value, FitSettings):
+            value = FitSettings.from_dict(value)
+        super().__setattr__(name, value)
 
     @property
     def fit_rate_hz(self) -> float:
@@ -271,7 +281,7 @@ class SweepResult:
             "anti_alias_filter": self.anti_alias_filter,
             "method": self.method,
             "selection": self.selection,
-            "settings": self.settings,
+            "settings": self.settings.to_dict(),
             "best": self.best.name,
             "duration_s": self.duration_s,
             "evaluations": self.evaluations,
@@ -307,7 +317,7 @@ class SweepResult:
         r = cls(
             n=int(d.get("n", 0) or 0), window_s=float(d.get("window", d.get("window_s", math.nan))),
             sample_rate_hz=float(d.get("sample_rate_hz") or math.nan), method=str(d.get("method", "")),
-            settings=dict(d.get("settings") or {}), models=[ModelFit.from_dict(m) for m in d.get("models") or []],
+            settings=FitSettings.from_dict(d.get("settings") or {}), models=[ModelFit.from_dict(m) for m in d.get("models") or []],
             duration_s=float(d.get("duration_s") or 0.0), evaluations=int(d.get("evaluations") or 0),
             notes=list(d.get("notes") or []), selection=sel if sel in SELECTIONS else "white",
             record_rate_hz=float(d.get("record_rate_hz") or d.get("sample_rate_hz") or math.nan),

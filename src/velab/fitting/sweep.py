@@ -631,7 +631,7 @@ def fit_sweep(t_s, h_m, rig: Rig, options: FitOptions | None = None, *,
     if polished:
         result.notes.append(f"{', '.join(polished)}: polished on the time-domain model itself (its own optimum, "
                             f"not the defect correction's)")
-    settings["time_domain_polish"] = polished
+    result.settings = result.settings.replace(time_domain_polish=polished)
     return result
 
 

@@ -88,7 +88,7 @@ def refit(path, opts: RefitOptions, progress=None) -> RefitOutcome:
     # the one fit path (velab.fitting.prepare), as velab fit and the recorder's online fit
     result = fit_run(run, window, models=parse_models(opts.models), method=opts.method,
                      reduced=opts.reduced, starts=opts.starts, polish=opts.polish, progress=progress)
-    result.settings["window_s_requested"] = window
+    result.settings = result.settings.replace(window_s_requested=window)
     saved, note = None, ""
     if opts.save:
         if run.incomplete:
