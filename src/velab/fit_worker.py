@@ -12,7 +12,7 @@ Frames on the child's stdin/stdout: an 8-byte big-endian length, then a pickle (
 are the same program of the same user).
 
     parent -> child   ("fit", job, call, kwargs)  fit_record(**kwargs) (call "record") or fit_lead(**kwargs)
-                                               ("lead"; velab.fitting.prepare)
+                                               ("lead"; velab.fitting.entry)
                       ("cancel", job)          end that job at its next progress call
                       ("exit",)
     child -> parent   ("ready", pid)           imports done, the time-domain kernel loaded

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from velab.config import load_rig
-from velab.fitting import prepare
+from velab.fitting import entry
 from velab.recording.online_fit import HALTED, OnlineFit
 from velab.recording.settings import RecordSettings
 
@@ -42,8 +42,8 @@ class StandInFitter:
 def fitter(monkeypatch):
     def use(**kw):
         f = StandInFitter(**kw)
-        monkeypatch.setattr(prepare, "fit_record", f)
-        monkeypatch.setattr(prepare, "fit_lead", f)
+        monkeypatch.setattr(entry, "fit_record", f)
+        monkeypatch.setattr(entry, "fit_lead", f)
         return f
     return use
 
@@ -123,7 +123,7 @@ def test_the_fit_paths_sections_search_refuses_the_single_sweeps_options():
     from velab.errors import DataError
 
     with pytest.raises(DataError, match="polish = False: not for a fit of several sections"):
-        prepare.fit_record(T, H, 0.0, load_rig("perugia_two_sections"), 1.0, record_rate_hz=1000.0,
+        entry.fit_record(T, H, 0.0, load_rig("perugia_two_sections"), 1.0, record_rate_hz=1000.0,
                            section_heads={"mid": H}, polish=False)
     with pytest.raises(DataError, match="sections: no head for mid"):  # (velab.fitting.sections says which)
-        prepare.fit_record(T, H, 0.0, load_rig("perugia_two_sections"), 1.0, record_rate_hz=1000.0)
+        entry.fit_record(T, H, 0.0, load_rig("perugia_two_sections"), 1.0, record_rate_hz=1000.0)

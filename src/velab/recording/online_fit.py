@@ -212,9 +212,9 @@ class OnlineFit:
             if self._cancelled(kind):
                 raise _Cancelled()
 
-        from velab.fitting import prepare  # scipy: only when a fit runs
+        from velab.fitting import entry  # scipy: only when a fit runs
 
-        return (prepare.fit_lead if kind == "lead" else prepare.fit_record)(progress=progress, **kw)
+        return (entry.fit_lead if kind == "lead" else entry.fit_record)(progress=progress, **kw)
 
     def close(self) -> None:
         """Give the worker process back (kept for the next run if idle; ended if a fit still runs)."""
