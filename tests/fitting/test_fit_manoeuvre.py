@@ -15,9 +15,11 @@ import pytest
 from velab.cli import main
 from velab.config import load_material, load_rig
 from velab.errors import DataError
-from velab.fitting.manoeuvre import (ValveInput, closing_position, closure_flow, closure_opening, coupling_head,
-                                     early_window_s, from_solver, half_flow_offset, own_valve_starts, position_flow,
-                                     result_flow, tail_shape, to_solver, valve_input)
+from velab.fitting.closure import (closure_opening, from_solver, half_flow_offset, own_valve_starts, tail_shape,
+                                   to_solver)
+from velab.fitting.flows import (ValveInput, closing_position, closure_flow, coupling_head, early_window_s,
+                                 position_flow, result_flow)
+from velab.fitting.manoeuvre import valve_input
 from velab.fitting.params import FitBounds
 from velab.fitting.entry import fit_record
 from velab.fitting.prepare import prepare_record
@@ -206,7 +208,8 @@ def test_the_closures_shape_is_the_rigs_valve_unless_the_record_shows_another(ma
     valve its rig describes keeps that shape (only the timing fitted, 3 fewer nuisance parameters) but for a
     chance gain (seeds 11-16 x three valves, 29 campaign records: scores 0-11, fitted gains -0.02..10); a record
     of a valve clearly not the one described gets its shape fitted (gains 114-293 on these)."""
-    from velab.fitting.manoeuvre import FITTED, SHAPE_PARAMS, SHAPE_PRICE, rig_shape
+    from velab.fitting.closure import FITTED, rig_shape
+    from velab.fitting.closurefit import SHAPE_PARAMS, SHAPE_PRICE
 
     rig, t, h = valve_record(load_rig("perugia"), "S3", VALVES[made], seconds=8.0)
     rig = rig.with_changes(valve=VALVES[described])
@@ -241,7 +244,7 @@ def test_the_shape_score_predicts_what_the_free_shape_gains(made, described):
     whether the free fit is made at all: it must not hide a gain the fit would find. On a valve as described,
     both small and within a few units; on a valve not the one described, both far above the price."""
     from velab.fitting.friction import TimeDomainModel
-    from velab.fitting.manoeuvre import SHAPE_PRICE, EarlyPart, fit_early, shape_score
+    from velab.fitting.closurefit import SHAPE_PRICE, EarlyPart, fit_early, shape_score
 
     rig, t, h = valve_record(load_rig("perugia"), "S3", VALVES[made], seconds=8.0)
     rig = rig.with_changes(valve=VALVES[described])

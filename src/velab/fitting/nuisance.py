@@ -23,7 +23,8 @@ import numpy as np
 
 from velab.fitting.engine import HeadEvaluator, gram
 from velab.fitting.offset import project, fitted, objective
-from velab.fitting.manoeuvre import PARAM_NAMES, closure_bounds, closure_coupling, closure_flow, from_solver, to_solver
+from velab.fitting.closure import PARAM_NAMES, closure_bounds, from_solver, to_solver
+from velab.fitting.flows import closure_coupling, closure_flow
 from velab.fitting.params import ParamMap, creep_const
 from velab.model import ValveHeadModel
 from velab.fitting.stats import covariance, lag1, standard_errors

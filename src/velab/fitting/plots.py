@@ -12,7 +12,7 @@ from velab.fitting.residuals import best_residuals
 from velab.fitting.selection import averaged_creep_shown
 from velab.fitting.results import SweepResult
 from velab.fitting.friction import fitted_head
-from velab.fitting.manoeuvre import result_flow
+from velab.fitting.flows import result_flow
 from velab.model import phi
 
 

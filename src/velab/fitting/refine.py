@@ -37,9 +37,10 @@ import numpy as np
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator, gram, sumsq
 from velab.fitting.friction import TimeDomainModel, equivalent_friction
-from velab.fitting.manoeuvre import (NV, PARAM_NAMES, STARTS, ValveInput, _standard_errors, closure_bounds,
-                                     closure_coupling, closure_flow, coupling_exponent, coupling_model, from_solver,
-                                     own_valve_starts, tm_flow, to_solver)
+from velab.fitting.closure import (NV, PARAM_NAMES, closure_bounds, coupling_exponent, from_solver, own_valve_starts,
+                                   to_solver)
+from velab.fitting.closurefit import STARTS, closure_standard_errors
+from velab.fitting.flows import ValveInput, closure_coupling, closure_flow, coupling_model, tm_flow
 from velab.fitting.params import FitBounds, ParamMap, derive_bounds
 from velab.fitting.solvers import LMSolution, Stage, levenberg_marquardt
 from velab.fitting.stats import lag1
@@ -88,7 +89,7 @@ def refine_closure(t, d, rig: Rig, vi: ValveInput, fit, bounds: FitBounds | None
     res = sol.fun
     F = sumsq(res) / res.size
     rho = max(0.0, min(lag1(res), 0.99))
-    se = _standard_errors(sol, F, res.size) * math.sqrt((1 + rho) / (1 - rho))
+    se = closure_standard_errors(sol, F, res.size) * math.sqrt((1 + rho) / (1 - rho))
     valve = from_solver(v)
     params = dict(zip(PARAM_NAMES, (float(p) for p in valve)))
     ses = {name: float(se[i] * params[name]) if name in ("beta_per_s", "power", "loss_share") else float(se[i])

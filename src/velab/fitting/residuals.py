@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from velab.fitting.friction import fitted_head
-from velab.fitting.manoeuvre import result_flow
+from velab.fitting.flows import result_flow
 from velab.fitting.prepare import decimate_head
 
 

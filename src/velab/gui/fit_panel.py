@@ -25,7 +25,7 @@ from PySide6.QtWidgets import (QAbstractItemView, QHeaderView, QLabel, QSizePoli
 from velab.fitting.creep import creep_of
 from velab.fitting.selection import averaged_creep_shown
 from velab.fitting.friction import fitted_head
-from velab.fitting.manoeuvre import result_flow
+from velab.fitting.flows import result_flow
 from velab.gui import tasks
 from velab.gui.fit_rows import COLUMNS, criterion, model_rows, warnings_text
 from velab.gui.fit_summary import summary_html
