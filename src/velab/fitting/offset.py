@@ -2,10 +2,8 @@
 
 The fit's data are the head minus the baseline's mean (velab.fitting.window.steady_head), whose error,
 sigma / sqrt(n_b) (0.27 mm at 12 mm of noise and 2000 samples), is the same for every model but is not
-made up for alike: creep elements can only take up a steady head set too high, by a slow element on
-the upper bound of tau (a ramp) or by a slowest element split in two. On the simulated bench (material A,
-S3 true) a baseline mean 2.3 standard errors high put S3 18 AIC units behind S5, 1.6 high 10 behind;
-as low, nothing. Here every model's head is H0 + delta + h(t), with delta fitted:
+made up for alike: creep elements can only take up a steady head set too high (docs/decisions.md). Here
+every model's head is H0 + delta + h(t), with delta fitted:
 
     S(x) = min over delta of  sum_window (r_i(x) + delta)^2 + n_b delta^2,    r = h(x) - d,
 

@@ -1,30 +1,16 @@
-"""The fitted closure refined on a record's whole window with a calibrated wall (velab.fitting.manoeuvre, step 3).
+"""The fitted closure refined on a record's whole window with a calibrated wall (velab.fitting.closurefit's
+closure, then this).
 
 Every wave front of the window carries the closure's shape, so the whole record pins it far better than its
 first part; and a fast creep element smooths the fronts as a slower closure would, so the two are solved
-together. On the record low-passed and decimated to REFINE_RATE_PER_BAND x the manoeuvre's band, with the
-linear friction closest to the time-domain model (``equivalent_friction``) and the remaining difference as a
-correction refreshed between the stages:
-
-1. *Basins.* The first part's closure (and its alternative, the coupling on the other side), and the
-   prototypes of a butterfly discharging to air, of an imposed sigmoid and of a quick-opening valve at the same
-   flow half-closure instant (``PROTOTYPES``), each taken START_ITERATIONS steps of a joint Levenberg-Marquardt
-   over the wall and the closure (the first part does not tell these shapes apart, the whole window does); the
-   best goes on.
-2. *Variable projection* (Golub & Pereyra): the closure stepped by Levenberg-Marquardt on the profile
-   residual -- under every closure tried, the wall solved again by the sweep's own solver
-   (``Stage.lsq``, analytic Jacobian, from the best wall so far) -- with the closure's Jacobian taken
-   orthogonal to the wall's columns. The closure and the slow elements trade along a narrow, curved valley
-   (a closure that moves by a fraction of its standard error moves the slowest element's tau by 20 %):
-   a joint step along it fails (on material A head-only with a quick-opening valve, a quarter of the
-   Gauss-Newton step that predicted a gain of 35 in n ln F lost 700), the joint solver stops where it
-   stands, and alternating the closure with the sweep's continuation crawls (each round gained half of
-   what was left: 25, 13, 8, ...). Solving the wall inside the step follows the valley; the correction
-   is refreshed at the end of the first pass and the projection taken again.
-
-Only the closure is kept (the sweep's continuation then calibrates every model under it). Its standard
-errors are those of the projected Jacobian (the closure's block of the joint covariance, the wall
-marginalised), inflated for the residuals' lag-1.
+together, on the record low-passed and decimated to REFINE_RATE_PER_BAND x the manoeuvre's band, with the
+linear friction closest to the time-domain model and the remaining difference as a correction refreshed
+between the stages: (1) basins -- the first part's closure, its alternative and the prototypes
+(``PROTOTYPES``), each taken START_ITERATIONS steps of a joint Levenberg-Marquardt, the best goes on;
+(2) variable projection (Golub & Pereyra) -- the closure stepped on the profile residual, the wall solved
+again under every closure tried. Only the closure is kept (the sweep's continuation then calibrates every
+model under it); its standard errors are those of the projected Jacobian (the wall marginalised), inflated for
+the residuals' lag-1. Why this way: docs/decisions.md.
 """
 
 from __future__ import annotations
