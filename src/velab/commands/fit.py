@@ -10,7 +10,6 @@ from velab import bounds
 from velab.batch.address import scheduler_address
 from velab.commands.common import ProgressLine, add_json_option, check_output_path, float_range, int_range, write_json
 from velab.errors import DataError, ExitCode, UnavailableError
-from velab.fitting.report import format_report
 
 # velab.fitting.sweep.METHODS, named here so that building the parser does not import the
 # fitter (scipy); run() checks the option against the fitter's own list.
@@ -197,6 +196,7 @@ def run(args: argparse.Namespace) -> int:
             write_json({"path": path, "fit_name": name, **result.to_dict(), "headline": _headline(result)})
         else:
             print(f"{path}")
+            from velab.fitting.report import format_report  # (the fitter's package: only when a fit is reported)
             print(format_report(result, verbose=bool(getattr(args, "verbose", 0))))
             if name:
                 print(f"saved as /entry/fits/{name}")
@@ -281,6 +281,7 @@ def _run_joint(args, opts: dict) -> int:
                     "headline": _headline(result)})
     else:
         print("joint fit of " + ", ".join(s.path for s in sources))
+        from velab.fitting.report import format_report  # (the fitter's package: only when a fit is reported)
         print(format_report(result, verbose=bool(getattr(args, "verbose", 0))))
         print(runs_report(result))
         if name:

@@ -22,7 +22,6 @@ from velab import bounds
 from velab.configpath import DEFAULT_SIM
 from velab.commands.common import add_json_option, bound_float, float_range, int_range, write_json
 from velab.errors import DataError, VelabError
-from velab.fitting.report import format_report
 
 # the recorder's own floor: a baseline shorter than this gives no steady head (velab.recording.settings)
 MIN_PRETRIGGER_S = 0.05
@@ -350,6 +349,7 @@ def _print_summary(summary, out, verbose: bool = False) -> None:
     print(f"samples: {summary.n_samples}, lost {summary.lost_samples} in {summary.gaps} gaps, "
           f"{summary.flagged_samples} flagged, peak head {peak}{trig}", file=out)
     if summary.fit is not None:
+        from velab.fitting.report import format_report  # (the fitter's package: only when a fit is reported)
         text = format_report(summary.fit, elements=verbose, verbose=verbose)
         # (the headline is printed above the run's facts: the table and the notes follow here)
         body = text.split("\n\n", 1)[1] if "\n\n" in text else text
