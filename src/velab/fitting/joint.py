@@ -106,7 +106,7 @@ def assess_part(best: ModelFit, part, head, F: float, method: str) -> SweepResul
     return sr
 
 
-class _JointSweep:
+class StackedSweep:
     """The sweep over stacked parts (velab.fitting.parts.Part: a run's section; named ``runs`` here, as a joint
     fit of single-section runs has one part per run)."""
 
@@ -343,7 +343,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options
     dt = min(float(p.rec.t[1] - p.rec.t[0]) for p in parts)
     bounds = derive_bounds(parts[0].rig, dt, max(p.rec.window_s for p in parts), tau_min_s=tau_min_s,
                            tau_max_s=tau_max_s)
-    sw = _JointSweep(parts, bounds, selection, progress)
+    sw = StackedSweep(parts, bounds, selection, progress)
     sw.sweep(ms, progress)
     refine_closures(sw, records, ms)
     top = min(sw.final.values(), key=lambda f: f.loglik(parts))
@@ -389,7 +389,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options
     return result
 
 
-def refine_closures(sw: _JointSweep, records: list[Record], ms) -> None:
+def refine_closures(sw: StackedSweep, records: list[Record], ms) -> None:
     """The fitted closures refined on each record's whole window with the first pass's best wall (every wave
     front carries the closure's shape; from its early window alone a slow element takes up a wrong shape),
     then every model within CONTINUE_MARGIN of the best continued from its optimum under them (the others
@@ -417,7 +417,7 @@ def continue_margin(parts) -> float:
 
 def closure_groups(parts, records: list[Record], top: _Model) -> list:
     """Per record: its parts' indices and each part's closure rows at the best-fitting wall (for the wall's
-    covariance marginalised over the records' closures, ``_JointSweep.summarise``)."""
+    covariance marginalised over the records' closures, ``StackedSweep.summarise``)."""
     p_top = top.sol.pm.unpack(top.sol.x)
     rows = map_each(lambda p: p.closure_rows(p_top), parts)
     out, i = [], 0
@@ -437,7 +437,7 @@ def pool_baseline(result: SweepResult, parts) -> None:
     result.adequacy = {"baseline_samples": int(sum(p.rec.baseline_samples for p in parts)), "misfit_bound": None}
 
 
-def _first_pass_best(sw: _JointSweep, ms) -> _Model:
+def _first_pass_best(sw: StackedSweep, ms) -> _Model:
     """The model of the first pass with the least white AIC (sum n_r ln F_r + 2 (2m + 1))."""
     return min((sw.final[m] for m in ms), key=lambda f: f.white_aic(sw.runs))
 
@@ -474,7 +474,7 @@ def assess_parts(best: ModelFit, parts, fin: _Model, first: int, method: str):
     return out
 
 
-def _per_run(records, sources, sw: _JointSweep, fin: _Model, best: ModelFit, bounds):
+def _per_run(records, sources, sw: StackedSweep, fin: _Model, best: ModelFit, bounds):
     """Per run: its F and noise ratio under the joint wall (pooled over its sections as F is), whether it
     disagrees (the single fit's misfit rule on each of its sections: velab.fitting.adequacy.assess), its
     sections' own ratios when it has several, and its own wall under the best model (a polish from the joint
@@ -525,7 +525,7 @@ def _pooled_ratio(secs: list[dict]):
     return math.exp(sum(s["n"] * math.log(s["noise_ratio"]) for s in secs) / sum(s["n"] for s in secs))
 
 
-def _own_wall(sw: _JointSweep, idx: list[int], fin: _Model, m: int, bounds) -> ModelFit:
+def _own_wall(sw: StackedSweep, idx: list[int], fin: _Model, m: int, bounds) -> ModelFit:
     """The best model's wall fitted on one run alone -- its parts ``idx``, every section of it -- from the
     joint wall (polish grids, the time-domain correction at the joint wall, one refresh, each section weighted
     by its joint F), summarised at the fit rate; its F pooled over the sections as the joint F is."""

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 from velab.fitting.adequacy import bound_message
 from velab.fitting.campaignrun import run_heads
-from velab.fitting.joint import _JointSweep, assess_parts, closure_groups, pool_baseline, refine_closures
+from velab.fitting.joint import StackedSweep, assess_parts, closure_groups, pool_baseline, refine_closures
 from velab.fitting.params import derive_bounds
 from velab.fitting.parts import Record
 from velab.fitting.results import SweepResult
@@ -58,7 +58,7 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
     runs, valve_rec = record.parts, record.valve.rec
     bounds = derive_bounds(record.rig, float(valve_rec.t[1] - valve_rec.t[0]), valve_rec.window_s,
                            tau_min_s=tau_min_s, tau_max_s=tau_max_s)
-    sw = _JointSweep(runs, bounds, selection, progress)
+    sw = StackedSweep(runs, bounds, selection, progress)
     sw.sweep(ms, progress)
     # the fitted closure refined on the valve's whole window with the best wall, then every model continued
     refine_closures(sw, [record], ms)
