@@ -112,6 +112,16 @@ def bound_message(best) -> str:
     return f"parameters of the best model on a bound: {bounds_line(best)}"
 
 
+def model_error_message(best) -> str:
+    """What the best model's model-error elements are (velab.fitting.selection.mark_model_errors)."""
+    shares = [j / (1.0 + sum(best.J_rel)) for j in best.J_rel] if best.J_rel else []
+    parts = [f"tau = {best.tau_s[k]:.3g} s holding {shares[k]:.1e} of the compliance"
+             for k, neg in enumerate(best.negligible) if neg and k < len(shares)]
+    return (f"{best.name} fits best through {'an element' if len(parts) == 1 else 'elements'} on a retardation-time "
+            f"bound ({'; '.join(parts)}): a model error (the flow at the valve, the valve or the friction the fit "
+            f"does not describe), not the wall's creep; the wall is {best.equivalent_to}'s")
+
+
 def assess(result, rec, rig) -> None:
     """Fill the adequacy of ``result`` (a SweepResult fitted on the PreparedRecord ``rec``) in place:
     per model ``noise_ratio``; ``baseline_noise_m``, ``baseline_lag1``, ``adequacy`` and ``warnings``."""
@@ -144,6 +154,8 @@ def assess(result, rec, rig) -> None:
         warnings.append({"code": "cavitation", "message": found.message()})
     if best is not None and best.at_bounds:
         warnings.append({"code": "bound", "message": bound_message(best)})
+    if best is not None and best.support == "model error":
+        warnings.append({"code": "model_error", "message": model_error_message(best)})
     note = stroke_element_note(result, rig)
     if note:
         result.notes.append(note)

@@ -140,13 +140,31 @@ def coupling_exponent(rig: Rig) -> float:
     return 0.0 if rig.valve.law == "imposed" else 1.0
 
 
-def closure_bounds(rig: Rig, shape: str = "fitted") -> tuple[np.ndarray, np.ndarray]:
+def law_words(rig: Rig, kappa: float) -> str:
+    """How a fitted closure's coupling exponent came about, for its text."""
+    if kappa == coupling_exponent(rig):
+        return "the rig's valve law"
+    return ("the flow imposed as such, not the rig's orifice law" if kappa == 0.0 else
+            "the orifice law, not the rig's imposed flow") + ": the record's first part shows it"
+
+
+def closure_kappa(rig: Rig, closure=None) -> float:
+    """The coupling exponent a fitted closure holds: ``closure``'s (a ValveInput or its params dict) where it
+    has one (``choose_closure`` may have taken the other valve law, ``OTHER_LAW_PRICE``), else the rig's
+    (``coupling_exponent``)."""
+    params = getattr(closure, "params", closure) or {}
+    kappa = params.get("coupling") if isinstance(params, dict) else None
+    return coupling_exponent(rig) if kappa is None or not math.isfinite(float(kappa)) else float(kappa)
+
+
+def closure_bounds(rig: Rig, shape: str = "fitted", kappa: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The box of the closure's solver variables (``to_solver``: ln beta, t_half, ln power, ln loss
     share, coupling, tail): beta within 5x the commanded one, the flow's half-closure instant up to
     T50_MAX_FACTOR x the commanded one (+ 1 s), power 0.3-6, loss share 0.001-1; the coupling held at
-    the rig's (``coupling_exponent``: its bounds coincide, so the solvers hold it). ``shape`` "rig": power,
-    loss share and tail held at the rig's valve too (``rig_shape``)."""
-    m, kappa = rig.manoeuvre, coupling_exponent(rig)
+    the rig's (``coupling_exponent``: its bounds coincide, so the solvers hold it; ``kappa``: held there instead,
+    ``closure_kappa``). ``shape`` "rig": power, loss share and tail held at the rig's valve too (``rig_shape``)."""
+    m = rig.manoeuvre
+    kappa = coupling_exponent(rig) if kappa is None else float(kappa)
     lo = np.array([math.log(m.beta_per_s / 5), 0.0, math.log(0.3), math.log(1e-3), kappa, 0.0])
     hi = np.array([math.log(m.beta_per_s * 5), T50_MAX_FACTOR * m.half_closure_s + 1.0, math.log(6.0), 0.0, kappa, 1.0])
     if shape == "rig":

@@ -22,7 +22,7 @@ from velab.fitting.solvers import levenberg_marquardt
 from velab.model import ValveHeadModel
 from velab.valvelaw import orifice_coupling
 from velab.fitting.closure import (COUPLING, FITTED, NV, PARAM_NAMES, T50_MAX_FACTOR, closure_bounds, closure_opening,
-                                   coupling_exponent, from_solver, own_valve_starts, rig_shape, to_solver)
+                                   coupling_exponent, from_solver, law_words, own_valve_starts, rig_shape, to_solver)
 from velab.fitting.flows import ValveInput, closure_flow, coupling_head, early_window_s
 
 
@@ -147,7 +147,7 @@ class EarlyPart:
         self.prob = _ClosureProblem(t[:ne], d[:ne], hc[:ne], rig, tm)
         self.a0 = _scan_wave_speed(self.prob, rig)
 
-    def box(self, shape: str) -> tuple[np.ndarray, np.ndarray]:
+    def box(self, shape: str, kappa: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The solver's box (wall, then ``closure_bounds``). The wave speed's holds the scan's and the rig's
         nominal one: the scan assumes the valve the rig describes, and a flow that falls later than that moves it
         (when the scan took the commanded sigmoid as the flow, a quick-opening valve on the reference rig, half
@@ -156,7 +156,7 @@ class EarlyPart:
         nothing: tests/fitting/test_fit_manoeuvre.py, quick-opening valve)."""
         a_nom = self.rig.nominal_wave_speed_m_s
         a_lo, a_hi = min(self.a0, a_nom), max(self.a0, a_nom)
-        c_lo, c_hi = closure_bounds(self.rig, shape)
+        c_lo, c_hi = closure_bounds(self.rig, shape, kappa)
         return (np.array([math.log(a_lo * 0.8), math.log(1e-6), math.log(1e-3), *c_lo]),
                 np.array([math.log(a_hi * 1.25), math.log(5.0), math.log(10.0), *c_hi]))
 
@@ -173,19 +173,20 @@ def fit_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=None,
     return fit_early(EarlyPart(t, d, rig, window_s, time_model, coupling), shape)[0]
 
 
-def fit_early(early: EarlyPart, shape: str, extra_starts=()) -> tuple[ValveInput, np.ndarray]:
+def fit_early(early: EarlyPart, shape: str, extra_starts=(), kappa: float | None = None) -> tuple[ValveInput, np.ndarray]:
     """``fit_closure`` on a set-up first part; also the solver's optimum. ``extra_starts``: solver points
     (clipped to the box) tried besides the Joukowsky and own-valve starts. Held at the rig's shape, the
-    Joukowsky start is the rig's (power, loss share) alone: the grid's others, clipped to it, only repeat it."""
+    Joukowsky start is the rig's (power, loss share) alone: the grid's others, clipped to it, only repeat it.
+    ``kappa``: the coupling exponent held (None: the rig's valve law's, ``coupling_exponent``)."""
     prob, rig, t = early.prob, early.rig, early.t
     m = rig.manoeuvre
-    lo, hi = early.box(shape)
+    lo, hi = early.box(shape, kappa)
     wall0 = early.wall0()
     # the starts are taken a few steps (the friction correction at the rig's sigmoid), the best one is solved
     # to the end with the correction refreshed at its optimum
     prob.refresh(np.clip(np.array(wall0 + to_solver((m.beta_per_s, m.half_closure_s, 1.0, 1.0, 0.0, 0.0))), lo, hi))
     shapes = [rig_shape(rig)[:2]] if shape == "rig" else None
-    closures = joukowsky_starts(prob.t, prob.d, prob.h, rig, early.a0, shapes=shapes) + own_valve_starts(rig)
+    closures = joukowsky_starts(prob.t, prob.d, prob.h, rig, early.a0, shapes=shapes, kappa=kappa) + own_valve_starts(rig)
     starts = [np.clip(np.array(wall0 + to_solver(v)), lo, hi) for v in closures]
     a_nom = rig.nominal_wave_speed_m_s
     if abs(math.log(a_nom / early.a0)) > NOMINAL_START_GAP:  # the scan far from the rig's wave speed: both
@@ -215,8 +216,8 @@ def fit_early(early: EarlyPart, shape: str, extra_starts=()) -> tuple[ValveInput
     text = (f"flow at the valve from a fitted closure (no valve position in the record): effective opening "
             f"T(sigmoid(beta (t - t_half))) with beta = {params['beta_per_s']:.4g} 1/s, t_half = "
             f"{params['t_half_s'] * 1e3:.4g} ms, characteristic power {params['power']:.3g}, valve loss share "
-            f"{params['loss_share']:.3g}, orifice coupling {params['coupling']:.3g} (the rig's valve law), fitted "
-            f"on the first {t[ne - 1] + t[1] - t[0]:.3g} s")
+            f"{params['loss_share']:.3g}, orifice coupling {params['coupling']:.3g} ({law_words(rig, params['coupling'])}), "
+            f"fitted on the first {t[ne - 1] + t[1] - t[0]:.3g} s")
     held = SHAPE_PARAMS if shape == "rig" else 0
     return ValveInput("fitted", q, params, ses, text, k=FITTED - held, alternatives=alternatives, shape=shape,
                       early_F=F, early_n=int(prob.d.size)), x
@@ -281,25 +282,52 @@ def choose_closure(t, d, rig: Rig, window_s: float, time_model=None, coupling=No
     free, _ = fit_early(early, "fitted", extra_starts=(x_held,))
     gain = free.early_n * math.log(held.early_F / free.early_F) if free.early_F > 0 else math.inf
     if gain > price:
-        return replace(free, shape_gain=gain, text=f"{free.text}; its shape fitted (it gains {gain:.1f} in n ln F "
+        free = replace(free, shape_gain=gain, text=f"{free.text}; its shape fitted (it gains {gain:.1f} in n ln F "
                                                    f"over the rig's valve's, more than {price:g}, chi2(3)'s 1 % point)")
+        return other_law(early, free)
     return replace(held, alternatives=(), shape_gain=gain,
                    text=f"{kept}a fitted shape gained {gain:.1f} in n ln F, not more than {price:g} (chi2(3)'s 1 % "
                         f"point)")
 
 
-def joukowsky_starts(t, d, hc, rig: Rig, a: float, keep: int = 3, shapes=None) -> list[tuple]:
+# the valve the rig file describes is not the record's (its shape rejected, ``choose_closure``): its valve law (the
+# orifice coupling or the flow imposed as such) is in question too, and the closure is fitted again under the other
+# law; taken if it gains more than this in n ln F on the record's first part (one discrete choice: chi2(1)'s 1 % point)
+OTHER_LAW_PRICE = 6.63
+
+
+def other_law(early: EarlyPart, free: ValveInput) -> ValveInput:
+    """``free`` (the closure with its shape fitted, the rig's valve rejected), or the closure fitted under the other
+    valve law (the coupling exponent 1 - the rig's: an imposed flow for an orifice rig, and the reverse) where that
+    fits the first part better by more than OTHER_LAW_PRICE. Why: the family with the rig's orifice coupling cannot
+    hold a flow imposed as such (Q = Q0 phi(x) c(t) with c = sqrt((Hv0 + h)/Hv0) up to 1.23 on the reference rig),
+    and what it left was taken up by the wave speed and a fast element (docs/fitting.md, "A valve its rig file does
+    not describe")."""
+    kappa = 1.0 - coupling_exponent(early.rig)
+    alt, _ = fit_early(early, "fitted", kappa=kappa)
+    gain = free.early_n * math.log(free.early_F / alt.early_F) if alt.early_F > 0 else math.inf
+    if gain > OTHER_LAW_PRICE:
+        return replace(alt, shape_gain=free.shape_gain,
+                       text=f"{alt.text}; its shape fitted (the rig's valve's gained {free.shape_gain:.1f} less in "
+                            f"n ln F), and the coupling of the other valve law (it gains {gain:.1f} in n ln F over "
+                            f"the rig's law's, more than {OTHER_LAW_PRICE:g})")
+    return replace(free, text=f"{free.text}; the other valve law gained {gain:.1f} in n ln F, not more than "
+                              f"{OTHER_LAW_PRICE:g}")
+
+
+def joukowsky_starts(t, d, hc, rig: Rig, a: float, keep: int = 3, shapes=None, kappa: float | None = None) -> list[tuple]:
     """Starts for the closure: before the first reflection returns (2L/a) the head at the valve is
     the Joukowsky head of the flow change, so 1 - h / (B Q0), B = a/(gA), is the flow ratio (creep
     lowers it a little). Every (power, loss share) of a small grid gets its (beta, t_half) fitted to
     that curve (the coupling the rig's); the ``keep`` best (beta, t_half, power, share, coupling, tail)
-    are returned. ``shapes``: the (power, loss share) pairs tried instead of the grid's."""
+    are returned. ``shapes``: the (power, loss share) pairs tried instead of the grid's; ``kappa``: the coupling
+    exponent (None: the rig's)."""
     t = np.asarray(t, dtype=float)
+    kappa = coupling_exponent(rig) if kappa is None else float(kappa)
     n = int(np.searchsorted(t, 0.95 * 2.0 * rig.pipe.length_m / a))
     pairs = [(p, s) for p, s, _ in STARTS] if shapes is None else list(shapes)
     if n < 8:
-        return [(rig.manoeuvre.beta_per_s, rig.manoeuvre.half_closure_s, p, s, coupling_exponent(rig), 0.0)
-                for p, s in pairs]
+        return [(rig.manoeuvre.beta_per_s, rig.manoeuvre.half_closure_s, p, s, kappa, 0.0) for p, s in pairs]
     B = a / (GRAVITY_M_S2 * rig.pipe.area_m2)
     q0 = rig.steady_flow_m3_s
     tt, r_obs, c = t[:n], 1.0 - np.asarray(d[:n]) / (B * q0), orifice_coupling(hc[:n], rig.valve_head_m)
@@ -307,7 +335,6 @@ def joukowsky_starts(t, d, hc, rig: Rig, a: float, keep: int = 3, shapes=None) -
     t50 = float(tt[below[0]]) if below.size else rig.manoeuvre.half_closure_s
     beta0 = rig.manoeuvre.beta_per_s
     found = []
-    kappa = coupling_exponent(rig)
     ck = c ** kappa
     grid = [(p, s) for p in START_POWERS for s in START_SHARES] if shapes is None else list(shapes)
     for power, share in grid:

@@ -351,7 +351,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options
     k_nuis = sum(r.vi.k for r in records)
     groups = closure_groups(parts, records, top)  # (at the top wall: once, not once a model)
     fits = [sw.summarise(m, sw.final[m], k_nuis, groups) for m in ms]
-    apply_criteria(fits, selection)
+    apply_criteria(fits, selection, (bounds.tau_min_s, bounds.tau_max_s))
     result = JointResult(n=fits[0].n, window_s=max(p.rec.window_s for p in parts),
                          sample_rate_hz=min(p.rec.fit_rate_hz for p in parts), method="joint", settings={},
                          models=fits, selection=selection)

@@ -12,11 +12,11 @@ import math
 
 import numpy as np
 
+from velab.fitting.options import MANOEUVRES
 from velab.rig import Rig
 from velab.errors import DataError
 from velab.fitting.friction import TimeDomainModel
 from velab.model import flow_perturbation
-from velab.fitting.options import MANOEUVRES
 from velab.fitting.closure import FITTED, PARAM_NAMES
 from velab.fitting.closurefit import choose_closure, fit_closure
 from velab.fitting.flows import ValveInput, _coupling, closure_coupling, closure_flow, from_position

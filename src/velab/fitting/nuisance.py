@@ -23,7 +23,7 @@ import numpy as np
 
 from velab.fitting.engine import HeadEvaluator, gram
 from velab.fitting.offset import project, fitted, objective
-from velab.fitting.closure import PARAM_NAMES, closure_bounds, from_solver, to_solver
+from velab.fitting.closure import PARAM_NAMES, closure_bounds, closure_kappa, from_solver, to_solver
 from velab.fitting.flows import closure_coupling, closure_flow
 from velab.fitting.params import ParamMap, creep_const
 from velab.model import ValveHeadModel
@@ -41,7 +41,7 @@ def closure_models(rig, t, d, vi, position_m: float | None = None) -> list[tuple
     if vi.source != "fitted" or not vi.params:
         return []
     v0 = np.array(to_solver([float(vi.params.get(k, 0.0)) for k in PARAM_NAMES]))
-    lo, hi = closure_bounds(rig, vi.shape)
+    lo, hi = closure_bounds(rig, vi.shape, closure_kappa(rig, vi))
     span = hi - lo
     t = np.asarray(t, dtype=float)
     hc = closure_coupling(t, d, rig, vi.coupling)

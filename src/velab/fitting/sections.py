@@ -67,7 +67,7 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
     vi = record.vi
     groups = closure_groups(runs, [record], top)  # one closure for every section: one block over all of them
     fits = [sw.summarise(m, sw.final[m], vi.k, groups) for m in ms]
-    apply_criteria(fits, selection)
+    apply_criteria(fits, selection, (bounds.tau_min_s, bounds.tau_max_s))
     result = SectionsResult(n=fits[0].n, window_s=valve_rec.window_s, sample_rate_hz=valve_rec.fit_rate_hz,
                             method="sections", settings={}, models=fits, selection=selection)
     best = result.best

@@ -33,6 +33,11 @@ from velab.fitting.creep import CREEP_POINTS, Z95, CreepCurve, creep_curve, cree
 
 # an element's two parameters cost 2 x 2 in AIC: one that gains less than this in n ln F does not pay for itself
 ELEMENT_PRICE = 4.0
+# an element on a retardation-time bound (within this factor of it) that holds less than MODEL_ERROR_SHARE of the
+# compliance is a model error the wall's model takes up (a closure or valve the fit does not describe, a stroke's
+# position noise), not the wall's creep: docs/decisions.md
+MODEL_ERROR_TAU_FACTOR = 1.2
+MODEL_ERROR_SHARE = 1e-4
 # the model-averaged creep is shown (report, figure) where the best model holds less than this share of the
 # Akaike weight: the choice between models is then part of the uncertainty
 AVERAGED_BELOW = 0.99
@@ -102,12 +107,15 @@ def criterion(f, selection: str) -> float:
     return f.aic_ar1 if selection == "ar1" else f.aic
 
 
-def apply_criteria(fits: list, selection: str = "ar1") -> None:
+def apply_criteria(fits: list, selection: str = "ar1", tau_bounds: tuple[float, float] | None = None) -> None:
     """Fill AIC (white and AR(1)), AICc, BIC, delta AIC, Akaike weights and support in place.
 
     ``selection`` names the criterion behind delta_aic, weight and support (and the best
     model): "ar1" (default) or "white" (the paper's). A fit without an AR(1) innovation
-    variance gets F (1 - rho^2), its value for the Yule-Walker rho at large n.
+    variance gets F (1 - rho^2), its value for the Yule-Walker rho at large n. ``tau_bounds``
+    (the fit's retardation-time box): a model whose extra elements are model errors
+    (:func:`model_error_elements`) is marked as the smaller model plus negligible elements, its
+    support words say so (:func:`mark_model_errors`).
     """
     check_selection(selection)
     for f in fits:
@@ -131,6 +139,53 @@ def apply_criteria(fits: list, selection: str = "ar1") -> None:
         f.delta_aic_white = f.aic - best_white
         f.weight = float(wi)
         f.support = support_category(f.delta_aic)
+    if tau_bounds is not None:
+        mark_model_errors(fits, *tau_bounds)
+
+
+def compliance_shares(f) -> list[float]:
+    """Each element's share of the model's whole compliance, J'_k / (1 + sum J'_j) (the spring's is the 1)."""
+    J = [float(v) for v in (f.J_rel or ())]
+    total = 1.0 + sum(v for v in J if math.isfinite(v))
+    return [v / total if math.isfinite(v) else math.nan for v in J]
+
+
+def model_error_elements(f, tau_min_s: float, tau_max_s: float) -> list[int]:
+    """The elements of ``f`` that are model errors, not creep: on a retardation-time bound (within
+    MODEL_ERROR_TAU_FACTOR of it) and holding less than MODEL_ERROR_SHARE of the compliance. An element that
+    only takes up what the model of the flow or the valve leaves fits the record better (AIC is right about
+    the likelihood) and says nothing of the wall."""
+    out = []
+    taus = f.tau_s
+    for k, share in enumerate(compliance_shares(f)):
+        if k >= len(taus) or not math.isfinite(share):
+            continue
+        tau = taus[k]
+        on_bound = tau <= tau_min_s * MODEL_ERROR_TAU_FACTOR or tau >= tau_max_s / MODEL_ERROR_TAU_FACTOR
+        if on_bound and share < MODEL_ERROR_SHARE:
+            out.append(k)
+    return out
+
+
+def mark_model_errors(fits: list, tau_min_s: float, tau_max_s: float) -> None:
+    """Each model whose extra elements over a smaller fitted one are model errors (:func:`model_error_elements`)
+    becomes that smaller model plus negligible elements: its elements flagged ``negligible``, ``equivalent_to``
+    the smaller model (so the model-averaged creep gives its weight to that one) and its support words "model
+    error" -- a better fit, but not support for the wall's creep."""
+    by_m = {f.m: f for f in fits if not f.reduced}
+    for f in fits:
+        if f.reduced or not f.m or f.equivalent_to:
+            continue
+        bad = model_error_elements(f, tau_min_s, tau_max_s)
+        smaller = by_m.get(f.m - len(bad))
+        if not bad or smaller is None or smaller is f:
+            continue
+        neg = list(f.negligible) if len(f.negligible) == f.m else [False] * f.m
+        for k in bad:
+            neg[k] = True
+        f.negligible = tuple(neg)
+        f.equivalent_to = smaller.name
+        f.support = "model error"
 
 
 def best_of(models, selection: str):

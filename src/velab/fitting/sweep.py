@@ -597,7 +597,7 @@ def fit_sweep(t_s, h_m, rig: Rig, options: FitOptions | None = None, *,
                       friction=sw.friction_info(fin))
         fits.append(marginalise(f, stage, fin.sol) if marginalise is not None else f)
 
-    apply_criteria(fits, selection)
+    apply_criteria(fits, selection, (bounds.tau_min_s, bounds.tau_max_s))
     settings = {
         "models": ms, "reduced": reduced, "polish": polish, "starts": starts, "seed": seed,
         "decimation": sw.q, "coarse_band_hz": sw.band, "tau_start_range_s": [sw.tau_lo, sw.tau_hi],
