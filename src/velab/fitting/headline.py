@@ -111,7 +111,7 @@ def _noise_words(ratio: float | None, bound: float | None, has_baseline: bool) -
     return f"{ratio:.2f}x the record's own noise (chance allows up to {bound:.2f}x)"
 
 
-_WARNING_WORDS = {"misfit": "misfit", "cavitation": "cavitation", "bound": "on a bound"}
+_WARNING_WORDS = {"misfit": "misfit", "cavitation": "cavitation", "bound": "on a bound", "model_error": "model error"}
 
 
 def headline(result) -> Headline:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-from velab.fitting.adequacy import bound_message
+from velab.fitting.adequacy import bound_message, model_error_message
 from velab.fitting.campaignrun import run_heads
 from velab.fitting.joint import StackedSweep, assess_parts, closure_groups, pool_baseline, refine_closures
 from velab.fitting.params import derive_bounds
@@ -84,6 +84,8 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
                                       "sections[].disagrees)")
     if best.at_bounds:
         result.warnings.append({"code": "bound", "message": bound_message(best)})
+    if best.support == "model error":
+        result.warnings.append({"code": "model_error", "message": model_error_message(best)})
     result.notes.append(f"fit of {len(runs)} sections ({', '.join(f'{r.name} at {r.position_m:g} m' for r in runs)}): "
                         f"one wall, one flow at the valve ({vi.source}), each section's noise its own")
     result.duration_s = time.perf_counter() - t0
