@@ -67,6 +67,11 @@ class ProcessBackend:
         with self._lock:
             return [p.pid for p in self._procs if p.alive]
 
+    def running(self) -> list[tuple[int, FitRequest]]:
+        """(pid, request) of every fit a process is computing now."""
+        with self._lock:
+            return [(p.pid, f.request) for p, (f, _) in self._running.items()]
+
     # ------------------------------------------------------------------ fits
     def submit(self, request: FitRequest, progress=None) -> FitFuture:
         fut = FitFuture(request)
