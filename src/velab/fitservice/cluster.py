@@ -13,6 +13,7 @@ themselves. Dask reports no progress per model.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import time
@@ -124,7 +125,7 @@ class DaskBackend:
         self.address = address
         self.client = connect(address)
         self._batch = uuid.uuid4().hex[:12]
-        self._n = 0
+        self._n = itertools.count(1)  # (thread-safe: the keys of this client's tasks)
 
     @property
     def alive(self) -> bool:
@@ -132,10 +133,9 @@ class DaskBackend:
 
     def submit(self, request: FitRequest, progress=None) -> FitFuture:
         fut = FitFuture(request)
-        self._n += 1
         try:
-            task = self.client.submit(run_on_worker, _absolute(request), key=f"velab-fit-{self._batch}-{self._n}",
-                                      pure=False, retries=0)
+            key = f"velab-fit-{self._batch}-{next(self._n)}"
+            task = self.client.submit(run_on_worker, _absolute(request), key=key, pure=False, retries=0)
         except Exception as exc:  # noqa: BLE001 - the scheduler is gone
             settle(fut, exc=FitWorkerDied(f"the fit could not be sent to the scheduler: {one_line(exc)}",
                                           "scheduler lost"))
