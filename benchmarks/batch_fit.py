@@ -52,7 +52,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from velab.batch.runner import run_batch
-    from velab.commands.fit import fit_file
+    from velab.commands.fit import fit_file, fit_request
     from velab.fitting.sweep import parse_models
 
     opts = {"models": parse_models(args.models), "window_s": args.window, "method": "auto", "reduced": False,
@@ -67,7 +67,7 @@ def main() -> None:
         def timed(label, **kw):
             fresh(paths, sources)
             t0 = time.perf_counter()
-            batch = run_batch(fit_file, paths, opts, **kw)
+            batch = run_batch(fit_request, paths, opts, **kw)
             seconds = time.perf_counter() - t0
             failed = [o for o in batch.outcomes if not o["ok"]]
             assert not failed, failed[0]

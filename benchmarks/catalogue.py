@@ -89,8 +89,8 @@ a.set_folder({str(arch)!r})
 first = None
 while not done:
     app.processEvents()
-    if first is None and a.model.rowCount():
-        a.table.viewport().repaint()
+    if first is None and a.catalogue.model.rowCount():
+        a.catalogue.table.viewport().repaint()
         first = time.perf_counter() - t0
     time.sleep(0.001)
 print(first, max(stalls))

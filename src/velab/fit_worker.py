@@ -11,12 +11,15 @@ multiprocessing: a lab script without an ``if __name__ == "__main__"`` guard mus
 Frames on the child's stdin/stdout: an 8-byte big-endian length, then a pickle (parent and child
 are the same program of the same user).
 
-    parent -> child   ("fit", job, call, kwargs)  fit_record(**kwargs) (call "record") or fit_lead(**kwargs)
-                                               ("lead"; velab.fitting.entry)
+    parent -> child   ("fit", job, call, kwargs)  fit_record(**kwargs) (call "record"), fit_lead(**kwargs)
+                                               ("lead"; velab.fitting.entry) or the fit service's
+                                               execute(request=FitRequest) ("request"; velab.fitservice)
                       ("cancel", job)          end that job at its next progress call
                       ("exit",)
     child -> parent   ("ready", pid)           imports done, the time-domain kernel loaded
-                      ("done", job, SweepResult) | ("error", job, "Type: message") | ("cancelled", job)
+                      ("progress", job, done, total, name)   after each model
+                      ("done", job, result) | ("error", job, "Type: message", VelabError | None)
+                      | ("cancelled", job)
 
 The child's own stdout is sent to its stderr, which the parent logs (at debug level) and quotes
 when the child dies. Every outcome is named: a child that dies (killed, out of memory) fails its
@@ -38,6 +41,9 @@ import threading
 import weakref
 from concurrent.futures import Future
 
+from velab.errors import VelabError
+from velab.fitservice.errors import FitCancelled, FitFailed, FitWorkerDied
+
 log = logging.getLogger(__name__)
 
 _HEADER = struct.Struct(">Q")
@@ -45,12 +51,9 @@ START_TIMEOUT_S = 60.0  # imports (numpy, scipy, numba) on a cold, loaded machin
 KEEP_IDLE = 2  # idle workers kept for the next run (a recorder's campaign, the GUI's next run)
 
 
-class WorkerDied(RuntimeError):
-    """The fit process ended without answering (killed, out of memory, could not start)."""
-
-
-class Cancelled(Exception):
-    """The job was cancelled (a halt, or a quick fit overtaken by the final one)."""
+# the fit service's named outcomes (velab.fitservice.errors), by the names this module has always used
+WorkerDied = FitWorkerDied  # the fit process ended without answering (killed, out of memory, could not start)
+Cancelled = FitCancelled  # the job was cancelled (a halt, or a quick fit overtaken by the final one)
 
 
 def _write(stream, lock: threading.Lock, msg) -> None:
@@ -85,9 +88,10 @@ def _warm_up() -> None:
 
 def serve(inp, out) -> int:
     """The child's loop: jobs one at a time; cancels read on a thread of their own."""
+    from velab.fitservice.execute import execute  # the fit service's one call into the fitter
     from velab.fitting.entry import fit_lead, fit_record  # the one fit path
 
-    calls = {"record": fit_record, "lead": fit_lead}
+    calls = {"record": fit_record, "lead": fit_lead, "request": execute}
 
     _warm_up()
     lock = threading.Lock()
@@ -116,9 +120,10 @@ def serve(inp, out) -> int:
             _write(out, lock, ("cancelled", job))
             continue
 
-        def progress(done, total, name, job=job):
+        def progress(done, total, name="", job=job):
             if job in cancelled:
                 raise Cancelled()
+            _write(out, lock, ("progress", job, int(done), int(total), str(name)))
 
         try:
             result = calls[call](progress=progress, **kwargs)
@@ -126,9 +131,21 @@ def serve(inp, out) -> int:
         except Cancelled:
             reply = ("cancelled", job)
         except Exception as exc:  # noqa: BLE001 - the parent reports it as the fit's error
-            reply = ("error", job, f"{type(exc).__name__}: {exc}")
+            reply = ("error", job, f"{type(exc).__name__}: {exc}", _travels(exc))
         cancelled.discard(job)
         _write(out, lock, reply)
+
+
+def _travels(exc: BaseException):
+    """A user error (VelabError) as it is, if it pickles (the parent raises it again: one line, its exit
+    code); else None (the parent has its "Type: message")."""
+    if not isinstance(exc, VelabError):
+        return None
+    try:
+        pickle.dumps(exc, protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception:  # noqa: BLE001 - an attribute that does not pickle: the text goes alone
+        return None
+    return exc
 
 
 def main() -> int:
@@ -166,6 +183,7 @@ class FitProcess:
         self._lock = threading.Lock()
         self._wlock = threading.Lock()
         self._jobs: dict[int, Future] = {}
+        self._progress: dict[int, object] = {}  # job -> on_progress(done, total, name)
         self._next = 0
         self._dead: str | None = None
         self._ready = threading.Event()
@@ -179,6 +197,11 @@ class FitProcess:
         return self._dead is None and self._proc.poll() is None
 
     @property
+    def ended(self) -> str:
+        """Why the process is gone ("" while it runs)."""
+        return self._dead or ("" if self._proc.poll() is None else f"the fit process ended ({self._exit_text()})")
+
+    @property
     def busy(self) -> bool:
         with self._lock:
             return bool(self._jobs)
@@ -187,10 +210,12 @@ class FitProcess:
         return self._ready.wait(timeout) and self.alive
 
     # ---------------------------------------------------------------- jobs
-    def submit(self, call: str = "record", **kwargs) -> tuple[int, Future]:
-        """Queue ``fit_record(**kwargs)`` (``call`` "record") or ``fit_lead(**kwargs)`` ("lead"); (job
-        id, Future). The Future fails with WorkerDied if the process dies, Cancelled if the job is
-        cancelled, RuntimeError with the fit's own error."""
+    def submit(self, call: str = "record", *, on_progress=None, **kwargs) -> tuple[int, Future]:
+        """Queue ``fit_record(**kwargs)`` (``call`` "record"), ``fit_lead(**kwargs)`` ("lead") or the fit
+        service's ``execute(request=...)`` ("request"); (job id, Future). The Future fails with WorkerDied
+        if the process dies, Cancelled if the job is cancelled, FitFailed (a RuntimeError: "Type:
+        message", ``error`` the user error itself where it was one) with the fit's own error.
+        ``on_progress(done, total, name)`` is called on the reply thread after each model."""
         fut: Future = Future()
         with self._lock:
             if self._dead is not None:
@@ -199,6 +224,8 @@ class FitProcess:
             self._next += 1
             job = self._next
             self._jobs[job] = fut
+            if on_progress is not None:
+                self._progress[job] = on_progress
         try:
             _write(self._proc.stdin, self._wlock, ("fit", job, call, kwargs))
         except (OSError, ValueError):
@@ -247,6 +274,7 @@ class FitProcess:
             if self._dead is None:
                 self._dead = why
             jobs, self._jobs = self._jobs, {}
+            self._progress.clear()
         self._ready.set()
         for fut in jobs.values():
             if not fut.done():
@@ -265,8 +293,18 @@ class FitProcess:
             if msg[0] == "ready":
                 self._ready.set()
                 continue
+            if msg[0] == "progress":
+                with self._lock:
+                    cb = self._progress.get(msg[1])
+                if cb is not None:
+                    try:
+                        cb(*msg[2:5])
+                    except Exception:  # noqa: BLE001 - a consumer's bug never stops the replies
+                        log.exception("fit progress callback")
+                continue
             with self._lock:
                 fut = self._jobs.pop(msg[1], None)
+                self._progress.pop(msg[1], None)
             if fut is None or fut.done():
                 continue
             if msg[0] == "done":
@@ -274,7 +312,7 @@ class FitProcess:
             elif msg[0] == "cancelled":
                 fut.set_exception(Cancelled())
             else:
-                fut.set_exception(RuntimeError(msg[2]))
+                fut.set_exception(FitFailed(msg[2], msg[3] if len(msg) > 3 else None))
         try:
             self._proc.wait(5)
         except subprocess.TimeoutExpired:

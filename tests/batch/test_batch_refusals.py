@@ -163,20 +163,29 @@ def test_refused_in_worker_processes_too(base, live, tmp_path):
 
 
 def test_a_run_opened_for_writing_after_its_fit_is_refused_at_the_save(base, live, tmp_path):
-    """The race: a recorder opens the run between its fit and the client's save: refused, exit 5."""
+    """The race: a recorder opens the run between its fit and the client's save: refused, exit 5. The fit runs
+    on the fit service's in-process backend; the live writer's file takes the run's place as the fit ends."""
     from velab.batch.runner import run_batch
     from velab.cli import build_parser
-    from velab.commands.fit import _options, fit_file
+    from velab.commands.fit import _options, fit_request
+    from velab.fitservice import FitService
+    from velab.fitservice.future import FitFuture, settle
+    from velab.fitservice.thread import ThreadBackend
+
+    class OpenedAfterTheFit(ThreadBackend):
+        def submit(self, request, progress=None):
+            inner, outer = super().submit(request, progress), FitFuture(request)
+
+            def ended(f):
+                os.replace(live, request.source.path)  # the live writer's file now stands where the fitted run was
+                outer.where, outer.seconds = f.where, f.seconds
+                settle(outer, *((f.result(),) if f.exception() is None else (None, f.exception())))
+            inner.add_done_callback(ended)
+            return outer
 
     target = _copy(base, tmp_path / "target.h5")
-
-    def fit_then_opened(path, opts, many=False):
-        out = fit_file(path, opts, many=many)
-        os.replace(live, path)  # the live writer's file now stands where the fitted run was
-        return out
-
     opts = _options(build_parser().parse_args(["fit", "x.h5", *FIT]))
-    batch = run_batch(fit_then_opened, [str(target)], opts, jobs=1)
+    batch = run_batch(fit_request, [str(target)], opts, service=FitService(OpenedAfterTheFit()))
     (o,) = batch.outcomes
     assert o["status"] == "refused" and o["reason"] == "run open" and o["exit_code"] == 5, o
     assert "not written" in o["error"]

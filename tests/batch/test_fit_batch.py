@@ -18,6 +18,8 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import h5py
@@ -366,19 +368,14 @@ def test_lost_scheduler_fails_the_rest_and_leaves_no_half_written_file(sources, 
 # ------------------------------------------------------------------- a worker process that dies
 
 
-def _fit_or_die(path, opts, many=False):
-    """The real fit, except that the process fitting a run named crash*.h5 dies (as a segfault would)."""
-    from velab.commands.fit import fit_file
-
-    if Path(path).name.startswith("crash"):
-        os._exit(70)
-    return fit_file(path, opts, many=many)
-
 
 def test_a_dying_worker_process_fails_only_its_run(sources, tmp_path):
+    """--jobs 2: the fit process fitting crash.h5 is killed (as a crash in a library would end it), and again
+    when that run is tried once more in a fresh process: that run is "worker lost", the others are fitted."""
     from velab.batch.runner import run_batch
     from velab.cli import build_parser
-    from velab.commands.fit import _options
+    from velab.commands.fit import _options, fit_request
+    from velab.fitservice import FitService
 
     files = _archive(sources, tmp_path / "die", n=5)
     crash = files[2].with_name("crash.h5")
@@ -386,10 +383,24 @@ def test_a_dying_worker_process_fails_only_its_run(sources, tmp_path):
     files[2] = crash
     before = _digest(crash)
     opts = _options(build_parser().parse_args(["fit", "x.h5", *FIT]))
-    batch = run_batch(_fit_or_die, [str(p) for p in files], opts, jobs=2)
+    service = FitService.processes(2)
+    kills: list[int] = []
+
+    def killer():
+        end = time.monotonic() + 240
+        while len(kills) < 2 and time.monotonic() < end:
+            for pid, request in service.backend.running():
+                if request.source.path == str(crash) and pid not in kills:
+                    os.kill(pid, signal.SIGKILL)
+                    kills.append(pid)
+            time.sleep(0.005)
+    threading.Thread(target=killer, daemon=True).start()
+    batch = run_batch(fit_request, [str(p) for p in files], opts, service=service)
+    assert len(kills) == 2
     by = {Path(o["path"]).name: o for o in batch.outcomes}
     assert by["crash.h5"]["reason"] == "worker lost" and by["crash.h5"]["exit_code"] == 5
+    assert "died (twice" in by["crash.h5"]["error"]
     assert _digest(crash) == before
     for p in files:
-        if p != crash:  # the runs the broken pool took down were fitted again
+        if p != crash:
             assert by[p.name]["status"] == "saved" and FIT_NAME in _fits(p)

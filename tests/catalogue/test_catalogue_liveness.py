@@ -140,13 +140,13 @@ def test_the_archive_tab_shows_a_killed_writer_as_interrupted(qtbot, tmp_path):
         arch = win.archive
         with qtbot.waitSignal(arch.indexed, timeout=60000):
             arch.set_folder(runs)
-        assert arch.model.rowCount() == 1
-        assert arch.model.data(arch.model.index(0, 1)).startswith("interrupted")
-        tip = arch.model.data(arch.model.index(0, 0), Qt.ToolTipRole)
+        assert arch.catalogue.model.rowCount() == 1
+        assert arch.catalogue.model.data(arch.catalogue.model.index(0, 1)).startswith("interrupted")
+        tip = arch.catalogue.model.data(arch.catalogue.model.index(0, 0), Qt.ToolTipRole)
         assert "no writer holds it" in tip and "velab recover" in tip
-        arch.status_filter.setCurrentText("interrupted")
-        qtbot.waitUntil(lambda: arch.model.rowCount() == 1, timeout=5000)
-        arch.status_filter.setCurrentText("recording")
-        qtbot.waitUntil(lambda: arch.model.rowCount() == 0, timeout=5000)
+        arch.catalogue.status_filter.setCurrentText("interrupted")
+        qtbot.waitUntil(lambda: arch.catalogue.model.rowCount() == 1, timeout=5000)
+        arch.catalogue.status_filter.setCurrentText("recording")
+        qtbot.waitUntil(lambda: arch.catalogue.model.rowCount() == 0, timeout=5000)
     finally:
         win.close()

@@ -80,17 +80,17 @@ def test_the_archive_tab_filters_on_q0(qtbot, flows, tmp_path):
         arch = win.archive
         with qtbot.waitSignal(arch.indexed, timeout=60000):
             arch.set_folder(flows)
-        assert arch.model.rowCount() == 5
-        arch.q0_filter.setText("3.6")
-        qtbot.waitUntil(lambda: arch.model.rowCount() == 2, timeout=5000)
-        assert {os.path.basename(arch.model.row(i)["path"]) for i in range(2)} == {"q36.h5", "q37.h5"}
-        arch.q0_filter.setText(":2.5")
-        qtbot.waitUntil(lambda: arch.model.rowCount() == 1, timeout=5000)
-        arch.q0_filter.setText("4:3")  # marked, named, and ignored
-        qtbot.waitUntil(lambda: arch.model.rowCount() == 5, timeout=5000)
-        assert "above MAX" in arch.q0_filter.toolTip() and "color" in arch.q0_filter.styleSheet()  # marked bad
-        arch.q0_filter.setText("")
-        qtbot.waitUntil(lambda: "MIN:MAX" in arch.q0_filter.toolTip(), timeout=5000)
+        assert arch.catalogue.model.rowCount() == 5
+        arch.catalogue.q0_filter.setText("3.6")
+        qtbot.waitUntil(lambda: arch.catalogue.model.rowCount() == 2, timeout=5000)
+        assert {os.path.basename(arch.catalogue.model.row(i)["path"]) for i in range(2)} == {"q36.h5", "q37.h5"}
+        arch.catalogue.q0_filter.setText(":2.5")
+        qtbot.waitUntil(lambda: arch.catalogue.model.rowCount() == 1, timeout=5000)
+        arch.catalogue.q0_filter.setText("4:3")  # marked, named, and ignored
+        qtbot.waitUntil(lambda: arch.catalogue.model.rowCount() == 5, timeout=5000)
+        assert "above MAX" in arch.catalogue.q0_filter.toolTip() and "color" in arch.catalogue.q0_filter.styleSheet()  # marked bad
+        arch.catalogue.q0_filter.setText("")
+        qtbot.waitUntil(lambda: "MIN:MAX" in arch.catalogue.q0_filter.toolTip(), timeout=5000)
     finally:
         win.close()
 

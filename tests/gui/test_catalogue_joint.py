@@ -42,34 +42,34 @@ def archive(qtbot, tmp_path):
 def _select_all(arch) -> None:
     from PySide6.QtCore import QItemSelectionModel
 
-    for i in range(arch.model.rowCount()):
-        arch.table.selectionModel().select(arch.model.index(i, 0),
+    for i in range(arch.catalogue.model.rowCount()):
+        arch.catalogue.table.selectionModel().select(arch.catalogue.model.index(i, 0),
                                            QItemSelectionModel.Select | QItemSelectionModel.Rows)
 
 
 def test_fit_together_from_the_table(qtbot, archive):
-    from velab.gui.archive import JOINT_FIT_READY_TIP
+    from velab.gui.catalogue_view import JOINT_FIT_READY_TIP
 
     arch, runs = archive
     with qtbot.waitSignal(arch.indexed, timeout=60000):
         arch.set_folder(runs)
-    arch.follow.setChecked(False)
+    arch.run.follow.setChecked(False)
     _select_all(arch)
-    assert arch.joint_fit_button.isEnabled() and arch.joint_fit_button.toolTip() == JOINT_FIT_READY_TIP
-    arch.models_edit.setText("1")
-    arch.window_spin.setValue(0.9)
+    assert arch.catalogue.joint_fit_button.isEnabled() and arch.catalogue.joint_fit_button.toolTip() == JOINT_FIT_READY_TIP
+    arch.fits.models_edit.setText("1")
+    arch.fits.window_spin.setValue(0.9)
     with qtbot.waitSignal(arch.refitted, timeout=180000) as done:
-        arch.joint_fit_button.click()
+        arch.catalogue.joint_fit_button.click()
     assert done.args == ["S1"]
-    qtbot.waitUntil(lambda: all(arch.model.row(i).get("fit_name") == "joint_w0.9s"
-                                for i in range(arch.model.rowCount())), timeout=60000)
-    rows = [arch.model.row(i) for i in range(2)]
+    qtbot.waitUntil(lambda: all(arch.catalogue.model.row(i).get("fit_name") == "joint_w0.9s"
+                                for i in range(arch.catalogue.model.rowCount())), timeout=60000)
+    rows = [arch.catalogue.model.row(i) for i in range(2)]
     assert {r["best_model"] for r in rows} == {"S1"} and rows[0]["wave_speed_m_s"] == rows[1]["wave_speed_m_s"]
     assert rows[0]["wave_speed_m_s"] == pytest.approx(353.7, abs=5)
 
 
 def test_copies_of_one_run_are_not_offered(qtbot, archive):
-    from velab.gui.archive import JOINT_FIT_TIP
+    from velab.gui.catalogue_view import JOINT_FIT_TIP
 
     arch, runs = archive
     (runs / "b.h5").unlink()
@@ -77,8 +77,8 @@ def test_copies_of_one_run_are_not_offered(qtbot, archive):
     with qtbot.waitSignal(arch.indexed, timeout=60000):
         arch.set_folder(runs)
     _select_all(arch)
-    assert len(arch.selected_rows()) == 2
-    assert not arch.joint_fit_button.isEnabled() and arch.joint_fit_button.toolTip() == JOINT_FIT_TIP
+    assert len(arch.catalogue.selected_rows()) == 2
+    assert not arch.catalogue.joint_fit_button.isEnabled() and arch.catalogue.joint_fit_button.toolTip() == JOINT_FIT_TIP
 
 
 def test_a_refused_joint_fit_is_one_message(qtbot, archive):
@@ -86,11 +86,11 @@ def test_a_refused_joint_fit_is_one_message(qtbot, archive):
     arch, runs = archive
     with qtbot.waitSignal(arch.indexed, timeout=60000):
         arch.set_folder(runs)
-    arch.follow.setChecked(False)
+    arch.run.follow.setChecked(False)
     _select_all(arch)
-    arch.window_spin.setValue(30)
+    arch.fits.window_spin.setValue(30)
     errors = []
     arch.message.connect(lambda text, level: errors.append(text) if level in ("warning", "error") else None)
-    arch.fit_together()
+    arch.fits.fit_together(arch.catalogue.selected_runs())
     qtbot.waitUntil(lambda: bool(errors), timeout=120000)
-    assert "window" in errors[0] and "\n" not in errors[0] and not arch.busy
+    assert "window" in errors[0] and "\n" not in errors[0] and not arch.fits.busy

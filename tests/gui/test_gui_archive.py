@@ -57,41 +57,41 @@ def test_open_refit_export(qtbot, window, synth_run, tmp_path):
     window.tabs.setCurrentWidget(arch)
     with qtbot.waitSignal(arch.loaded, timeout=20000):
         arch.open(run)
-    assert "material" in arch.summary.toPlainText()
-    assert arch.run_plot.buffer.n == 6000
-    assert arch.fit_combo.count() == 0
+    assert "material" in arch.run.summary.toPlainText()
+    assert arch.run.run_plot.buffer.n == 6000
+    assert arch.run.fit_combo.count() == 0
 
-    arch.models_edit.setText("0-2")
-    arch.window_spin.setValue(3.0)
-    arch.starts_spin.setValue(2)
+    arch.fits.models_edit.setText("0-2")
+    arch.fits.window_spin.setValue(3.0)
+    arch.fits.starts_spin.setValue(2)
     progress = []
-    arch.progress.valueChanged.connect(progress.append)
+    arch.fits.progress.valueChanged.connect(progress.append)
     with qtbot.waitSignal(arch.refitted, timeout=60000) as blocker:
-        qtbot.mouseClick(arch.refit_button, __import__("PySide6.QtCore").QtCore.Qt.LeftButton)
-        assert arch.busy and not arch.refit_button.isEnabled()  # the GUI thread is not fitting
+        qtbot.mouseClick(arch.fits.refit_button, __import__("PySide6.QtCore").QtCore.Qt.LeftButton)
+        assert arch.fits.busy and not arch.fits.refit_button.isEnabled()  # the GUI thread is not fitting
     best = blocker.args[0]
     assert best in ("S1", "S2")
     assert progress and max(progress) >= 1
-    qtbot.waitUntil(lambda: arch.fit_panel.best_name() == best, timeout=10000)
-    assert arch.fit_panel.model_names() == ["EL", "S1", "S2"]
-    qtbot.waitUntil(lambda: arch.fit_panel.data is not None, timeout=10000)
-    assert set(arch.fit_panel.data["curves"]) == {"EL", "S1", "S2"}
+    qtbot.waitUntil(lambda: arch.run.fit_panel.best_name() == best, timeout=10000)
+    assert arch.run.fit_panel.model_names() == ["EL", "S1", "S2"]
+    qtbot.waitUntil(lambda: arch.run.fit_panel.data is not None, timeout=10000)
+    assert set(arch.run.fit_panel.data["curves"]) == {"EL", "S1", "S2"}
     # stored in the file, listed, and shown again after a reload
-    assert arch.fit_combo.findText("auto_w3s") >= 0
+    assert arch.run.fit_combo.findText("auto_w3s") >= 0
     with qtbot.waitSignal(arch.loaded, timeout=20000):
         arch.open(run)
-    assert arch.fit_combo.currentText() == "auto_w3s"
-    assert arch.fit_panel.best_name() == best
+    assert arch.run.fit_combo.currentText() == "auto_w3s"
+    assert arch.run.fit_panel.best_name() == best
 
     csv = tmp_path / "run.csv"
     with qtbot.waitSignal(arch.exported, timeout=20000):
-        arch.export_csv(csv)
+        arch.run.export_csv(csv)
     lines = csv.read_text().splitlines()
     assert lines[2].startswith("time_s,head_m,head_perturbation_m")
     assert len(lines) == 3 + 6000
     png = tmp_path / "fit.png"
     with qtbot.waitSignal(arch.exported, timeout=30000):
-        arch.export_figure(png)
+        arch.run.export_figure(png)
     assert png.stat().st_size > 10000
     assert any("Exported" in t for t in window.log.texts())
 
@@ -100,11 +100,11 @@ def test_refit_error_is_a_message(qtbot, window, synth_run):
     arch = window.archive
     with qtbot.waitSignal(arch.loaded, timeout=20000):
         arch.open(synth_run)
-    arch.window_spin.setValue(3.0)
-    arch.models_edit.setText("9")  # not a model
-    arch.save_check.setChecked(False)
-    arch.start_refit()
-    qtbot.waitUntil(lambda: not arch.busy, timeout=20000)
+    arch.fits.window_spin.setValue(3.0)
+    arch.fits.models_edit.setText("9")  # not a model
+    arch.fits.save_check.setChecked(False)
+    arch.fits.start_refit()
+    qtbot.waitUntil(lambda: not arch.fits.busy, timeout=20000)
     errors = window.log.texts("error")
     assert errors and "bad model list" in errors[-1]
     assert "Traceback" not in window.log.toPlainText()
@@ -137,7 +137,7 @@ def test_settings_persist(qtbot, tmp_path, synth_run):
     qtbot.addWidget(win2)
     assert win2.run_panel.operator_edit.text() == "Ada"
     assert win2.tabs.currentIndex() == 2
-    qtbot.waitUntil(lambda: win2.archive.model.rowCount() >= 1, timeout=30000)  # indexed on a worker thread
+    qtbot.waitUntil(lambda: win2.archive.catalogue.model.rowCount() >= 1, timeout=30000)  # indexed on a worker thread
     assert (win2.width(), win2.height()) == (760, 560)
     win2.close()
 
@@ -191,7 +191,7 @@ def _catalogue_archive(root, synth_run, n: int):
 def test_catalogue_table_filters_exports_and_trends(qtbot, window, synth_run, tmp_path):
     import csv
 
-    from velab.gui.archive import JOINT_FIT_TIP
+    from velab.gui.catalogue_view import JOINT_FIT_TIP
 
     root = tmp_path / "archive"
     _catalogue_archive(root, synth_run, 12)
@@ -199,42 +199,42 @@ def test_catalogue_table_filters_exports_and_trends(qtbot, window, synth_run, tm
     window.tabs.setCurrentWidget(arch)
     with qtbot.waitSignal(arch.indexed, timeout=60000) as blocker:
         arch.set_folder(root)
-    assert blocker.args == [13] and arch.model.rowCount() == 13
-    statuses = [arch.model.row(i)["status"] for i in range(13)]
+    assert blocker.args == [13] and arch.catalogue.model.rowCount() == 13
+    statuses = [arch.catalogue.model.row(i)["status"] for i in range(13)]
     assert statuses.count("damaged") == 1 and statuses.count("synthetic") == 12
-    assert "1 damaged" in arch.index_label.text() and "not runs skipped" in arch.index_label.text()
+    assert "1 damaged" in arch.catalogue.index_label.text() and "not runs skipped" in arch.catalogue.index_label.text()
     # filters: the same as velab runs
-    arch.text_filter.setText("special")
-    qtbot.waitUntil(lambda: arch.model.rowCount() == 3, timeout=5000)
-    arch.text_filter.setText("")
-    arch.status_filter.setCurrentText("damaged")
-    qtbot.waitUntil(lambda: arch.model.rowCount() == 1, timeout=5000)
-    assert arch.model.data(arch.model.index(0, 1)) == "damaged"
-    assert "garbage" in arch.model.data(arch.model.index(0, 0), __import__("PySide6.QtCore").QtCore.Qt.ToolTipRole) \
-        or "not an HDF5 file" in arch.model.row(0)["reason"]
-    arch.status_filter.setCurrentIndex(0)
-    arch.since_filter.setText("not a date")
-    qtbot.waitUntil(lambda: arch.model.rowCount() == 13, timeout=5000)  # ignored, and marked
-    assert "not a date" in arch.since_filter.toolTip()
-    arch.since_filter.setText("")
+    arch.catalogue.text_filter.setText("special")
+    qtbot.waitUntil(lambda: arch.catalogue.model.rowCount() == 3, timeout=5000)
+    arch.catalogue.text_filter.setText("")
+    arch.catalogue.status_filter.setCurrentText("damaged")
+    qtbot.waitUntil(lambda: arch.catalogue.model.rowCount() == 1, timeout=5000)
+    assert arch.catalogue.model.data(arch.catalogue.model.index(0, 1)) == "damaged"
+    assert "garbage" in arch.catalogue.model.data(arch.catalogue.model.index(0, 0), __import__("PySide6.QtCore").QtCore.Qt.ToolTipRole) \
+        or "not an HDF5 file" in arch.catalogue.model.row(0)["reason"]
+    arch.catalogue.status_filter.setCurrentIndex(0)
+    arch.catalogue.since_filter.setText("not a date")
+    qtbot.waitUntil(lambda: arch.catalogue.model.rowCount() == 13, timeout=5000)  # ignored, and marked
+    assert "not a date" in arch.catalogue.since_filter.toolTip()
+    arch.catalogue.since_filter.setText("")
     # sort by a column, several selected: export, trends, the joint fit not offered
-    arch.model.sort(13)  # file
-    assert [arch.model.row(i)["path"] for i in range(13)] == sorted(arch.model.row(i)["path"] for i in range(13))
-    sel = arch.table.selectionModel()
+    arch.catalogue.model.sort(13)  # file
+    assert [arch.catalogue.model.row(i)["path"] for i in range(13)] == sorted(arch.catalogue.model.row(i)["path"] for i in range(13))
+    sel = arch.catalogue.table.selectionModel()
     from PySide6.QtCore import QItemSelectionModel
 
     for i in range(4):
-        sel.select(arch.model.index(i, 0), QItemSelectionModel.Select | QItemSelectionModel.Rows)
-    assert len(arch.selected_rows()) == 4
-    assert not arch.joint_fit_button.isEnabled() and arch.joint_fit_button.toolTip() == JOINT_FIT_TIP
+        sel.select(arch.catalogue.model.index(i, 0), QItemSelectionModel.Select | QItemSelectionModel.Rows)
+    assert len(arch.catalogue.selected_rows()) == 4
+    assert not arch.catalogue.joint_fit_button.isEnabled() and arch.catalogue.joint_fit_button.toolTip() == JOINT_FIT_TIP
     out = tmp_path / "rows.csv"
     with qtbot.waitSignal(arch.exported, timeout=20000):
-        arch.export_selected_rows(out)
+        arch.catalogue.export_selected_rows(out)
     rows = list(csv.DictReader(out.read_text().splitlines()))
-    assert [r["path"] for r in rows] == [arch.model.row(i)["path"] for i in range(4)]
-    runs = [r for r in arch.selected_rows() if r["status"] != "damaged"]
-    assert arch.trends.count.text().startswith(f"0 of 4")  # an unfitted run has no wave speed
-    arch.trends.quantity.setCurrentIndex(0)
+    assert [r["path"] for r in rows] == [arch.catalogue.model.row(i)["path"] for i in range(4)]
+    runs = [r for r in arch.catalogue.selected_rows() if r["status"] != "damaged"]
+    assert arch.run.trends.count.text().startswith(f"0 of 4")  # an unfitted run has no wave speed
+    arch.run.trends.quantity.setCurrentIndex(0)
     assert len(runs) >= 3
 
 
@@ -273,7 +273,7 @@ def test_a_thousand_runs_load_without_blocking_the_gui_thread(qtbot, window, syn
         now = time.perf_counter()
         stalls.append(now - last[0])
         last[0] = now
-        seen.append(arch.model.rowCount())
+        seen.append(arch.catalogue.model.rowCount())
 
     timer = QTimer()
     timer.setInterval(5)
@@ -284,13 +284,13 @@ def test_a_thousand_runs_load_without_blocking_the_gui_thread(qtbot, window, syn
         arch.set_folder(root)
     first = time.perf_counter() - t0
     timer.stop()
-    assert arch.model.rowCount() == 1001
+    assert arch.catalogue.model.rowCount() == 1001
     worst = max(stalls, default=math.inf)
     partial = sorted({n for n in seen if 0 < n < 1001})
     assert len(partial) >= 2, f"the GUI thread ran between no two batches of rows (row counts at its ticks: {sorted(set(seen))})"
     # the second time the index answers: the first paint comes from it at once
     t0 = time.perf_counter()
     with qtbot.waitSignal(arch.indexed, timeout=60000):
-        arch.refresh_list()
+        arch.catalogue.refresh_list()
     print(f"1,000 runs in the Archive tab: indexed in {first:.1f} s, longest GUI stall {worst * 1e3:.0f} ms, "
           f"again from the index {time.perf_counter() - t0:.2f} s")

@@ -254,27 +254,27 @@ def scenario_archive(out: Path) -> int:
     win.tabs.setCurrentWidget(arch)
     win.show()
     wait_until(lambda: win.windowHandle() is not None and win.windowHandle().isExposed(), 10)
-    arch.model.set_rows(rows)
-    arch._show_count()
+    arch.catalogue.model.set_rows(rows)
+    arch.catalogue.show_count()
     arch.open(path)
-    if not wait_until(lambda: arch.loaded_run is not None, 60):
+    if not wait_until(lambda: arch.run.loaded_run is not None, 60):
         raise SystemExit(f"the run did not open: {win.log.texts()}")
-    arch.best_filter.setText("S9")
-    arch.apply_filters()
+    arch.catalogue.best_filter.setText("S9")
+    arch.catalogue.apply_filters()
     wait_until(lambda: False, 0.1)
     shots = Shots(win, out)
-    controls = {"open": arch.open_button, "folder": arch.folder_button, "reload": arch.reload_button,
-                "follow": arch.follow, "refit": arch.refit_button, "export figure": arch.export_fig_button,
-                "export csv": arch.export_csv_button, "rescan": arch.rescan_button, "index label": arch.index_label,
-                "open selected": arch.open_selected_button, "refit selected": arch.refit_selected_button,
-                "fit together": arch.joint_fit_button, "export rows": arch.export_rows_button,
-                "trends": arch.trends_button, "best filter": arch.best_filter, "table": arch.table}
-    shots.take("archive-bad-filter", controls, {"table": table_facts(arch.table),
-                                                "best_filter_tip": arch.best_filter.toolTip(),
-                                                "best_filter_style": arch.best_filter.styleSheet()})
-    arch.best_filter.setText("")
-    arch.apply_filters()
-    shots.take("archive", controls, {"table": table_facts(arch.table)})
+    controls = {"open": arch.run.open_button, "folder": arch.run.folder_button, "reload": arch.run.reload_button,
+                "follow": arch.run.follow, "refit": arch.fits.refit_button, "export figure": arch.run.export_fig_button,
+                "export csv": arch.run.export_csv_button, "rescan": arch.catalogue.rescan_button, "index label": arch.catalogue.index_label,
+                "open selected": arch.catalogue.open_selected_button, "refit selected": arch.catalogue.refit_selected_button,
+                "fit together": arch.catalogue.joint_fit_button, "export rows": arch.catalogue.export_rows_button,
+                "trends": arch.catalogue.trends_button, "best filter": arch.catalogue.best_filter, "table": arch.catalogue.table}
+    shots.take("archive-bad-filter", controls, {"table": table_facts(arch.catalogue.table),
+                                                "best_filter_tip": arch.catalogue.best_filter.toolTip(),
+                                                "best_filter_style": arch.catalogue.best_filter.styleSheet()})
+    arch.catalogue.best_filter.setText("")
+    arch.catalogue.apply_filters()
+    shots.take("archive", controls, {"table": table_facts(arch.catalogue.table)})
     win.close()
     return 0
 

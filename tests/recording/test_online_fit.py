@@ -1,6 +1,9 @@
 """velab.recording.online_fit alone: the scheduling of the online fit around a stand-in fitter (the
 fit path's fit_record / fit_lead replaced, in this process): the final fit's result and latency, a
-quick fit skipped while another runs, a halt during a fit, a failing fit, a refusal said once."""
+quick fit skipped while another runs, a halt during a fit, a failing fit, a refusal said once; the final
+outcome delivered once as a message (FitOutcome); and on the real fit service (velab.fitservice): the fit in
+its process is fit_record of the same samples bit for bit, a process killed during the final fit hands it
+to the recorder's process, and the run says so."""
 
 from __future__ import annotations
 
@@ -127,3 +130,89 @@ def test_the_fit_paths_sections_search_refuses_the_single_sweeps_options():
                            section_heads={"mid": H}, polish=False)
     with pytest.raises(DataError, match="sections: no head for mid"):  # (velab.fitting.sections says which)
         entry.fit_record(T, H, 0.0, load_rig("perugia_two_sections"), 1.0, record_rate_hz=1000.0)
+
+
+# ------------------------------------------------------------------ the outcome as a message; the real fit service
+
+
+def test_the_final_outcome_is_delivered_once_as_a_message(fitter):
+    fitter()
+    s = RecordSettings(fit=True, fit_process=False, fit_window_s=2.0, fit_models=(1, 2, 3))
+    delivered = []
+    fit = OnlineFit(load_rig("perugia"), s, 1000.0, lambda k, d: None, lambda m: None,
+                    deliver=delivered.append)
+    fit.start(T, H, 0.0, 2.0, final=True)
+    assert fit.wait(5.0)
+    fit.refuse("no fit: too late")  # the outcome is known: nothing more is said or delivered
+    (outcome,) = delivered
+    assert outcome.result is not None and outcome.error == "" and outcome.latency_s >= 0 and outcome.window_s == 2.0
+
+
+def test_a_refusal_is_delivered_once():
+    delivered = []
+    s = RecordSettings(fit=True, fit_process=False, fit_window_s=2.0, fit_models=(1,))
+    fit = OnlineFit(load_rig("perugia"), s, 1000.0, None, lambda m: None, deliver=delivered.append)
+    threads = [threading.Thread(target=fit.refuse, args=(f"no fit: reason {i}",)) for i in range(8)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert len(delivered) == 1 and delivered[0].error.startswith("no fit: reason ")
+
+
+def _real_record():
+    from velab.config import load_material
+    from velab.model import valve_head
+
+    rig, rate, pre = load_rig("perugia"), 1000.0, 1.0
+    t = np.arange(int((pre + 3.5) * rate)) / rate
+    h = rig.steady_head_m + valve_head(t - pre, rig, load_material("A"))
+    h += np.random.default_rng(3).normal(0.0, 0.05, t.size)
+    return rig, t, h, pre
+
+
+def _real_fit(**settings):
+    rig, t, h, pre = _real_record()
+    s = RecordSettings(fit=True, fit_window_s=3.0, fit_models=(0, 1), **settings)
+    delivered, messages = [], []
+    fit = OnlineFit(rig, s, 1000.0, lambda k, d: None, messages.append, deliver=delivered.append)
+    return fit, delivered, messages, (rig, t, h, pre)
+
+
+def test_the_online_fit_in_its_process_is_fit_record_of_the_same_samples_bit_for_bit():
+    fit, delivered, messages, (rig, t, h, pre) = _real_fit(fit_process=True)
+    fit.start_process()
+    try:
+        fit.start(t, h, pre, 3.0, final=True)
+        assert fit.wait(180)
+    finally:
+        fit.close()
+    (o,) = delivered
+    assert o.result is not None, o.error
+    here = entry.fit_record(t, h, pre, rig, 3.0, record_rate_hz=1000.0, models=[0, 1], method="auto", lead=True)
+    for a, b in zip(o.result.models, here.models):
+        assert a.F == b.F and a.wave_speed_m_s == b.wave_speed_m_s and np.array_equal(a.tau_s, b.tau_s)
+    assert not messages
+
+
+def test_a_fit_process_killed_during_the_final_fit_hands_it_to_the_recorders_process():
+    import os
+    import signal
+    import time
+
+    fit, delivered, messages, (rig, t, h, pre) = _real_fit(fit_process=True)
+    fit.start_process()
+    try:
+        fit.start(t, h, pre, 3.0, final=True)
+        backend = fit._proc.backend
+        end = time.monotonic() + 120
+        while not backend.running() and time.monotonic() < end:
+            time.sleep(0.005)
+        (pid, _), = backend.running()
+        os.kill(pid, signal.SIGKILL)
+        assert fit.wait(180)
+    finally:
+        fit.close()
+    (o,) = delivered
+    assert o.result is not None, o.error
+    assert any(m.startswith("fit process lost (") and "recorder's process" in m for m in messages), messages

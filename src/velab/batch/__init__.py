@@ -1,15 +1,13 @@
-"""``velab fit`` over many runs: local processes or a Dask cluster, the client writing every fit.
-
-The batch is split so that each piece has one job:
+"""``velab fit`` over many runs: through the fit service (velab.fitservice) -- this process, local fit
+processes or a Dask cluster -- the client writing every fit.
 
 * :mod:`velab.batch.address` checks a ``--scheduler`` address (standard library only: the
   CLI parser uses it while ``velab --help`` builds);
-* :mod:`velab.batch.task` fits one run read-only and returns the fit as plain data, on
-  whatever machine runs it;
-* :mod:`velab.batch.local` and :mod:`velab.batch.cluster` run the tasks (local processes;
-  a ``distributed`` scheduler, the optional extra ``velab[cluster]``) and yield each
-  outcome as it completes;
-* :mod:`velab.batch.runner` saves each fit into its run, one file at a time, from the
-  client only (atomic ``save_fit``), and :mod:`velab.batch.report` prints the table, the
-  failures and the JSON document, and picks the exit code.
+* :mod:`velab.batch.local` says how many local processes ``--jobs`` gives;
+* :mod:`velab.batch.task` turns one run's finished fit into an *outcome* (plain data, a named reason
+  for a failure);
+* :mod:`velab.batch.runner` submits one FitRequest per run to the fit service, tries a run once more
+  whose process died, saves each fit into its run, one file at a time, from the client only (atomic
+  ``save_fit``), and :mod:`velab.batch.report` prints the table, the failures and the JSON document,
+  and picks the exit code.
 """

@@ -1,20 +1,31 @@
-"""Drive a batch: tasks run locally or on a cluster; the fits are written here, one file at a time.
+"""Drive a batch through the fit service: the runs fitted here, in fit processes or on a Dask cluster;
+the fits written here, one file at a time.
+
+Each run is one :class:`velab.fitservice.FitRequest` (its file, the window, ``velab fit``'s choices);
+``--jobs 1`` fits in this process (the service's in-process backend), ``--jobs N`` in N fit processes
+(velab.fit_worker, at a lower priority), ``--scheduler ADDRESS`` on the Dask cluster. Each outcome is
+plain data (velab.batch.task). A fit process that dies fails only the run it was fitting; that run is
+tried once more in a fresh process, and the run that kills its process again is ``worker lost``.
 
 Only this process (the client) writes run files, and only through the atomic
 :func:`velab.runfiles.fits.save_fit`: a run on shared storage is never written by two
 processes, and a run whose fit failed, or never came back, or that was refused (open for
-writing, damaged: velab.batch.task), is left exactly as it was.
+writing, damaged: velab.fitservice.execute.save_refusal), is left exactly as it was.
 """
 
 from __future__ import annotations
 
+import sys
 import time
+from concurrent.futures import FIRST_COMPLETED, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from velab.batch import local
-from velab.batch.task import failure
+from velab.batch.task import failure, outcome_of
 from velab.errors import VelabError
+from velab.fitservice.errors import FitWorkerDied
+from velab.fitservice.service import FitService
 from velab.runfiles.fits import save_fit
 from velab.runfiles.h5open import RunStillOpen
 
@@ -33,39 +44,81 @@ class Batch:
     extra: dict = field(default_factory=dict)
 
 
-def run_batch(compute, paths: list[str], opts: dict, *, jobs: int = 1, scheduler: str | None = None,
-              progress=None) -> Batch:
-    """Fit every run of ``paths`` with ``compute`` (velab.commands.fit.fit_file) and save the fits.
-
-    ``opts`` are ``velab fit``'s options (``save``: write the fits; ``name``: the fit group).
-    ``scheduler``: a checked Dask scheduler address (velab.batch.address), else local processes.
-    """
-    t0 = time.perf_counter()
+def service_for(paths: list[str], jobs: int = 1, scheduler: str | None = None) -> tuple[FitService, str]:
+    """The fit service a batch runs on, and where that is (the table's and the JSON's ``where``)."""
     if scheduler:
-        from velab.batch import cluster  # distributed is imported there, only for a cluster batch
+        return FitService.dask(scheduler), f"dask {scheduler}"
+    n = local.processes_for(jobs, len(paths))
+    if n == 1:
+        return FitService.in_thread(), "local, this process"
+    return FitService.processes(n), f"local, {n} processes"
 
-        stream = cluster.outcomes(compute, paths, opts, scheduler)
-        where = f"dask {scheduler}"
-    else:
-        stream = local.outcomes(compute, paths, opts, jobs)
-        n = local.processes_for(jobs, len(paths))
-        where = f"local, {n} process{'es' if n > 1 else ''}" if n > 1 else "local, this process"
-    done: dict[int, dict] = {}
-    pending = {}  # path -> indices still waiting for their outcome (a path may be given twice)
-    for i, p in enumerate(paths):
-        pending.setdefault(p, []).append(i)
-    failed = refused = 0
-    for o in stream:
-        if o["ok"]:
-            o = _save(o, opts)
-        refused += o.get("status") == "refused"
-        failed += not o["ok"] and o.get("status") != "refused"
-        done[pending[o["path"]].pop(0)] = o
-        if progress is not None:
-            progress.update(_bar(len(done), len(paths), failed, o["path"], refused), force=True)
-    outcomes = [done.get(i) or failure(p, "scheduler lost", "no outcome came back for this run")
-                for i, p in enumerate(paths)]
+
+def run_batch(request_of, paths: list[str], opts: dict, *, jobs: int = 1, scheduler: str | None = None,
+              progress=None, service: FitService | None = None, plot=None) -> Batch:
+    """Fit every run of ``paths`` and save the fits. ``request_of(path, opts)`` is the FitRequest of one run
+    (velab.commands.fit.fit_request: passed in, so that the batch makes the single-run path's request
+    whatever it becomes); ``opts`` are ``velab fit``'s options (``save``: write the fits; ``name``: the fit
+    group). ``scheduler``: a checked Dask scheduler address (velab.batch.address), else ``jobs`` local
+    processes; ``service``: a FitService to use instead (closed at the end). ``plot(path, result)`` writes
+    a run's figure once its fit is saved."""
+    t0 = time.perf_counter()
+    where = "given service"
+    if service is None:
+        service, where = service_for(paths, jobs, scheduler)
+    try:
+        outcomes = _outcomes(service, paths, opts, request_of, progress, plot)
+    finally:
+        service.close()
     return Batch(outcomes, time.perf_counter() - t0, where, scheduler, None if scheduler else jobs)
+
+
+def _outcomes(service, paths, opts, request_of, progress, plot) -> list[dict]:
+    # this process fits one run at a time; fit processes and a cluster queue them all (and keep their own pace)
+    limit = 1 if service.name == "thread" else len(paths)
+    waiting = list(enumerate(paths))[::-1]
+    futures: dict = {}
+    pending: set = set()
+
+    def send() -> None:
+        while waiting and len(pending) < limit:
+            i, p = waiting.pop()
+            fut = service.submit(request_of(p, opts))
+            futures[fut] = i
+            pending.add(fut)
+
+    send()
+    retried: set[int] = set()
+    done: dict[int, dict] = {}
+    failed = refused = 0
+    while pending:
+        ready, _ = wait(pending, return_when=FIRST_COMPLETED)
+        pending -= ready
+        for fut in ready:
+            i, path = futures[fut], paths[futures[fut]]
+            exc = fut.exception()
+            if isinstance(exc, FitWorkerDied) and exc.reason == "worker lost" and service.name == "process" \
+                    and i not in retried:
+                retried.add(i)  # the process died with this run: once more, in a fresh process
+                again = service.submit(request_of(path, opts))
+                futures[again] = i
+                pending.add(again)
+                continue
+            o = outcome_of(path, fut, twice=i in retried)
+            if o["ok"]:
+                for note in o.pop("notes", ()):
+                    print(f"velab: {path}: {note}", file=sys.stderr)
+                o = _save(o, opts)
+                if plot is not None and o["ok"]:
+                    plot(path, fut.result())
+            refused += o.get("status") == "refused"
+            failed += not o["ok"] and o.get("status") != "refused"
+            done[i] = o
+            if progress is not None:
+                progress.update(_bar(len(done), len(paths), failed, path, refused), force=True)
+        send()
+    return [done.get(i) or failure(p, "scheduler lost", "no outcome came back for this run")
+            for i, p in enumerate(paths)]
 
 
 def _save(o: dict, opts: dict) -> dict:

@@ -1,12 +1,8 @@
-"""One run of a batch, fitted where the task runs (a local process or a Dask worker).
+"""The outcome of one run of a batch, as plain data, from its fit's Future (velab.fitservice).
 
-:func:`fit_one` reads the run (read-only), fits it with the single-run fit path it is given
-(``velab.commands.fit.fit_file``, passed in so that the batch follows that path whatever it
-becomes, and without an import cycle), and returns an *outcome*: plain data (dicts, lists,
-numbers, strings) that pickles anywhere and that :func:`velab.runfiles.fits.save_fit` takes
-as it is. It never writes the run: the batch's client does, one file at a time. It never
-raises for a bad run either: the failure comes back as data with a named reason and the
-exit code the single-run path would have given.
+:func:`outcome_of` turns the finished fit of a run into an *outcome*: plain data (dicts, lists,
+numbers, strings) that :func:`velab.runfiles.fits.save_fit` takes as it is; a failure comes back as
+data with a named reason and the exit code the single-run path would have given.
 
 A run the fit could not be saved into (still open for writing, or damaged: velab.runfiles.soundness)
 is *refused* before it is fitted, as ``velab fit RUN`` refuses it, unless the batch saves nothing
@@ -15,11 +11,8 @@ is *refused* before it is fitted, as ``velab fit RUN`` refuses it, unless the ba
 
 from __future__ import annotations
 
-import os
-import socket
-import time
-
 from velab.errors import ExitCode, VelabError, one_line
+from velab.fitservice.errors import FitWorkerDied, WorkerMismatch
 from velab.version import __version__
 
 # the named reasons of a failed run (docs/cluster.md); the exit code goes with the reason
@@ -66,31 +59,24 @@ def failure(path: str, reason: str, message: str, **extra) -> dict:
             "exit_code": int(REASONS[reason]), **extra}
 
 
-def where() -> str:
-    """This process, for the summary: ``host:pid``."""
-    return f"{socket.gethostname()}:{os.getpid()}"
-
-
-def fit_one(compute, path: str, opts: dict) -> dict:
-    """Fit the run at ``path`` with ``compute(path, opts, many=True) -> (SweepResult, name)``.
-
-    ``opts`` are ``velab fit``'s options; the fit is made with saving off (the client saves), but
-    ``client_saves`` tells the fit path that it will be saved, so a run that cannot be saved into is
-    refused before its fit (not fitted, then refused at the save). Returns ``{path, ok: True,
-    fit: result.to_dict(), seconds, velab_version, worker}`` or a :func:`failure`.
-    """
-    t0 = time.perf_counter()
-    info = {"velab_version": __version__, "worker": where()}
-    try:
-        saves = bool(opts.get("save", True))
-        result, _ = compute(path, {**opts, "save": False, "client_saves": saves}, many=True)
-        fit = result.to_dict()
-    except Exception as exc:  # one bad run must not stop the batch: the failure travels as data
-        message = str(exc) if isinstance(exc, (VelabError, OSError)) else f"{type(exc).__name__}: {exc}"
-        return failure(path, reason_of(exc), message, seconds=time.perf_counter() - t0, **info)
-    return {"path": path, "ok": True, "fit": fit, "seconds": time.perf_counter() - t0, **info}
-
-
-def worker_version() -> str:
-    """The velab version of the process that runs this (asked of every Dask worker before a batch)."""
-    return __version__
+def outcome_of(path: str, fut, twice: bool = False) -> dict:
+    """The outcome of the finished fit ``fut`` (a velab.fitservice FitFuture) of the run at ``path``:
+    ``{path, ok: True, fit: result.to_dict(), notes, seconds, velab_version, worker}`` or a :func:`failure`
+    (``twice``: the run had been tried again after its process died)."""
+    info = {"seconds": fut.seconds, "velab_version": __version__, "worker": fut.where}
+    exc = fut.exception()
+    if exc is None:
+        result = fut.result()
+        notes = [n for n in result.notes if n.endswith("nothing written into it")]  # (execute.save_note)
+        return {"path": path, "ok": True, "fit": result.to_dict(), "notes": notes, **info}
+    if isinstance(exc, WorkerMismatch):
+        return failure(path, "version mismatch", str(exc))
+    if isinstance(exc, FitWorkerDied):
+        if exc.reason == "scheduler lost":
+            return failure(path, "scheduler lost", str(exc))
+        if twice:
+            return failure(path, "worker lost", "the process fitting this run died (twice: a crash in a library "
+                           "or an out-of-memory kill while reading or fitting it)", **info)
+        return failure(path, "worker lost", str(exc), **info)
+    message = str(exc) if isinstance(exc, (VelabError, OSError)) else f"{type(exc).__name__}: {exc}"
+    return failure(path, reason_of(exc), message, **info)

@@ -13,6 +13,8 @@ import json
 import math
 from dataclasses import dataclass
 
+from velab.catalogue.columns import TEXT_COLUMNS, when_text
+
 STATUSES = ("recording", "interrupted", "completed", "completed-with-faults", "stopped", "aborted", "failed",
             "synthetic", "imported", "damaged")
 # velab.runfiles.layout.STATUSES and the catalogue's own: "damaged", "interrupted" (says recording, no writer: liveness)
@@ -166,50 +168,8 @@ def sort_rows(rows: list[dict], key: str = "start") -> list[dict]:
 # ------------------------------------------------------------------ text forms
 
 
-def _num(v, fmt: str) -> str:
-    return format(v, fmt) if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) else ""
-
-
-def when_text(row: dict) -> str:
-    s = row.get("start_time")
-    if s:
-        try:
-            return _dt.datetime.fromisoformat(s).strftime("%Y-%m-%d %H:%M")
-        except ValueError:
-            return s[:16]
-    return ""
-
-
-def wave_speed_text(row: dict) -> str:
-    a, se = row.get("wave_speed_m_s"), row.get("wave_speed_se_m_s")
-    if not isinstance(a, (int, float)):
-        return ""
-    return f"{a:.1f} ± {se:.1f}" if isinstance(se, (int, float)) else f"{a:.1f}"
-
-
-def who_text(row: dict) -> str:
-    return " / ".join(x for x in (row.get("title"), row.get("operator"), row.get("specimen")) if x)
-
-
-def status_text(row: dict) -> str:
-    flags = ",".join(row.get("flags") or [])
-    return f"{row.get('status')} [{flags}]" if flags else str(row.get("status"))
-
-
-# (header, width, cell) of the text table; the last column (file) takes what is left
-TABLE = (
-    ("start", 16, when_text),
-    ("status", 24, status_text),
-    ("best", 4, lambda r: r.get("best_model") or ""),
-    ("a m/s ± SE", 13, wave_speed_text),
-    ("Q0 l/s", 6, lambda r: _num(r.get("measured_flow_l_s") or r.get("steady_flow_l_s"), ".3f")),
-    ("beta", 5, lambda r: _num(r.get("beta_per_s"), "g")),
-    ("rate", 6, lambda r: _num(r.get("sample_rate_hz"), "g")),
-    ("dur s", 6, lambda r: _num(r.get("duration_s"), ".1f")),
-    ("fits", 4, lambda r: str(r.get("n_fits") or 0) if r.get("kind") == "run" else ""),
-    ("rig", 14, lambda r: r.get("rig") or ""),
-    ("title / operator / specimen", 28, who_text),
-)
+# the text table's columns: velab.catalogue.columns (the window's table is made from the same declaration)
+TABLE = tuple((c.text_header or c.header, c.text_width, c.text_cell or c.cell) for c in TEXT_COLUMNS)
 
 
 def _cut(text: str, width: int) -> str:

@@ -6,10 +6,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from velab import bounds
 from velab.batch.address import scheduler_address
 from velab.commands.common import ProgressLine, add_json_option, check_output_path, float_range, int_range, write_json
-from velab.errors import DataError, ExitCode, UnavailableError
+from velab.errors import DataError, ExitCode
 
 # velab.fitting.sweep.METHODS, named here so that building the parser does not import the
 # fitter (scipy); run() checks the option against the fitter's own list.
@@ -113,31 +112,31 @@ def _plot_path(template: str, run_path: str, many: bool) -> str:
     return str(t.with_name(f"{t.stem}_{Path(run_path).stem}{t.suffix}"))
 
 
-def fit_file(path: str, opts: dict, many: bool = False, progress=None):
-    """Fit one run file; returns (SweepResult, fit group name or None). Raises VelabError."""
-    from velab.fitting.entry import fit_run
-    from velab.runfiles.fits import save_fit
-    from velab.runfiles import RunStillOpen, read_run
+def fit_request(path: str, opts: dict):
+    """The fit service's request (velab.fitservice) for one run file with ``velab fit``'s options: the run is
+    refused before its fit when the fit is to be saved into it and cannot be (open for writing, damaged)."""
+    from velab.fitting.options import FitOptions
+    from velab.fitservice.request import FitRequest, RunFile
 
-    run = read_run(path)
-    work = bounds.work_problem(run.rig, opts["window_s"])  # bounded work (velab.bounds), before any fit
-    if work:
-        raise DataError(f"{path}: --window {opts['window_s']:g} s: {work}")
-    refused = _refused_save(run)
-    # said before the fit, not after it; also when a batch's client is to save it (velab.batch.task)
-    if refused and (opts["save"] or opts.get("client_saves")):
-        raise refused
-    if refused:
-        print(f"velab: {path}: {_save_note(run)}", file=sys.stderr)
-    # the one fit path (velab.fitting.prepare): window, steady head, decimation to the fit rate
-    result = fit_run(run, opts["window_s"], models=opts["models"], method=opts["method"],
-                     reduced=opts["reduced"], starts=opts["starts"], polish=opts["polish"],
-                     progress=progress, tau_min_s=opts["tau_min_s"], tau_max_s=opts["tau_max_s"],
-                     selection=opts["selection"], friction=opts["friction"],
-                     friction_unsteady=opts["friction_unsteady"], manoeuvre=opts.get("manoeuvre", "auto"))
-    result.settings = result.settings.replace(window_s_requested=opts["window_s"])
-    if refused:
-        result.notes.append(_save_note(run))
+    choices = FitOptions(models=tuple(opts["models"]), method=opts["method"], reduced=opts["reduced"],
+                         starts=opts["starts"], polish=opts["polish"], tau_min_s=opts["tau_min_s"],
+                         tau_max_s=opts["tau_max_s"], selection=opts["selection"], friction=opts["friction"],
+                         friction_unsteady=opts["friction_unsteady"], manoeuvre=opts.get("manoeuvre", "auto"))
+    return FitRequest(RunFile(path, will_save=bool(opts["save"])), opts["window_s"], choices,
+                      label=Path(path).name)
+
+
+def fit_file(path: str, opts: dict, many: bool = False, progress=None):
+    """Fit one run file in this process (the fit service's in-process call, velab.fitservice.execute);
+    returns (SweepResult, fit group name or None). Raises VelabError."""
+    from velab.fitservice.execute import execute
+    from velab.runfiles.fits import save_fit
+    from velab.runfiles import RunStillOpen
+
+    result = execute(fit_request(path, opts), progress)
+    for note in result.notes:
+        if note.endswith("nothing written into it"):  # (velab.fitservice.execute.save_note)
+            print(f"velab: {path}: {note}", file=sys.stderr)
     name = None
     if opts["save"]:
         try:
@@ -148,37 +147,22 @@ def fit_file(path: str, opts: dict, many: bool = False, progress=None):
         except OSError as exc:
             raise DataError(f"{path}: cannot write the fit into the run: {exc}") from None
     if opts["plot"]:
-        from velab.fitting.plots import report_figure
-
-        figure = _plot_path(opts["plot"], path, many)
-        t, h = run.fit_window(opts["window_s"])
-        try:
-            report_figure(t, h, run.rig, result, figure, position_pct=_window_position(run, t), run=run)
-        except OSError as exc:
-            raise DataError(f"{figure}: cannot write the figure: {exc.strerror or exc}") from None
+        write_plot(path, result, opts, many)
     return result, name
 
 
-def _refused_save(run):
-    """The error a fit that would be saved into ``run`` gets, or None: a run still open for writing (the
-    recorder running, or killed: a storage matter, exit 5) or a damaged one (velab.runfiles.soundness, exit 2)."""
-    if run.open_for_write:
-        exc = UnavailableError(f"{run.path}: the run is still open for writing (being recorded, or its writer was "
-                               f"killed): nothing fitted; --no-save fits it without saving, `velab recover "
-                               f"{run.path}` writes a closed copy")
-        exc.refusal = "run open"  # a batch's reason (velab.batch.task.REFUSALS)
-        return exc
-    if run.damage:
-        exc = DataError(f"{run.path}: damaged run ({run.damage}): velab fit does not write into it; "
-                        f"--no-save fits it without saving")
-        exc.refusal = "damaged run"
-        return exc
-    return None
+def write_plot(path: str, result, opts: dict, many: bool) -> None:
+    """The report figure of ``result`` on the run at ``path`` (``--plot``; one per run when ``many``)."""
+    from velab.fitting.plots import report_figure
+    from velab.runfiles import read_run
 
-
-def _save_note(run) -> str:
-    what = "open for writing" if run.open_for_write else f"damaged ({run.damage})"
-    return f"the run is {what}: fitted with --no-save, nothing written into it"
+    run = read_run(path)
+    figure = _plot_path(opts["plot"], path, many)
+    t, h = run.fit_window(opts["window_s"])
+    try:
+        report_figure(t, h, run.rig, result, figure, position_pct=_window_position(run, t), run=run)
+    except OSError as exc:
+        raise DataError(f"{figure}: cannot write the figure: {exc.strerror or exc}") from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -212,12 +196,14 @@ def _headline(result) -> dict:
 
 
 def _run_batch(args, opts: dict) -> int:
-    """Many runs, or any run on a cluster: velab.batch (table, failures, exit code)."""
+    """Many runs, or any run on a cluster: velab.batch through the fit service (table, failures, exit code)."""
     from velab.batch import report
     from velab.batch.runner import run_batch
 
     with ProgressLine.for_args(args) as progress:
-        batch = run_batch(fit_file, args.runs, opts, jobs=args.jobs, scheduler=args.scheduler, progress=progress)
+        plot = (lambda path, result: write_plot(path, result, opts, True)) if opts["plot"] else None
+        batch = run_batch(fit_request, args.runs, opts, jobs=args.jobs, scheduler=args.scheduler, progress=progress,
+                          plot=plot)
     if args.json:
         write_json(report.json_doc(batch))
     else:

@@ -3,9 +3,10 @@
 Modules: ``main_window`` (the window), ``controller`` (recorder events -> Qt signals,
 commands as futures, the engine's phase), ``state`` (Qt-free: buttons and phase line from
 the engine's phase and allowed commands), ``run_page`` (+ ``run_controls``, ``run_panel``,
-``devices``), ``live_plot`` (+ ``strip_chart``), ``fit_panel`` (+ ``fit_rows``), ``archive``
-(+ ``archive_io``, the file work on worker threads), ``messages``, ``widgets``, ``tasks``
-(the worker pool), ``app`` (start-up, recorder factory). See docs/gui.md.
+``devices``), ``live_plot`` (+ ``strip_chart``), ``fit_panel`` (+ ``fit_rows``), ``archive`` (the
+Archive tab: ``catalogue_view`` + ``catalogue_table``, ``run_view``, ``fit_controller``; ``archive_io``, the
+file work on worker threads), ``messages``, ``widgets``, ``tasks`` (the worker pool; fit-service Futures
+to signals), ``app`` (start-up, recorder factory). See docs/gui.md.
 """
 
 import sys as _sys

@@ -1,7 +1,7 @@
 """File work of the archive browser, run on worker threads (no Qt here).
 
-Reading a run (also one still being written: SWMR), reading its stored fits,
-re-fitting it, exporting a CSV and the report figure.
+Reading a run (also one still being written: SWMR), reading its stored fits, the fit service's
+requests of a re-fit and of a joint fit and saving their results, exporting a CSV and the report figure.
 """
 
 from __future__ import annotations
@@ -73,22 +73,35 @@ class RefitOutcome:
     note: str = ""
 
 
-def refit(path, opts: RefitOptions, progress=None) -> RefitOutcome:
-    """Calibrate the run at ``path`` again; save the fit group unless the run is still being written."""
-    from velab.fitting import fit_run, parse_models
-    from velab.runfiles.fits import save_fit
+def refit_request(path, opts: RefitOptions):
+    """The fit service's request for a re-fit of the run at ``path`` (velab.fitservice; the run is saved into
+    afterwards, unless it is still being written: :func:`store_refit`). DataError for bad options."""
+    from velab.fitting.options import FitOptions
+    from velab.fitservice.request import FitRequest, RunFile
+
+    choices = FitOptions(models=opts.models, method=opts.method, reduced=opts.reduced, starts=opts.starts,
+                         polish=opts.polish)
+    return FitRequest(RunFile(str(path)), opts.window_s, choices, label=f"refit-{Path(path).name}")
+
+
+def joint_request(paths, opts: RefitOptions):
+    """The fit service's request for the joint fit of the runs (``velab fit --joint`` with the Re-fit settings'
+    models and window)."""
+    from velab.fitting.options import FitOptions
+    from velab.fitservice.request import FitRequest, RunFiles
+
+    return FitRequest(RunFiles(tuple(str(p) for p in paths)), opts.window_s, FitOptions(models=opts.models),
+                      label="joint")
+
+
+def store_refit(path, result, opts: RefitOptions) -> RefitOutcome:
+    """After a re-fit of the run at ``path``: its window for the fit panel, and the fit saved into the run
+    (unless ``opts.save`` is off or the run is still being written: then a note says why)."""
     from velab.runfiles import read_run
+    from velab.runfiles.fits import save_fit
 
     run = read_run(path)
-    window = opts.window_s
-    if window is not None and window > run.duration_after_trigger_s:
-        raise DataError(f"{path}: window {window:g} s is longer than the record after the trigger "
-                        f"({run.duration_after_trigger_s:.3f} s)")
-    t, h = run.fit_window(window)
-    # the one fit path (velab.fitting.prepare), as velab fit and the recorder's online fit
-    result = fit_run(run, window, models=parse_models(opts.models), method=opts.method,
-                     reduced=opts.reduced, starts=opts.starts, polish=opts.polish, progress=progress)
-    result.settings = result.settings.replace(window_s_requested=window)
+    t, h = run.fit_window(opts.window_s)
     saved, note = None, ""
     if opts.save:
         if run.incomplete:
@@ -99,6 +112,17 @@ def refit(path, opts: RefitOptions, progress=None) -> RefitOutcome:
             except (OSError, DataError) as exc:  # e.g. flagged open for write: velab recover first
                 note = f"not saved: {exc}"
     return RefitOutcome(result, t, h, run.rig, saved, note)
+
+
+def store_joint(paths, result, opts: RefitOptions) -> str | None:
+    """After a joint fit: saved into every run (velab.jointfiles), the fit group's name; None when not saved."""
+    from velab.jointfiles import default_name, read_sources, save_joint
+
+    if not opts.save:
+        return None
+    name = opts.name or default_name(opts.window_s)
+    save_joint(result, read_sources(paths, opts.window_s), name)
+    return name
 
 
 def export_csv(run, path) -> Path:
@@ -178,26 +202,6 @@ def index_folder(folder, on_rows, stop=None, progress=None):
         listing = cat.update([folder], stop=stop, fork=False, on_rows=lambda rows: on_rows(rows, False),
                              progress=(lambda d, t: progress(d, t, "indexing")) if progress else None)
     return listing
-
-
-def refit_many(paths, opts: RefitOptions, progress=None) -> list[tuple[str, str]]:
-    """Re-fit each run in turn (as the single re-fit); (path, outcome line) of each, failures included."""
-    from velab.errors import VelabError
-
-    out = []
-    for i, p in enumerate(paths):
-        if progress:
-            progress(i, len(paths), f"re-fitting {Path(p).name}")
-        try:
-            o = refit(p, opts)
-            best = o.result.best
-            line = f"best {best.name} (a = {best.wave_speed_m_s:.1f} m/s)" + (f", saved as {o.saved_as}" if o.saved_as else "")
-            out.append((str(p), line + (f"; {o.note}" if o.note else "")))
-        except VelabError as exc:
-            out.append((str(p), f"failed: {exc}"))
-    if progress:
-        progress(len(paths), len(paths), "done")
-    return out
 
 
 def export_rows(rows, path) -> Path:

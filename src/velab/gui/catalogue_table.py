@@ -11,48 +11,16 @@ from __future__ import annotations
 from PySide6.QtCore import QAbstractTableModel, QModelIndex, Qt
 from PySide6.QtGui import QBrush, QColor
 
-import datetime as _dt
+from velab.catalogue.columns import WINDOW_COLUMNS
+from velab.catalogue.query import Filters, sort_rows
 
-from velab.catalogue.query import Filters, sort_rows, status_text, wave_speed_text
-
-# header, sort key (velab.catalogue.query.SORT_KEYS), cell text
-COLUMNS = (
-    ("start", "start", lambda r: start_text(r)),
-    ("status", "status", status_text),
-    ("best", "best", lambda r: r.get("best_model") or ""),
-    ("a m/s ± SE", "wave-speed", wave_speed_text),
-    ("Q0 l/s", "q0", lambda r: _num(r.get("measured_flow_l_s") or r.get("steady_flow_l_s"), ".3f")),
-    ("β 1/s", "beta", lambda r: _num(r.get("beta_per_s"), "g")),
-    ("rate Hz", "rate", lambda r: _num(r.get("sample_rate_hz"), "g")),
-    ("dur s", "duration", lambda r: _num(r.get("duration_s"), ".1f")),
-    ("fits", "fits", lambda r: str(r.get("n_fits") or 0) if r.get("kind") == "run" else ""),
-    ("rig", "rig", lambda r: r.get("rig") or ""),
-    ("title", "title", lambda r: r.get("title") or ""),
-    ("operator", "operator", lambda r: r.get("operator") or ""),
-    ("specimen", "specimen", lambda r: r.get("specimen") or ""),
-    ("file", "path", lambda r: r["path"].rsplit("/", 1)[-1]),
-)
+# velab.catalogue.columns declares them (and the text table of ``velab runs``): header, sort key, cell text
+COLUMNS = tuple((c.header, c.sort, c.cell) for c in WINDOW_COLUMNS)
 # the widest text each column shows in practice: the columns open that wide (the start time whole, with
 # its seconds: two runs of one minute differ)
-WIDEST = ("2026-11-21 08:00:00", "completed-with-faults", "S1r", "352.12 ± 0.35", "3.600", "10.5", "10000",
-          "120.0", "fits", "perugia", "closure 3, material A", "operator", "specimen", "")
+WIDEST = tuple(c.widest for c in WINDOW_COLUMNS)
 _RED = QBrush(QColor(190, 30, 30))
 _AMBER = QBrush(QColor(170, 110, 0))
-
-
-def start_text(row: dict) -> str:
-    """The run's start, date and time to the second, in the time zone it was recorded in."""
-    s = row.get("start_time")
-    if not s:
-        return ""
-    try:
-        return _dt.datetime.fromisoformat(s).strftime("%Y-%m-%d %H:%M:%S")
-    except ValueError:
-        return str(s)[:19].replace("T", " ")
-
-
-def _num(v, fmt: str) -> str:
-    return format(v, fmt) if isinstance(v, (int, float)) and not isinstance(v, bool) else ""
 
 
 class CatalogueModel(QAbstractTableModel):

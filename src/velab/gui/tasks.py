@@ -4,6 +4,9 @@ The GUI thread never reads or writes run files, fits or talks to devices; it han
 the work to :func:`submit`, which runs it on the GUI's own QThreadPool and delivers
 ``done(result)``, ``failed(exc)`` and ``progress(done, total, text)`` back on the GUI
 thread (queued signals). A task keeps itself alive until it has reported.
+
+:func:`watch` delivers a fit the same way: the Future of a fit submitted to the fit service
+(velab.fitservice) and its FitProgress messages reach the GUI thread through the same signals.
 """
 
 from __future__ import annotations
@@ -103,6 +106,45 @@ def submit(fn: Callable, *args, on_done=None, on_error=None, on_progress=None, o
     _LIVE.add(task)
     pool().start(task)
     return task
+
+
+class _Watch:
+    """A Future watched for the GUI thread (:func:`watch`): its relay and signals, kept alive until it reported."""
+
+    def __init__(self):
+        self.signals = TaskSignals()
+
+
+def watch(future, *, on_done=None, on_error=None, owner=None):
+    """``on_done(result)`` or ``on_error(exc)`` on the GUI thread when ``future`` (a concurrent Future, e.g.
+    velab.fitservice's) ends, if ``owner`` lives; returns ``sink(FitProgress)``, the progress sink to give
+    the fit service with the request (its messages reach ``on_progress`` of :func:`progress_sink`)."""
+    w = _Watch()
+    relay = w.relay = _Relay(w, on_done, on_error, None, owner)
+    w.signals.done.connect(relay.done)
+    w.signals.failed.connect(relay.failed)
+    w.signals.finished.connect(relay.finished)
+    _LIVE.add(w)
+
+    def ended(f) -> None:  # the fit service's thread
+        exc = f.exception()
+        if exc is None:
+            w.signals.done.emit(f.result())
+        else:
+            w.signals.failed.emit(exc)
+        w.signals.finished.emit()
+    future.add_done_callback(ended)
+    return w
+
+
+def progress_sink(on_progress, owner=None):
+    """A FitProgress sink for the fit service whose messages call ``on_progress(done, total, name)`` on the
+    GUI thread (if ``owner`` lives). Create it on the GUI thread."""
+    w = _Watch()
+    relay = w.relay = _Relay(w, None, None, on_progress, owner)
+    w.signals.progress.connect(relay.progress)
+    w.sink = lambda m: w.signals.progress.emit(int(m.done), int(m.total), str(m.name))
+    return w
 
 
 def wait_idle(ms: int = 30000) -> bool:

@@ -1,23 +1,31 @@
-"""The online fit: the recorded window -> the fitter, on its own thread, with intermediate fits.
+"""The online fit: the recorded window -> the fit service, with intermediate fits; its outcome a message.
 
-``fit_arguments`` makes the one call into the fitter (velab.fitting.entry.fit_record, the
-fit path ``velab fit`` and the GUI's re-fit take too); everything else here is scheduling: intermediate quick fits on the growing
-window while the fitter is idle, cancelled when the lead or the final fit starts; the fit path's
-lead fit (velab.fitting.lead: the sweep of the window's first part) as soon as that part is in,
-while the rest is being recorded; the final fit as soon as the window closes, continuing from
-the lead (or computing it, if it failed or does not match); the latency from the window closing
-to the result.
+Everything here is scheduling; every fit is a :class:`velab.fitservice.FitRequest` of the recorded
+:class:`~velab.fitservice.Record` with the run's :class:`~velab.fitservice.FitOptions`, the request
+``velab fit`` of the run file makes too (velab.fitservice.execute -> velab.fitting.entry.fit_record):
 
-A rig with several transducers (velab.recording.transducers) is fitted on every section at once: the
-same ``fit_record`` call with the other transducers' heads (``section_heads``), which takes the sections
-path (velab.fitting.sections), as ``velab fit`` of the run file does; that fit has no lead and no quick
-variant, so only the final fit runs.
+* intermediate quick fits (no polish, two starts) on the growing window while the fitter is idle,
+  cancelled when the lead or the final fit starts;
+* the fit path's lead fit (velab.fitting.lead: the sweep of the window's first part) as soon as that
+  part is in, while the rest is being recorded;
+* the final fit as soon as the window closes, continuing from the lead (or computing it, if it failed
+  or does not match); the latency from the window closing to the result.
 
-With ``settings.fit_process`` (the default) the fits run in a worker process of their own
-(velab.fit_worker), started when the manoeuvre is commanded so that its imports are done by the
-time the window closes: the recorder's threads and the fit then do not take turns for one interpreter
-lock, and at its lower priority the fit never starves them. The worker runs the same ``fit_record`` with the same arguments, so the result is the same
-bit for bit. If the worker cannot start or dies, the fit runs here instead, and the run says so.
+A rig with several transducers (velab.recording.transducers) is fitted on every section at once: the same
+request with the other transducers' heads, which takes the sections path (velab.fitting.sections), as
+``velab fit`` of the run file does; that fit has no lead and no quick variant, so only the final fit runs.
+
+With ``settings.fit_process`` (the default) the fits run on the service's worker-process backend (one
+fit process of velab.fit_worker, started when the manoeuvre is commanded so that its imports are done
+by the time the window closes; at its lower priority it never starves the recorder's threads); the
+result is the same bit for bit. If that process cannot start or dies, the final fit runs on the
+in-process backend instead, and the run says so. A halt kills the process at once.
+
+Threads: ``start``/``start_lead`` are called from the acquisition thread, ``refuse``/``cancel``/``close``
+from the control thread (``cancel`` also from a halting caller), the fits' outcomes arrive on the
+service's threads. All state is under one lock; the final outcome (:class:`FitOutcome`) is delivered
+once, through ``deliver`` (the run posts it to the control thread), and nothing of this object needs
+to be read by another thread.
 """
 
 from __future__ import annotations
@@ -25,79 +33,84 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from concurrent.futures import TimeoutError as FutureTimeout
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from velab.rig import Rig
-from velab import fit_worker
-from velab.fitting.lead import lead_window_s
+from velab.fitservice.errors import FitCancelled, FitFailed, FitWorkerDied
 from velab.fitting.options import FitOptions
+from velab.fitservice.request import FitRequest, Record
+from velab.fitservice.service import FitService
+from velab.fitting.lead import lead_window_s
+from velab.rig import Rig
 
 log = logging.getLogger(__name__)
 MIN_FIT_WINDOW_S = 2.0
+QUICK = {"polish": False, "starts": 2}  # an intermediate fit's choices over the run's
+
+HALTED = "no fit: the run was halted"  # whichever of the fit and the run's end says it first
 
 
-HALTED = "no fit: the run was halted"  # whichever of the fit thread and the run's end says it first
+@dataclass(frozen=True)
+class FitOutcome:
+    """The final fit of a run, or why there is none: ``result`` (a SweepResult) or ``error`` (one line),
+    ``latency_s`` from the window closing to the result, ``window_s`` the final window."""
+
+    result: object = None
+    error: str = ""
+    latency_s: float | None = None
+    window_s: float | None = None
 
 
-class _Cancelled(Exception):
-    pass
-
-
-class FitError(Exception):
-    """The fit raised, in the worker process ("Type: message")."""
-
-
-def fit_arguments(t_s: np.ndarray, head_m: np.ndarray, trigger_time_s: float, rig: Rig, *, models, window_s: float,
-                  method: str, sample_rate_hz: float, quick: bool = False, position_pct=None,
-                  section_heads: dict | None = None) -> dict:
-    """The arguments of velab.fitting.entry.fit_record for a recorded head record (the run's axis,
-    absolute head, from before the trigger): the one fit path, as ``velab fit`` of the run file takes
-    it; ``quick`` = no polish, 2 starts (intermediate fits); ``position_pct`` the recorded valve position
-    on ``t_s`` (the manoeuvre's input, as ``velab fit`` takes it from the file); ``section_heads`` the
-    other transducers' absolute heads on ``t_s`` by name (a rig with several: every section is fitted)."""
-    kw = {"polish": False, "starts": 2} if quick else {}
-    if section_heads:
-        kw["section_heads"] = dict(section_heads)
-    return dict(t_s=t_s, head_m=head_m, trigger_time_s=trigger_time_s, rig=rig, window_s=window_s,
-                record_rate_hz=sample_rate_hz, models=list(models), method=method, position_pct=position_pct, **kw)
+def run_choices(settings) -> FitOptions:
+    """The fit choices of a recording's settings (its final and lead fits; quick fits add ``QUICK``)."""
+    return FitOptions(models=tuple(settings.fit_models), method=settings.fit_method)
 
 
 class OnlineFit:
-    """Runs fits of the recorded window; publishes ``fit`` events through ``emit``; thread-safe."""
+    """Runs the fits of the recorded window (module docstring); publishes ``fit`` events through
+    ``emit`` and says what happened through ``message``; ``deliver(FitOutcome)`` is called once with the
+    final outcome (from whichever thread settles it). Thread-safe."""
 
-    def __init__(self, rig: Rig, settings, sample_rate_hz: float, emit, message):
+    def __init__(self, rig: Rig, settings, sample_rate_hz: float, emit, message, deliver=None):
         self.rig = rig
         self.sections = len(rig.sections) > 1  # every section at once: the final fit only (module docstring)
         self.s = settings
         self.fs = sample_rate_hz
         self.emit = emit
         self.message = message
-        self.result = None
-        self.error = ""
-        self.latency_s: float | None = None
-        self.window_s: float | None = None
-        self._final: threading.Thread | None = None
-        self._lead: threading.Thread | None = None
-        self._lead_result = None  # the lead fit (velab.fitting.lead), when it has ended
-        self._running = 0  # fits running (quick, lead, final)
-        self._running_lock = threading.Lock()
-        self._cancel_quick = threading.Event()
-        self._cancel_all = threading.Event()
+        self._deliver = deliver
+        self.choices = run_choices(settings)
+        self._here = FitService.in_thread()
+        self._lock = threading.Lock()
+        self._proc: FitService | None = None  # the worker-process backend (start_process)
+        self._running: set = set()  # futures of the fits running (quick, lead, final)
+        self._quick: set = set()
+        self._lead = None  # the lead fit's future
+        self._lead_result = None  # the lead fit, when it has ended with one
+        self._final_started = False
         self._closed_at: float | None = None
-        self._proc = None  # the worker process (start_process)
+        self._window_s: float | None = None
+        self._final = None  # the final fit's future
+        self._halted = False
+        self._outcome: FitOutcome | None = None
+        self._done = threading.Event()
 
+    # ------------------------------------------------------------------ state (locked reads)
     def start_process(self) -> None:
         """Start (or take from the pool) the fit process, when the manoeuvre has been commanded: its
         imports (about 1 s of CPU) are done long before the window closes, and never compete with
         the baseline and the trigger (at the fast clock they delayed a trigger by a tenth of a second)."""
-        if self._proc is not None or not (self.s.fit_process and self.s.fit):
-            return
+        with self._lock:
+            if self._proc is not None or not (self.s.fit_process and self.s.fit):
+                return
         try:
-            self._proc = fit_worker.acquire()
+            proc = FitService.processes(1, replace_dead=False, start=True)
         except OSError as exc:  # no interpreter to start: fit here
             log.warning("no fit process (%s): the fit runs in the recorder's process", exc)
+            return
+        with self._lock:
+            self._proc = proc
 
     def lead_window_s(self) -> float | None:
         """The fit path's lead part of the final window (velab.fitting.lead) for this run's fit options."""
@@ -107,11 +120,56 @@ class OnlineFit:
 
     @property
     def busy(self) -> bool:
-        return self._running > 0
+        with self._lock:
+            return bool(self._running)
 
     @property
     def final_started(self) -> bool:
-        return self._final is not None
+        with self._lock:
+            return self._final_started
+
+    def outcome(self) -> FitOutcome | None:
+        """The final outcome, once delivered."""
+        with self._lock:
+            return self._outcome
+
+    # what the outcome says (tests, scripts; the run takes the delivered FitOutcome)
+    @property
+    def result(self):
+        o = self.outcome()
+        return o.result if o is not None else None
+
+    @property
+    def error(self) -> str:
+        o = self.outcome()
+        return o.error if o is not None else ""
+
+    @property
+    def latency_s(self) -> float | None:
+        o = self.outcome()
+        return o.latency_s if o is not None else None
+
+    # ------------------------------------------------------------------ starting fits
+    def _request(self, t, h, trigger_time_s, window_s, kind, position=None, section_heads=None, lead=True):
+        choices = replace(self.choices, **QUICK) if kind == "quick" else self.choices
+        src = Record(t, h, trigger_time_s, self.rig, self.fs, position_pct=position, section_heads=section_heads or ())
+        return FitRequest(src, window_s, choices, stage="lead" if kind == "lead" else "fit", lead=lead,
+                          label="recorder-" + kind)
+
+    def _service(self, final: bool) -> FitService:
+        """The process backend while its process lives, else this process (the final fit says so)."""
+        with self._lock:
+            proc = self._proc
+        if proc is None:
+            return self._here
+        if final and not proc.alive:
+            self.message("fit process lost before the final fit: fitting in the recorder's process")
+            with self._lock:
+                if self._proc is proc:
+                    self._proc = None
+            proc.close()
+            return self._here
+        return proc  # (a quick or lead fit on a lost process fails at once: the final fit computes the lead)
 
     def start(self, t: np.ndarray, h: np.ndarray, trigger_time_s: float, window_s: float, *, final: bool,
               position=None, section_heads: dict | None = None) -> None:
@@ -119,147 +177,154 @@ class OnlineFit:
         runs, and on a rig with several sections); ``section_heads``: the other transducers' heads on t."""
         if not final and self.sections:
             return
-        if final:
-            if self._final is not None:
-                return
-            self._closed_at = time.perf_counter()
-            self._cancel_quick.set()  # the final fit gets the CPU
-        elif self.busy:
+        if not final:
+            with self._lock:
+                if self._running or self._final_started or self._halted:
+                    return
+                # (reserved under the lock: a second quick fit is skipped until this one is submitted)
+                token = object()
+                self._running.add(token)
+            try:
+                self._submit("quick", self._request(t, h, trigger_time_s, window_s, "quick", position))
+            finally:
+                with self._lock:
+                    self._running.discard(token)
             return
+        with self._lock:
+            if self._final_started:
+                return
+            self._final_started = True
+            self._closed_at = time.perf_counter()
+            self._window_s = window_s
+            quick, lead = list(self._quick), self._lead
+        for f in quick:
+            f.cancel_fit()  # the final fit gets the CPU (a quick fit in the process ends at its next model)
+        args = (t, h, trigger_time_s, window_s, position, section_heads)
+        if hasattr(lead, "done") and not lead.done():
+            lead.add_done_callback(lambda _f: self._start_final(*args))  # continues from the lead
         else:
-            self._cancel_quick.clear()
-        self._spawn("final" if final else "quick", t, h, trigger_time_s, window_s, position, section_heads)
+            self._start_final(*args)
 
     def start_lead(self, t: np.ndarray, h: np.ndarray, trigger_time_s: float, window_s: float, position=None) -> None:
         """Start the lead fit of a ``window_s`` fit: (t, h) reach the end of the lead's part of the window."""
-        if self._lead is not None or self._final is not None:
+        with self._lock:
+            if self._lead is not None or self._final_started or self._halted:
+                return
+            quick = list(self._quick)
+            self._lead = True  # (reserved)
+        for f in quick:
+            f.cancel_fit()  # a quick fit still running gives way
+        fut = self._submit("lead", self._request(t, h, trigger_time_s, window_s, "lead", position))
+        with self._lock:
+            self._lead = fut
+
+    def _submit(self, kind: str, request: FitRequest, service: FitService | None = None):
+        fut = (service or self._service(kind == "final")).submit(request)
+        with self._lock:
+            self._running.add(fut)
+            if kind == "quick":
+                self._quick.add(fut)
+            elif kind == "final":
+                self._final = fut
+            halted = self._halted
+        if halted:
+            fut.cancel_fit(kill=True)
+        fut.add_done_callback(lambda f: self._ended(kind, request, f))
+        return fut
+
+    def _start_final(self, t, h, trigger_time_s, window_s, position, section_heads) -> None:
+        with self._lock:
+            halted, lead = self._halted, self._lead_result
+        if halted:
+            self._settle(FitOutcome(error=HALTED, window_s=window_s))
             return
-        self._cancel_quick.set()  # a quick fit still running gives way
-        self._lead = self._spawn("lead", t, h, trigger_time_s, window_s, position)
+        self._submit("final", self._request(t, h, trigger_time_s, window_s, "final", position, section_heads,
+                                            lead=lead if lead is not None else True))
 
-    def _spawn(self, kind: str, t, h, trigger_time_s: float, window_s: float, position=None,
-               section_heads=None) -> threading.Thread:
-        with self._running_lock:
-            self._running += 1
-        th = threading.Thread(target=self._work, args=(t, h, trigger_time_s, window_s, kind, position, section_heads),
-                              daemon=True,
-                              name="velab-recorder-fit" + ("" if kind == "final" else "-" + kind))
+    # ------------------------------------------------------------------ outcomes (the service's threads)
+    def _ended(self, kind: str, request: FitRequest, fut) -> None:
+        with self._lock:
+            self._running.discard(fut)
+            self._quick.discard(fut)
+            halted = self._halted
+        exc = fut.exception()
         if kind == "final":
-            self._final = th
-            self.window_s = window_s
-        th.start()
-        return th
+            self._final_ended(request, fut, exc, halted)
+            return
+        if exc is None:
+            r = fut.result()
+            if kind == "lead":
+                with self._lock:
+                    self._lead_result = r
+                if r is None:
+                    return  # (this window has no lead fit)
+            self.emit("fit", {"result": r, "final": False, "lead": kind == "lead",
+                              "window_s": r.window_s if kind == "lead" else request.window_s})
+        elif kind == "lead" and not isinstance(exc, FitCancelled):
+            log.info("lead fit failed (%s): the final fit computes it", exc)
+        else:
+            log.debug("%s fit ended: %s: %s", kind, type(exc).__name__, exc)
 
+    def _final_ended(self, request: FitRequest, fut, exc, halted: bool) -> None:
+        window = request.window_s
+        if exc is None:
+            r = fut.result()
+            with self._lock:
+                latency = time.perf_counter() - self._closed_at
+            self.emit("fit", {"result": r, "final": True, "window_s": window, "lead": False})
+            self._settle(FitOutcome(r, latency_s=latency, window_s=window))
+        elif isinstance(exc, FitCancelled) or halted:
+            self._settle(FitOutcome(error=HALTED, window_s=window))
+        elif isinstance(exc, FitWorkerDied) and request.label == "recorder-final":
+            # the final fit is not lost with its process: it runs here
+            self.message(f"fit process lost ({exc}): fitting in the recorder's process")
+            with self._lock:
+                proc, self._proc = self._proc, None
+            if proc is not None:
+                proc.close()
+            self._submit("final", replace(request, label="recorder-final-here"), self._here)
+        else:
+            text = f"fit failed: {exc}" if isinstance(exc, FitFailed) else f"fit failed: {type(exc).__name__}: {exc}"
+            if not isinstance(exc, FitFailed):
+                log.debug("fit failed", exc_info=exc)
+            if self._settle(FitOutcome(error=text, window_s=window)):
+                self.message(text)
+
+    def _settle(self, outcome: FitOutcome) -> bool:
+        """The final outcome, once: the first one said wins (refuse is atomic with the fit's end)."""
+        with self._lock:
+            if self._outcome is not None:
+                return False
+            self._outcome = outcome
+        self._done.set()
+        if self._deliver is not None:
+            self._deliver(outcome)
+        return True
+
+    # ------------------------------------------------------------------ the run's end (control thread)
     def refuse(self, why: str) -> None:
-        """No final fit, and why (the run's summary and the CLI say it)."""
-        if not self.error and self.result is None:
-            self.error = why
+        """No final fit, and why (the run's summary and the CLI say it); nothing if the outcome is known."""
+        if self._settle(FitOutcome(error=why)):
             self.message(why)
 
-    def _cancelled(self, kind: str) -> bool:
-        return self._cancel_all.is_set() or (kind == "quick" and self._cancel_quick.is_set())
-
-    def _lead_for_final(self):
-        """The lead fit for the final one: waits for a running lead (a halt ends the wait); True (the
-        fit path computes it) if there is none."""
-        th = self._lead
-        while th is not None and th.is_alive():
-            if self._cancel_all.is_set():
-                raise _Cancelled()
-            th.join(0.05)
-        return self._lead_result if self._lead_result is not None else True
-
-    def _fit(self, t, h, trigger_time_s, window_s, kind, position=None, section_heads=None):
-        """The fit, in the worker process if there is a live one, else here; raises _Cancelled."""
-        final = kind == "final"
-        kw = fit_arguments(t, h, trigger_time_s, self.rig, models=self.s.fit_models, window_s=window_s,
-                           method=self.s.fit_method, sample_rate_hz=self.fs, quick=kind == "quick",
-                           position_pct=position, section_heads=section_heads)
-        if final:
-            kw["lead"] = self._lead_for_final()
-        call = "lead" if kind == "lead" else "record"
-        proc = self._proc
-        if proc is not None and not proc.alive and final:
-            self.message("fit process lost before the final fit: fitting in the recorder's process")
-            self._proc, proc = None, None
-        if proc is not None:
-            job, fut = proc.submit(call, **kw)
-            asked = False
-            while True:
-                try:
-                    return fut.result(timeout=0.05)
-                except FutureTimeout:
-                    pass
-                except fit_worker.Cancelled:
-                    raise _Cancelled() from None
-                except fit_worker.WorkerDied as exc:
-                    if self._cancelled(kind):
-                        raise _Cancelled() from None
-                    if not final:
-                        raise
-                    # the final fit is not lost with its process: it runs here
-                    self.message(f"fit process lost ({exc}): fitting in the recorder's process")
-                    break
-                except RuntimeError as exc:  # the fit's own error, as the child named it
-                    raise FitError(str(exc)) from None
-                if self._cancel_all.is_set():
-                    proc.kill("halted")  # halt = stop now, not at the fit's next model
-                elif not asked and self._cancelled(kind):
-                    proc.cancel(job)  # overtaken by the final fit: ends at its next model
-                    asked = True
-
-        def progress(done, total, name):
-            if self._cancelled(kind):
-                raise _Cancelled()
-
-        from velab.fitting import entry  # scipy: only when a fit runs
-
-        return (entry.fit_lead if kind == "lead" else entry.fit_record)(progress=progress, **kw)
+    def cancel(self) -> None:
+        """Halt: every fit ends now (the fit process is killed); the final outcome is HALTED."""
+        with self._lock:
+            self._halted = True
+            running = [f for f in self._running if hasattr(f, "cancel_fit")]
+        for f in running:
+            f.cancel_fit(kill=True)
 
     def close(self) -> None:
         """Give the worker process back (kept for the next run if idle; ended if a fit still runs)."""
-        proc, self._proc = self._proc, None
+        with self._lock:
+            proc, self._proc = self._proc, None
         if proc is not None:
-            fit_worker.release(proc)
-
-    def _work(self, t, h, trigger_time_s, window_s, kind, position=None, section_heads=None) -> None:
-        final = kind == "final"
-        try:
-            r = self._fit(t, h, trigger_time_s, window_s, kind, position, section_heads)
-            if final:
-                self.result = r
-                self.latency_s = time.perf_counter() - self._closed_at
-            elif kind == "lead":
-                self._lead_result = r
-                if r is None:
-                    return  # (this window has no lead fit)
-            self.emit("fit", {"result": r, "final": final, "window_s": r.window_s if kind == "lead" else window_s,
-                              "lead": kind == "lead"})
-        except _Cancelled:
-            if final:
-                self.error = HALTED
-        except FitError as exc:
-            if final:
-                self.error = f"fit failed: {exc}"
-                self.message(self.error)
-            elif kind == "lead":
-                log.info("lead fit failed (%s): the final fit computes it", exc)
-        except Exception as exc:  # noqa: BLE001 - reported as the run's fit error
-            log.debug("fit failed", exc_info=True)
-            if final:
-                self.error = f"fit failed: {type(exc).__name__}: {exc}"
-                self.message(self.error)
-        finally:
-            with self._running_lock:
-                self._running -= 1
-
-    def cancel(self) -> None:
-        self._cancel_all.set()
+            proc.close()
 
     def wait(self, timeout: float | None = None) -> bool:
-        """Wait for the final fit; True when it is over (or never started)."""
-        th = self._final
-        if th is None:
-            return True
-        th.join(timeout)
-        return not th.is_alive()
+        """Wait for the final outcome; True when it is known (or no final fit was started)."""
+        with self._lock:
+            if not self._final_started and self._outcome is None:
+                return True
+        return self._done.wait(timeout)

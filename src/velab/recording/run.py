@@ -17,7 +17,7 @@ from velab.errors import VelabError
 from velab.recording import phases as P
 from velab.recording.devices import check_steady_flow, check_steady_head
 from velab.recording.layout import bench_snapshot, commanded_rig, create_run_file, run_file_name
-from velab.recording.online_fit import HALTED, OnlineFit
+from velab.recording.online_fit import HALTED, FitOutcome, OnlineFit
 from velab.recording.ops import Append, Event, Value
 from velab.recording.pressure import PressureStage
 from velab.recording.redundancy import RedundancyMonitor, head_mismatch, head_tolerance_m
@@ -66,6 +66,12 @@ class Run:
         self._end_request: tuple[str, str] | None = None
         self._end_lock = threading.Lock()  # guards _end_request and _marks (any thread)
         self._last_progress = 0.0
+        # the conclusion (control thread): the run's end (status, reason), the fit's outcome (a message from
+        # OnlineFit), the moment the conclusion gives up on the final fit
+        self._ended_with: tuple[str, str] | None = None
+        self._fit_outcome: FitOutcome | None = None
+        self._fit_deadline = math.inf
+        self._concluding = False
         self.hooks = Hooks(emit=rec.emit, log=self.log, fault=self.fault, request_end=self.request_end)
 
     @property
@@ -173,7 +179,8 @@ class Run:
         self.writer = WriterStage(w, fs, s.flush_interval_s, self.hooks, per_sample)
         self.source = source
         self.log("operator", f"armed by {s.operator or 'operator'}: {pred.message}")
-        self.fit = OnlineFit(commanded_rig(self.rec.rig, beta, gamma), s, fs, self.rec.emit, self.message)
+        self.fit = OnlineFit(commanded_rig(self.rec.rig, beta, gamma), s, fs, self.rec.emit, self.message,
+                             deliver=self._fit_delivered)
         mon = self.redundancy = RedundancyMonitor()
         put = self.writer.put
 
@@ -277,6 +284,9 @@ class Run:
 
     # ------------------------------------------------------------------ timers (control thread)
     def tick(self) -> None:
+        if self._ended_with is not None and not self._concluding and time.monotonic() > self._fit_deadline:
+            self.fit.refuse(f"no fit: the final fit did not finish within {FIT_WAIT_S:g} s")
+            self.fit.cancel()
         if self.timeline is None or not self.active:
             return
         s, tl = self.settings, self.timeline.counters()
@@ -419,12 +429,35 @@ class Run:
                 self.rec.emit_valve(self.rec.devices[self.rec.roles["valve"]].read_status())
             except DEVICE_ERRORS + (KeyError,):
                 pass
-        fit_pending = self.fit is not None and self.fit.final_started and not self.halt_ev.is_set()
-        if fit_pending:
-            self.rec.set_phase(P.FITTING, status=status, reason=full_reason, path=str(self.path))
-        threading.Thread(target=self._conclude, args=(status, full_reason), daemon=True,
-                         name="velab-recorder-conclude").start()
+        self._ended_with = (status, full_reason)
+        if not (self.settings.fit and self.fit is not None) or self._fit_outcome is not None:
+            self._start_conclusion()  # no fit to wait for, or its outcome is in
+        else:  # the outcome arrives as a message (_fit_concluded); the tick gives up after FIT_WAIT_S
+            self._fit_deadline = time.monotonic() + FIT_WAIT_S
+            if self.fit.final_started and not self.halt_ev.is_set():
+                self.rec.set_phase(P.FITTING, status=status, reason=full_reason, path=str(self.path))
         return None
+
+    def _fit_delivered(self, outcome: FitOutcome) -> None:
+        """From the thread that settled the final fit (or refused it): its outcome, to the control thread."""
+        fut = self.rec.submit(lambda: self._fit_concluded(outcome))
+        if fut.done() and fut.exception() is not None:  # (a recorder closing: no control thread any more)
+            self._fit_concluded(outcome)
+
+    def _fit_concluded(self, outcome: FitOutcome) -> None:
+        """On the control thread: the final fit's outcome; the conclusion starts once the run has ended."""
+        if self._fit_outcome is None:
+            self._fit_outcome = outcome
+        if self._ended_with is not None:
+            self._start_conclusion()
+
+    def _start_conclusion(self) -> None:
+        if self._concluding:
+            return
+        self._concluding = True
+        status, reason = self._ended_with
+        threading.Thread(target=self._conclude, args=(status, reason, self._fit_outcome), daemon=True,
+                         name="velab-recorder-conclude").start()
 
     def _measure_stroke(self) -> None:
         """The sigmoid of the measured valve position (velab.recording.stroke) into the run file and the summary;
@@ -507,15 +540,13 @@ class Run:
         else:
             fit.refuse(f"no fit: the run {status}")
 
-    def _conclude(self, status: str, reason: str) -> None:
-        fit = self.fit
+    def _conclude(self, status: str, reason: str, outcome: FitOutcome | None) -> None:
+        """On a thread of its own: the fit saved into the run file, the summary handed to the control thread."""
         result, error, latency = None, "", None
-        if fit is not None:
-            if not fit.wait(FIT_WAIT_S):
-                fit.cancel()
-                fit.refuse(f"no fit: the final fit did not finish within {FIT_WAIT_S:g} s")
-            fit.close()  # the fit process back to the pool (or ended, if a fit still runs in it)
-            result, error, latency = fit.result, fit.error, fit.latency_s
+        if self.fit is not None:
+            self.fit.close()  # the fit process back to the pool (or ended, if a fit still runs in it)
+        if outcome is not None:
+            result, error, latency = outcome.result, outcome.error, outcome.latency_s
             if result is not None and self.path is not None:
                 try:
                     save_fit(self.path, result, name="online")
