@@ -10,6 +10,8 @@ import math
 import os
 
 import numpy as np
+
+from velab.fitting.selection import ELEMENT_PRICE
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -151,7 +153,7 @@ def test_models_past_the_first_element_that_does_not_pay_are_not_searched(monkey
     h = valve_head(t, PERUGIA, truth) + np.random.default_rng(7).normal(0.0, 0.05, t.size)
     r = fit_sweep(t, h, PERUGIA, models=range(6))
     gain = r.n * math.log(r["S2"].F / r["S3"].F)
-    assert gain < sweep.SATURATED_GAIN
+    assert gain < ELEMENT_PRICE
     assert r.settings["not_searched"] == ["S4", "S5"]
     assert r["S4"].equivalent_to == "S3" and r["S5"].equivalent_to == "S3"
     assert r["S4"].starts == 0 and r["S5"].evaluations < 20

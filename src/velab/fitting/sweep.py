@@ -331,7 +331,7 @@ class _Sweep:
             old = self.lead.get(name)
             if old is not None and old.m == m and old.reduced == red:
                 cands = [pm.clip(_pack_fit(pm, old, self.rig))]
-                if not self.trust_lead and old.equivalent_to and base.pm.m == m - 1 and not red:
+                if not self.trust_lead and _vanished(old) and base.pm.m == m - 1 and not red:
                     # it vanished in the lead, under another flow: searched again from this sweep's S(m-1)
                     # with an element split or added below, between and above (a polish of the vanished
                     # element alone found it or not by the last bits of the closure)
@@ -393,7 +393,7 @@ class _Sweep:
         if not self.trust_lead:
             return False
         old = self.lead.get(model_name(m, False)) if self.lead is not None else None
-        return old is not None and bool(old.equivalent_to)
+        return old is not None and _vanished(old)
 
     def embedded(self, pm: ParamMap, ref: _Final, refreshes: int) -> _Final:
         """``ref`` (with its correction under the current linear resistance) plus vanished elements,
@@ -492,6 +492,12 @@ class _Sweep:
             return cand_fin
         emb = self.embedded(pm, ref, fin.refreshes)
         return emb if emb.sol.F < fin.sol.F else fin
+
+
+def _vanished(f: ModelFit) -> bool:
+    """``f`` ended as a smaller model plus vanished (or split) elements -- not one whose extra element is a model
+    error (velab.fitting.selection.mark_model_errors: a live element, which the search must see again)."""
+    return bool(f.equivalent_to) and f.support != "model error"
 
 
 def _pack_fit(pm: ParamMap, old: ModelFit, rig: Rig) -> np.ndarray:
