@@ -91,6 +91,9 @@ def _check_intact(path, state, expect_fit: str | None, absent: str | None):
         assert absent not in run.fit_names
 
 
+# ten `velab fit` processes one after the other, each paying the fit path's imports (~4 s of CPU on a 2-core Intel
+# host) before its save: the suite's 300 s ran out under a load of 12 (two other suites beside it), not a hang
+@pytest.mark.timeout(600)
 def test_sigkill_of_velab_fit_at_every_stage_of_the_save(big_run, tmp_path):
     path = tmp_path / "run.h5"
     shutil.copy(big_run, path)
