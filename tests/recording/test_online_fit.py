@@ -64,7 +64,7 @@ def test_the_final_fit_gives_the_result_its_latency_and_one_event(fitter):
     fit.start(T, H, 0.0, 2.0, final=True)
     assert fit.wait(5.0) and fit.result is not None and fit.latency_s >= 0.0 and not fit.error
     assert [(k, d["final"], d["window_s"]) for k, d in events] == [("fit", True, 2.0)]
-    assert f.calls[0]["window_s"] == 2.0 and f.calls[0]["models"] == [1, 2, 3] and f.calls[0]["lead"] is True
+    assert f.calls[0]["window_s"] == 2.0 and f.calls[0]["options"].models == (1, 2, 3) and f.calls[0]["lead"] is True
 
 
 def test_a_quick_fit_is_skipped_while_another_runs_and_gives_way_to_the_final(fitter):
@@ -118,7 +118,7 @@ def test_a_rig_with_several_sections_fits_them_all_in_the_final_fit_only(fitter)
     assert fit.wait(5.0) and fit.result is not None
     (kw,) = f.calls
     assert set(kw["section_heads"]) == {"mid"} and kw["section_heads"]["mid"] is not None
-    assert kw["rig"].name == load_rig("perugia_two_sections").name and "polish" not in kw
+    assert kw["rig"].name == load_rig("perugia_two_sections").name and kw["options"].default_search
     assert [(k, d["final"]) for k, d in events] == [("fit", True)]
 
 
