@@ -112,17 +112,22 @@ def _plot_path(template: str, run_path: str, many: bool) -> str:
     return str(t.with_name(f"{t.stem}_{Path(run_path).stem}{t.suffix}"))
 
 
+def fit_options(opts: dict):
+    """``velab fit``'s options as the fitter's FitOptions (the one mapping of the command's options)."""
+    from velab.fitting.options import FitOptions
+
+    return FitOptions(models=tuple(opts["models"]), method=opts["method"], reduced=opts["reduced"],
+                      starts=opts["starts"], polish=opts["polish"], tau_min_s=opts["tau_min_s"],
+                      tau_max_s=opts["tau_max_s"], selection=opts["selection"], friction=opts["friction"],
+                      friction_unsteady=opts["friction_unsteady"], manoeuvre=opts.get("manoeuvre", "auto"))
+
+
 def fit_request(path: str, opts: dict):
     """The fit service's request (velab.fitservice) for one run file with ``velab fit``'s options: the run is
     refused before its fit when the fit is to be saved into it and cannot be (open for writing, damaged)."""
-    from velab.fitting.options import FitOptions
     from velab.fitservice.request import FitRequest, RunFile
 
-    choices = FitOptions(models=tuple(opts["models"]), method=opts["method"], reduced=opts["reduced"],
-                         starts=opts["starts"], polish=opts["polish"], tau_min_s=opts["tau_min_s"],
-                         tau_max_s=opts["tau_max_s"], selection=opts["selection"], friction=opts["friction"],
-                         friction_unsteady=opts["friction_unsteady"], manoeuvre=opts.get("manoeuvre", "auto"))
-    return FitRequest(RunFile(path, will_save=bool(opts["save"])), opts["window_s"], choices,
+    return FitRequest(RunFile(path, will_save=bool(opts["save"])), opts["window_s"], fit_options(opts),
                       label=Path(path).name)
 
 
@@ -234,8 +239,10 @@ def _joint_sources(args, window_s):
 
 
 def _run_joint(args, opts: dict) -> int:
-    """velab fit RUN1 RUN2 ... --joint: one wall over all the runs (velab.fitting.joint)."""
-    from velab.fitting.joint import fit_joint
+    """velab fit RUN1 RUN2 ... --joint: one wall over all the runs (velab.fitting.joint), the fit service's
+    in-process call (velab.fitservice.execute) as every fit."""
+    from velab.fitservice.execute import execute
+    from velab.fitservice.request import FitRequest, RunFiles
     from velab.fitting.jointresult import runs_report
     from velab.jointfiles import default_name, save_joint
     from velab.runfiles.fits import validate_fit_name
@@ -247,10 +254,9 @@ def _run_joint(args, opts: dict) -> int:
         def cb(done, total, name):
             progress.update(f"velab fit --joint ({len(sources)} runs): {done}/{total} models, fitted {name}")
 
-        result = fit_joint(sources, opts["window_s"], models=opts["models"], selection=opts["selection"],
-                           manoeuvre=opts["manoeuvre"], tau_min_s=opts["tau_min_s"], tau_max_s=opts["tau_max_s"],
-                           friction=opts["friction"], friction_unsteady=opts["friction_unsteady"], progress=cb)
-    result.settings = result.settings.replace(window_s_requested=opts["window_s"])
+        request = FitRequest(RunFiles(tuple(s.path for s in sources)), opts["window_s"], fit_options(opts),
+                             label="joint")
+        result = execute(request, cb)
     name = None
     if opts["save"]:
         name = opts["name"] or default_name(opts["window_s"])
