@@ -115,7 +115,8 @@ def test_the_continuation_names_what_a_one_step_sweep_names(rig_name, truth):
     one = fit_record(lead=False, **kw)
     assert two.settings["lead"] is not None and one.settings["lead"] is None
     assert two.best.name == one.best.name == truth, format_report(two, elements=False)
-    assert abs(two.best.wave_speed_m_s - one.best.wave_speed_m_s) < 0.01
+    # (well inside the wave speed's standard error: the two steps agree far below what the record can tell)
+    assert abs(two.best.wave_speed_m_s - one.best.wave_speed_m_s) < 0.75 * one.best.wave_speed_se_m_s
     assert two.best.F / SIGMA**2 <= 1.05
     # the fitted closure (velab.fitting.manoeuvre) is refined with the best wall over the lead's 16 s in
     # two steps and over the whole 20 s in one: the models land a little apart (measured: the best within

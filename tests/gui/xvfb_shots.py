@@ -119,6 +119,9 @@ class Shots:
 
         from velab.gui.eventloop import wait_until
 
+        # the buttons' state at the moment the caller saw the phase (``extra`` was read then, in this event-loop
+        # turn): the phase can move on while the paint settles (a final fit that ends within it)
+        controls = {k: bool(v.isEnabled()) for k, v in widgets.items() if k.startswith("button:")}
         wait_until(lambda: False, 0.25)  # the last layout and paint are on the screen
         screen = QGuiApplication.primaryScreen()
         screen.grabWindow(0).save(str(self.out / f"{name}.png"))
@@ -126,7 +129,8 @@ class Shots:
         g = w.frameGeometry()
         doc = {"name": name, "screen": [screen.geometry().width(), screen.geometry().height()],
                "window": [g.x(), g.y(), g.width(), g.height()],
-               "widgets": [describe(w, k, v) for k, v in widgets.items()], **(extra or {})}
+               "widgets": [describe(w, k, v) for k, v in widgets.items()], "controls_at_phase": controls,
+               **(extra or {})}
         (self.out / f"{name}.json").write_text(json.dumps(doc, indent=1))
 
 

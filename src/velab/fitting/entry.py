@@ -36,7 +36,7 @@ def fit_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | N
     opts = FitOptions.of(options, **choices).replace(window_s=window_s)
     if len(rig.sections) > 1:
         heads = {rig.head_section.name: head_m, **(section_heads or {})}
-        return fit_sections(t_s, heads, trigger_time_s, rig, record_rate_hz=record_rate_hz, options=opts,
+        return fit_sections(t_s, heads, trigger_time_s, rig, window_s, opts, record_rate_hz=record_rate_hz,
                             position_pct=position_pct, progress=progress)
     rec = prepare_record(t_s, head_m, trigger_time_s, rig, window_s, record_rate_hz=record_rate_hz,
                          position_pct=position_pct)

@@ -130,6 +130,9 @@ class ModelFit:
         parts = []
         if k:
             parts.append("negligible element" if k == 1 else f"{k} negligible elements")
+        if self.support == "model error":  # (velab.fitting.selection.mark_model_errors)
+            k = self.m - int(self.equivalent_to[1:] or 0) if self.equivalent_to.startswith("S") else self.m
+            parts.append("a model-error element" if k == 1 else f"{k} model-error elements")
         if self.split_elements:
             s = self.split_elements
             parts.append("an element split in two" if s == 1 else f"{s} elements split")

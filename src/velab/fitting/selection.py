@@ -169,9 +169,9 @@ def model_error_elements(f, tau_min_s: float, tau_max_s: float) -> list[int]:
 
 def mark_model_errors(fits: list, tau_min_s: float, tau_max_s: float) -> None:
     """Each model whose extra elements over a smaller fitted one are model errors (:func:`model_error_elements`)
-    becomes that smaller model plus negligible elements: its elements flagged ``negligible``, ``equivalent_to``
-    the smaller model (so the model-averaged creep gives its weight to that one) and its support words "model
-    error" -- a better fit, but not support for the wall's creep."""
+    is reported as that smaller model plus model-error elements: ``equivalent_to`` the smaller model (so the
+    model-averaged creep gives its weight to that one; ModelFit.note says so) and its support "model error" -- a
+    better fit, but not support for the wall's creep. (``negligible`` stays what the element buys in n ln F.)"""
     by_m = {f.m: f for f in fits if not f.reduced}
     for f in fits:
         if f.reduced or not f.m or f.equivalent_to:
@@ -180,10 +180,6 @@ def mark_model_errors(fits: list, tau_min_s: float, tau_max_s: float) -> None:
         smaller = by_m.get(f.m - len(bad))
         if not bad or smaller is None or smaller is f:
             continue
-        neg = list(f.negligible) if len(f.negligible) == f.m else [False] * f.m
-        for k in bad:
-            neg[k] = True
-        f.negligible = tuple(neg)
         f.equivalent_to = smaller.name
         f.support = "model error"
 
