@@ -5,7 +5,7 @@ Each case records material A on the simulated rig (quadratic friction) in real t
 the run going on for ``--after`` seconds past the fit window (the recorder keeps acquiring at the
 full rate while the fit runs, as in a normal run), then re-fits the run file with
 ``velab.fitting.fit_run`` (what ``velab fit`` does) and checks that the result is the online one.
-The fit path runs a lead fit on the window's first 80 % (velab.fitting.lead): the recorder starts it
+The fit path runs a lead fit on the window's first half (velab.fitting.lead): the recorder starts it
 while the rest of the window is recorded, so the latency is the continuation's time; offline, the
 fit computes both (a best model marked "(lead not used)" means the online fit had to compute its lead
 after the window closed).

@@ -22,7 +22,7 @@ from velab import fit_worker as worker
 from velab.commands.fit import fit_file
 from velab.config import load_material, load_rig
 from velab.fitting import fit_lead, fit_record, fit_run
-from velab.fitting.lead import LEAD_FRACTION, MIN_LEAD_PERIODS, lead_window_s
+from velab.fitting.lead import LEAD_SHARE, MAX_LEAD_SHARE, MIN_LEAD_PERIODS, lead_window_s
 from velab.fitting.options import FitOptions
 from velab.fitting.results import SweepResult
 from velab.model import valve_head
@@ -33,7 +33,7 @@ from velab.runfiles.summary import read_fits
 from velab.simulators.bench import load_sim_config
 from velab.fitting.report import format_report
 
-WINDOW_S = 8.0  # the reference rig's period is 1.16 s: the lead's 6.4 s hold 5.5 periods
+WINDOW_S = 8.0  # the reference rig's period is 1.16 s: the lead holds 5 periods, 5.8 s (more than half the window)
 MODELS = [0, 1, 2, 3]
 
 
@@ -54,11 +54,15 @@ def _record(rate=1000.0, window=WINDOW_S, pre=1.0, seed=5):
 
 def test_which_fits_have_a_lead():
     perugia, imperial = load_rig("perugia"), load_rig("imperial")
-    assert lead_window_s(perugia, 20.0, FitOptions()) == 20.0 * (1 - LEAD_FRACTION)
-    assert lead_window_s(perugia, 20.0, FitOptions(models=(0, 1), method="auto")) == 16.0
+    # half the window: the recorder runs the lead while the second half is recorded
+    assert lead_window_s(perugia, 20.0, FitOptions()) == 20.0 * LEAD_SHARE == 10.0
+    assert lead_window_s(perugia, 20.0, FitOptions(models=(0, 1), method="auto")) == 10.0
+    # at least MIN_LEAD_PERIODS wave periods: more than half of a shorter window
     period = 4 * imperial.pipe.length_m / imperial.nominal_wave_speed_m_s
-    assert lead_window_s(imperial, 20.0, FitOptions()) == 16.0 >= MIN_LEAD_PERIODS * period
-    # too few wave periods in the lead's part: one step
+    assert lead_window_s(imperial, 20.0, FitOptions()) == pytest.approx(MIN_LEAD_PERIODS * period)
+    assert MIN_LEAD_PERIODS * period > 10.0
+    assert lead_window_s(imperial, 20.0, FitOptions()) <= MAX_LEAD_SHARE * 20.0
+    # too few wave periods in the window's first MAX_LEAD_SHARE: one step
     assert lead_window_s(imperial, 15.0, FitOptions()) is None and lead_window_s(perugia, 4.0, FitOptions()) is None
     # only the default search: another method, no polish or capped starts are one step
     for opts in (FitOptions(method="nelder-mead"), FitOptions(polish=False), FitOptions(starts=2)):
@@ -68,13 +72,15 @@ def test_which_fits_have_a_lead():
 def test_a_continuation_from_the_lead_is_the_fit_path_s_result():
     rig, kw = _record()
     whole = fit_record(window_s=WINDOW_S, **kw)
-    assert whole.settings["lead"]["window_s"] == pytest.approx(WINDOW_S * (1 - LEAD_FRACTION))
+    lw = lead_window_s(rig, WINDOW_S, FitOptions())
+    assert whole.settings["lead"]["window_s"] == pytest.approx(lw, abs=1.5e-3)  # (whole samples)
     assert whole.settings["lead"]["computed_in_this_fit"] is True
     # the lead made first (as the recorder does, on the samples up to its end) and handed over
     t, h = kw["t_s"], kw["head_m"]
-    part = t < 1.0 + WINDOW_S * (1 - LEAD_FRACTION)
+    part = t < 1.0 + lw
     lead = fit_lead(**(kw | {"t_s": t[part], "head_m": h[part]}), window_s=WINDOW_S)
-    assert lead.window_s == pytest.approx(6.4) and lead.settings["record"]["window_s"] == pytest.approx(6.4)
+    assert lead.window_s == pytest.approx(lw, abs=1.5e-3)
+    assert lead.settings["record"]["window_s"] == pytest.approx(lw, abs=1.5e-3)
     given = fit_record(window_s=WINDOW_S, lead=lead, **kw)
     assert given.settings["lead"]["computed_in_this_fit"] is False
     _same(given, whole)
@@ -141,8 +147,9 @@ def test_the_recorder_s_lead_is_the_final_fit_s_and_velab_fit_reproduces_it(tmp_
     assert s.status == "completed", s.reason
     assert s.fit is not None, s.fit_error
     leads = [f for f in fits if f.get("lead")]
-    assert len(leads) == 1 and not leads[0]["final"] and leads[0]["window_s"] == pytest.approx(6.4, abs=1e-9)
-    # no quick fit at 75 % of the window: the lead at 80 % would cancel it
+    lw = lead_window_s(load_rig("perugia"), WINDOW_S, FitOptions())
+    assert len(leads) == 1 and not leads[0]["final"] and leads[0]["window_s"] == pytest.approx(lw, abs=1.5e-3)
+    # no quick fit at 75 % of the window: the lead (at 73 %) would cancel it
     assert all(f["window_s"] <= 0.5 * WINDOW_S + 1e-9 for f in fits if not f["final"] and not f.get("lead")), fits
     online = SweepResult.from_dict(read_fits(s.path)["online"])
     assert online.settings["lead"]["computed_in_this_fit"] is False  # the recorder's lead was used
@@ -211,7 +218,7 @@ def test_a_lead_lost_with_its_process_is_computed_by_the_final_fit(tmp_path):
 
 
 def test_a_fault_after_the_lead_started_shortens_the_window_and_the_lead_is_made_again(tmp_path):
-    """A stuck transducer 11 s after the trigger, once the lead (made for 12 s: its first 9.6 s) has
+    """A stuck transducer 11 s after the trigger, once the lead (made for 12 s: its first 6 s) has
     started: the final window is the clean 11 s before it, the recorder's lead is not that fit's, and
     the final fit computes its own; the run is marked, and velab fit of the file over the window the
     online fit used reproduces it."""
@@ -227,10 +234,11 @@ def test_a_fault_after_the_lead_started_shortens_the_window_and_the_lead_is_made
     summary = out.summary
     assert summary.status == CWF, (summary.status, summary.reason)
     assert summary.fit is not None, summary.fit_error
-    assert [f["window_s"] for f in fits if f.get("lead")] == [pytest.approx(9.6)]  # the lead ran, for 12 s
+    assert [f["window_s"] for f in fits if f.get("lead")] == [pytest.approx(6.0)]  # the lead ran, for 12 s
     online = SweepResult.from_dict(read_fits(summary.path)["online"])
     w = online.settings["record"]["window_s"]
     assert 10.5 < w < 11.5  # shortened to the clean part before the stuck samples
     assert online.settings["lead"]["computed_in_this_fit"] is True
-    assert online.settings["lead"]["window_s"] == pytest.approx(w * (1 - LEAD_FRACTION), abs=1.5e-3)  # (whole samples)
+    assert online.settings["lead"]["window_s"] == pytest.approx(lead_window_s(load_rig("perugia"), w, FitOptions()),
+                                                                   abs=1.5e-3)  # (whole samples)
     _same(fit_run(read_run(summary.path), w, models=MODELS), online)

@@ -2,8 +2,9 @@
 
 A fit window of T seconds is calibrated in two steps (velab.fitting.entry.fit_record):
 
-1. the *lead fit*: the full multi-start sweep (velab.fitting.sweep) on the first
-   (1 - LEAD_FRACTION) T seconds after the trigger, prepared like any record;
+1. the *lead fit*: the full multi-start sweep (velab.fitting.sweep) on the window's first part
+   (``lead_window_s``: LEAD_SHARE of it, or MIN_LEAD_PERIODS wave periods if that is longer, at most
+   MAX_LEAD_SHARE of it), prepared like any record;
 2. the *continuation*: every model calibrated on the whole window from the lead's optimum alone
    (coarse solve, full-band polish, friction refresh, nesting guard and hand-back as in any
    sweep, no multi-start search); a model that ended in the lead as a smaller one plus a
@@ -31,7 +32,8 @@ from collections.abc import Mapping
 from velab.fitting.options import FitOptions
 from velab.rig import Rig
 
-LEAD_FRACTION = 0.2  # the lead fit leaves out this fraction of the window (its last part)
+LEAD_SHARE = 0.5  # the lead fit's part of the window, when that holds MIN_LEAD_PERIODS
+MAX_LEAD_SHARE = 0.8  # ... and at most this share (a window shorter than MIN_LEAD_PERIODS / 0.8: one step)
 MIN_LEAD_PERIODS = 5.0  # the lead's part must hold this many wave periods 4 L / a (nominal)
 
 
@@ -40,9 +42,12 @@ def lead_window_s(rig: Rig, window_s: float, options: FitOptions) -> float | Non
     (fitted in one step: not the default search, or too short a window)."""
     if not options.default_search:
         return None
-    lead = window_s * (1.0 - LEAD_FRACTION)
-    period = 4.0 * rig.pipe.length_m / rig.nominal_wave_speed_m_s
-    return lead if lead >= MIN_LEAD_PERIODS * period else None
+    # half the window: the recorder then has the window's second half to run the lead in, so that only the
+    # continuation is left when it closes (the lead's search costs about what the continuation does)
+    shortest = MIN_LEAD_PERIODS * 4.0 * rig.pipe.length_m / rig.nominal_wave_speed_m_s
+    if window_s * MAX_LEAD_SHARE < shortest:
+        return None
+    return max(window_s * LEAD_SHARE, shortest)
 
 
 def options_key(window_s: float, options: FitOptions) -> str:
