@@ -1,6 +1,8 @@
 """`velab fit` on run files: JSON schema, fit groups, info, many files, bad inputs."""
 
 import json
+import os
+import sys
 
 import h5py
 import numpy as np
@@ -213,3 +215,68 @@ def test_result_round_trip_and_old_documents(run_a, capsys):
     r = SweepResult.from_dict(old)
     assert r.best.name == "S1" and r["S1"].tau_s == pytest.approx((0.1,)) and r["S1"].negligible == (False,)
     assert "S1" in format_report(r)
+
+
+
+# the run files opened while a count runs: sys.audit's "open" event (open(), os.open) is the process's own record
+# of a file opened, so a test counts reads without patching the reader. (A hook cannot be removed: it stays, idle.)
+_OPENED: list | None = None
+_HOOKED = False
+
+
+def _audit(event, args):
+    if event == "open" and _OPENED is not None and isinstance(args[0], (str, bytes, os.PathLike)):
+        _OPENED.append(os.path.realpath(os.fsdecode(args[0])))
+
+
+def _opens(paths, call) -> list[int]:
+    """How many times this process opens each of ``paths`` during ``call()``."""
+    global _OPENED, _HOOKED
+    if not _HOOKED:
+        sys.addaudithook(_audit)
+        _HOOKED = True
+    _OPENED = []
+    try:
+        call()
+        return [_OPENED.count(os.path.realpath(p)) for p in paths]
+    finally:
+        _OPENED = None
+
+
+@pytest.fixture(scope="module")
+def two_runs(tmp_path_factory):
+    """Two small runs of one pipe (2 s at 200 Hz): the plumbing of a joint fit, not its science."""
+    d = tmp_path_factory.mktemp("joint")
+    for seed in (1, 2):
+        assert main(["synth", "--material", "A", "--duration", "2", "--rate", "200", "--seed", str(seed),
+                     "-o", str(d / f"run{seed}.h5"), "-q"]) == 0
+    return [str(d / "run1.h5"), str(d / "run2.h5")]
+
+
+def test_a_joint_fit_reads_each_run_once(two_runs, tmp_path, capsys):
+    """`velab fit A B --joint` reads its runs once (velab.jointfiles.read_sources: checked before the fit), fits
+    those (velab.fitservice.execute's ``sources``) and draws the figure from them: each run file is opened as
+    often as one read_sources opens it, not twice that."""
+    from velab.jointfiles import read_sources
+
+    once = _opens(two_runs, lambda: read_sources(two_runs, 1.5))
+    assert all(n > 0 for n in once), once  # (the count sees the reader's opens)
+    figure = tmp_path / "joint.png"
+    capsys.readouterr()
+    fit = _opens(two_runs, lambda: main(["fit", *two_runs, "--joint", "--models", "1", "--window", "1.5",
+                                         "--no-save", "--plot", str(figure), "--json"]))
+    out = capsys.readouterr()
+    assert json.loads(out.out)["paths"] == two_runs, out.err
+    assert fit == once and figure.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_execute_fits_the_runs_it_is_given_only_for_their_request(two_runs):
+    """The runs passed to execute must be the request's, in its order: another request's are refused, not fitted."""
+    from velab.fitservice.execute import execute
+    from velab.fitservice.request import FitRequest, RunFile, RunFiles
+    from velab.jointfiles import read_sources
+
+    sources = read_sources(two_runs, 1.5)
+    for request in (FitRequest(RunFiles(tuple(reversed(two_runs))), 1.5), FitRequest(RunFile(two_runs[0]), 1.5)):
+        with pytest.raises(ValueError, match="not the request's"):
+            execute(request, sources=sources)

@@ -74,6 +74,7 @@ def test_elastic_pipe_seed_1_reports_its_extra_element_as_a_model_error():
     b = r.best
     if b.name != "EL":
         assert b.support == "model error" and b.equivalent_to == "EL" and "model-error element" in b.note, format_report(r)
+        assert b.model_error_elements == (0,)
         assert "model_error" in r.warning_codes() and "not the wall's creep" in format_report(r)
         # the model-averaged creep gives its weight to EL's (no creep): none is shown as the wall's
         assert r.creep_averaged().weights.get(b.name, 0.0) == 0.0
@@ -97,4 +98,5 @@ def test_the_model_error_rule_flags_only_a_negligible_element_on_a_bound():
     fits = [el, on_bound]
     apply_criteria(fits, "white", (lo, hi))
     assert on_bound.support == "model error" and on_bound.equivalent_to == "EL"
+    assert on_bound.model_error_elements == (0,) and el.model_error_elements == ()
     assert on_bound.note == "S1 = EL + a model-error element"

@@ -88,6 +88,33 @@ def test_the_steady_head_offset_is_stored_and_said_by_info(run_file, tmp_path, c
                      "the baseline its prior)"]
 
 
+def test_a_model_error_element_is_stored_and_found_again_in_an_older_group(run_file, tmp_path):
+    """ModelFit.model_error_elements (velab.fitting.selection.mark_model_errors) round-trips through the fit
+    group; a group stored before the field existed (support "model error", no field) reads back with the same
+    elements, found by the same rule on the fit's stored tau box, and the same note."""
+    p = tmp_path / "a.h5"
+    shutil.copy(run_file, p)
+    lo, hi = 0.0137, 10.0
+    el = ModelFit("EL", 0, 1, False, 1000, math.exp(-9.99e-3), 420.0, (), (), 0.0)
+    # an element on the lower tau bound holding 5e-5 of the compliance: a model error (E = 2e13 Pa: J' = 5e-5)
+    s1 = ModelFit("S1", 1, 3, False, 1000, math.exp(-10e-3), 420.0, (2e13,), (2e13 * 0.016,), 0.0, J_rel=(5e-5,))
+    apply_criteria([el, s1], "white", (lo, hi))
+    assert s1.model_error_elements == (0,) and s1.support == "model error"
+    r = SweepResult(n=1000, window_s=1.0, sample_rate_hz=1000.0, method="auto", models=[el, s1], selection="white",
+                    settings={"models": [0, 1], "bounds": {"tau_min_s": lo, "tau_max_s": hi}})
+    old = r.to_dict()
+    assert old["models"][1]["model_error_elements"] == [0] and old["models"][0]["model_error_elements"] == []
+    for m in old["models"]:
+        del m["model_error_elements"]
+    save_fit(p, r, "new")
+    save_fit(p, old, "old")
+    with open_run_file(p) as fh:
+        for name in ("new", "old"):
+            back = read_fit_group(fh[f"entry/fits/{name}"])
+            assert back["S1"].model_error_elements == (0,) and back["EL"].model_error_elements == (), name
+            assert back["S1"].note == "S1 = EL + a model-error element" and back["S1"].support == "model error"
+
+
 def test_missing_fields_take_defaults(run_file, tmp_path):
     p = tmp_path / "a.h5"
     shutil.copy(run_file, p)

@@ -256,7 +256,7 @@ def _run_joint(args, opts: dict) -> int:
 
         request = FitRequest(RunFiles(tuple(s.path for s in sources)), opts["window_s"], fit_options(opts),
                              label="joint")
-        result = execute(request, cb)
+        result = execute(request, cb, sources=sources)  # the runs read once: fitted, saved and drawn
     name = None
     if opts["save"]:
         name = opts["name"] or default_name(opts["window_s"])

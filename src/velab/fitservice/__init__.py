@@ -21,7 +21,7 @@ neither the fitter nor the process machinery.
 
 from __future__ import annotations
 
-import importlib
+from velab.lazy import lazy_exports
 
 _EXPORTS = {
     "FitService": "service",
@@ -33,14 +33,4 @@ _EXPORTS = {
 }
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS)

@@ -43,19 +43,27 @@ def save_note(run) -> str:
     return f"the run is {what}: fitted with --no-save, nothing written into it"
 
 
-def execute(request: FitRequest, progress=None):
+def execute(request: FitRequest, progress=None, sources=None):
     """Run the fit ``request`` describes here; ``progress(done, total, name)`` after each model (it may
     raise to stop the fit). Returns the SweepResult (a RunFile or a Record: a sections result for a rig
     with several transducers; None for a lead stage whose window has no lead) or the JointResult
-    (RunFiles). Raises the fitter's DataError (one line) for bad data or choices."""
+    (RunFiles). Raises the fitter's DataError (one line) for bad data or choices.
+
+    ``sources``: a RunFiles request's runs already read in this process (velab.jointfiles.read_sources of
+    its paths and window: ``velab fit --joint`` reads them to check them before the fit, then saves and
+    draws the fit with them), fitted as they are instead of read again; they must be the request's paths,
+    in its order (else ValueError). A request sent to another process carries its paths only (it stays
+    small and picklable), and the runs are read there."""
     src = request.source
     opts = request.choices
+    if sources is not None and (not isinstance(src, RunFiles) or tuple(s.path for s in sources) != src.paths):
+        raise ValueError("the runs given are not the request's: " + ", ".join(s.path for s in sources))
     if isinstance(src, Record):
         return _record(request, src, opts, progress)
     if isinstance(src, RunFile):
         return _run_file(request, src, opts, progress)
     if isinstance(src, RunFiles):
-        return _joint(request, src, opts, progress)
+        return _joint(request, src, opts, progress, sources)
     raise DataError(f"nothing to fit: {type(src).__name__}")
 
 
@@ -90,11 +98,12 @@ def _run_file(request: FitRequest, src: RunFile, opts, progress):
     return result
 
 
-def _joint(request: FitRequest, src: RunFiles, opts, progress):
+def _joint(request: FitRequest, src: RunFiles, opts, progress, sources=None):
     from velab.fitting.joint import fit_joint
     from velab.jointfiles import read_sources
 
-    sources = read_sources(src.paths, request.window_s)
+    if sources is None:
+        sources = read_sources(src.paths, request.window_s)
     result = fit_joint(sources, request.window_s, opts, progress=progress)
     result.settings = result.settings.replace(window_s_requested=request.window_s)
     return result

@@ -17,7 +17,7 @@ See docs/fitting.md for the method, the JSON schema and the fit-group layout.
 
 from __future__ import annotations
 
-import importlib
+from velab.lazy import lazy_exports
 
 # the public names and their modules, imported on first use (PEP 562): the recorder reads the fit
 # path's policy (velab.fitting.lead) without loading scipy, which only the fit itself needs
@@ -31,14 +31,4 @@ _EXPORTS = {
 }
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS)

@@ -33,7 +33,7 @@ import numpy as np
 
 from velab.cavitation import DETECTION_MARGIN_M, cavitating, rig_temperature_c, rig_vapour_head_m
 from velab.fitting.creep import creep_of
-from velab.fitting.selection import compliance_shares, model_error_elements
+from velab.fitting.selection import compliance_shares
 from velab.fitting.stats import effective_n, lag1
 
 MIN_BASELINE_SAMPLES = 200  # at the fit rate: fewer give a noise variance too uncertain to judge by
@@ -113,11 +113,12 @@ def bound_message(best) -> str:
     return f"parameters of the best model on a bound: {bounds_line(best)}"
 
 
-def model_error_message(best, tau_min_s: float, tau_max_s: float) -> str:
-    """What the best model's model-error elements are (velab.fitting.selection.mark_model_errors)."""
+def model_error_message(best) -> str:
+    """The ``model_error`` warning: what the best model's model-error elements (``best.model_error_elements``,
+    found by velab.fitting.selection.mark_model_errors) are."""
     shares = compliance_shares(best)
     parts = [f"tau = {best.tau_s[k]:.3g} s holding {shares[k]:.1e} of the compliance"
-             for k in model_error_elements(best, tau_min_s, tau_max_s)]
+             for k in best.model_error_elements]
     return (f"{best.name} fits best through {'an element' if len(parts) == 1 else 'elements'} on a retardation-time "
             f"bound ({'; '.join(parts)}): a model error (the flow at the valve, the valve or the friction the fit "
             f"does not describe), not the wall's creep; the wall is {best.equivalent_to}'s")
@@ -155,9 +156,8 @@ def assess(result, rec, rig) -> None:
         warnings.append({"code": "cavitation", "message": found.message()})
     if best is not None and best.at_bounds:
         warnings.append({"code": "bound", "message": bound_message(best)})
-    if best is not None and best.support == "model error":
-        b = result.bounds
-        warnings.append({"code": "model_error", "message": model_error_message(best, b["tau_min_s"], b["tau_max_s"])})
+    if best is not None and best.model_error_elements:
+        warnings.append({"code": "model_error", "message": model_error_message(best)})
     note = stroke_element_note(result, rig)
     if note:
         result.notes.append(note)

@@ -369,9 +369,8 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options
     result.adequacy["per_run"] = "the misfit rule is applied to each run (runs[].misfit_bound, runs[].disagrees)"
     if best.at_bounds:
         result.warnings.append({"code": "bound", "message": bound_message(best)})
-    if best.support == "model error":
-        result.warnings.append({"code": "model_error", "message": model_error_message(best, bounds.tau_min_s,
-                                                                                     bounds.tau_max_s)})
+    if best.model_error_elements:
+        result.warnings.append({"code": "model_error", "message": model_error_message(best)})
     n_sec = len(parts)
     result.notes.append(f"joint fit of {len(records)} runs" + (f" ({n_sec} sections)" if n_sec > len(records) else "")
                         + f": one wall (a, J_k, tau_k) shared; per run its own steady state, friction at its Q0, flow "

@@ -16,7 +16,7 @@ import numpy as np
 from velab.config import KelvinVoigt, Material
 from velab.fitting.adequacy import bound_message
 from velab.fitting.creep import creep_of
-from velab.fitting.selection import SELECTIONS, averaged_creep_of, best_of
+from velab.fitting.selection import SELECTIONS, averaged_creep_of, best_of, model_error_elements
 from velab.fitting.settings import FitSettings
 
 
@@ -100,6 +100,9 @@ class ModelFit:
     element_gain: tuple[float, ...] = ()  # n ln(F without the element / F), others fixed
     at_bounds: list = field(default_factory=list)  # parameters that end on a bound (dicts)
     equivalent_to: str = ""  # "S1" when S2's extra element vanished (or two share tau), else ""
+    # the elements (indices, sorted by tau) that only take up a model error, not the wall's creep: set by
+    # velab.fitting.selection.mark_model_errors, which then names the model ``equivalent_to`` the smaller one
+    model_error_elements: tuple[int, ...] = ()
     split_elements: int = 0  # live elements whose retardation time another one already has
     friction: dict = field(default_factory=dict)  # friction correction of this model (see friction.py)
     noise_ratio: float | None = None  # F / the pretrigger baseline's noise variance (velab.fitting.adequacy)
@@ -130,8 +133,8 @@ class ModelFit:
         parts = []
         if k:
             parts.append("negligible element" if k == 1 else f"{k} negligible elements")
-        if self.support == "model error":  # (velab.fitting.selection.mark_model_errors)
-            k = self.m - int(self.equivalent_to[1:] or 0) if self.equivalent_to.startswith("S") else self.m
+        if self.model_error_elements:  # (velab.fitting.selection.mark_model_errors)
+            k = len(self.model_error_elements)
             parts.append("a model-error element" if k == 1 else f"{k} model-error elements")
         if self.split_elements:
             s = self.split_elements
@@ -172,7 +175,7 @@ class ModelFit:
             "lag1_autocorr": self.lag1_autocorr, "innovation_var": self.innovation_var, "n_eff": self.n_eff,
             "at_bounds": [dict(b) for b in self.at_bounds],
             "equivalent_to": self.equivalent_to or None, "split_elements": self.split_elements,
-            "note": self.note or None,
+            "model_error_elements": list(self.model_error_elements), "note": self.note or None,
             "friction": dict(self.friction),
             "noise_ratio": self.noise_ratio, "steady_head_offset": self.steady_head_offset_m,
             "cov_x": [list(row) for row in self.cov_x] if self.cov_x is not None else None,
@@ -210,6 +213,7 @@ class ModelFit:
             element_gain=col("gain") if els and "gain" in els[0] else (),
             at_bounds=[dict(b) for b in d.get("at_bounds") or []],
             equivalent_to=str(d.get("equivalent_to") or ""), split_elements=int(d.get("split_elements") or 0),
+            model_error_elements=tuple(int(k) for k in d.get("model_error_elements") or ()),
             friction=dict(d.get("friction") or {}),
             noise_ratio=_optional(d.get("noise_ratio")), steady_head_offset_m=num("steady_head_offset", 0.0),
             cov_x=_cov_x(d.get("cov_x"), m, bool(d.get("reduced", False))) if d.get("cov_x") is not None else None,
@@ -328,6 +332,11 @@ class SweepResult:
             baseline_noise_m=_optional(d.get("baseline_noise_m")), baseline_lag1=_optional(d.get("baseline_lag1")),
             adequacy=dict(d.get("adequacy") or {}), warnings=_warnings(d.get("warnings")),
         )
+        b = r.bounds
+        for f, md in zip(r.models, d.get("models") or []):
+            if f.support == "model error" and "model_error_elements" not in md and "tau_min_s" in b:
+                # stored before the field existed: the same rule on the fit's own tau box finds them again
+                f.model_error_elements = tuple(model_error_elements(f, b["tau_min_s"], b["tau_max_s"]))
         if "warnings" not in d and r.models and r.best.at_bounds:
             # a fit stored before the warnings existed: its parameters on a bound are the one it can have
             r.warnings = [{"code": "bound", "message": bound_message(r.best)}]

@@ -84,9 +84,8 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
                                       "sections[].disagrees)")
     if best.at_bounds:
         result.warnings.append({"code": "bound", "message": bound_message(best)})
-    if best.support == "model error":
-        result.warnings.append({"code": "model_error", "message": model_error_message(best, bounds.tau_min_s,
-                                                                                     bounds.tau_max_s)})
+    if best.model_error_elements:
+        result.warnings.append({"code": "model_error", "message": model_error_message(best)})
     result.notes.append(f"fit of {len(runs)} sections ({', '.join(f'{r.name} at {r.position_m:g} m' for r in runs)}): "
                         f"one wall, one flow at the valve ({vi.source}), each section's noise its own")
     result.duration_s = time.perf_counter() - t0

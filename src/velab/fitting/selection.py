@@ -169,9 +169,11 @@ def model_error_elements(f, tau_min_s: float, tau_max_s: float) -> list[int]:
 
 def mark_model_errors(fits: list, tau_min_s: float, tau_max_s: float) -> None:
     """Each model whose extra elements over a smaller fitted one are model errors (:func:`model_error_elements`)
-    is reported as that smaller model plus model-error elements: ``equivalent_to`` the smaller model (so the
-    model-averaged creep gives its weight to that one; ModelFit.note says so) and its support "model error" -- a
-    better fit, but not support for the wall's creep. (``negligible`` stays what the element buys in n ln F.)"""
+    is reported as that smaller model plus model-error elements: ``model_error_elements`` those elements'
+    indices (what the fit's warning and ModelFit.note name, and what tells them from vanished ones),
+    ``equivalent_to`` the smaller model (so the model-averaged creep gives its weight to that one) and its support
+    "model error" -- a better fit, but not support for the wall's creep. (``negligible`` stays what the element
+    buys in n ln F.)"""
     by_m = {f.m: f for f in fits if not f.reduced}
     for f in fits:
         if f.reduced or not f.m or f.equivalent_to:
@@ -180,6 +182,7 @@ def mark_model_errors(fits: list, tau_min_s: float, tau_max_s: float) -> None:
         smaller = by_m.get(f.m - len(bad))
         if not bad or smaller is None or smaller is f:
             continue
+        f.model_error_elements = tuple(bad)
         f.equivalent_to = smaller.name
         f.support = "model error"
 

@@ -497,7 +497,7 @@ class _Sweep:
 def _vanished(f: ModelFit) -> bool:
     """``f`` ended as a smaller model plus vanished (or split) elements -- not one whose extra element is a model
     error (velab.fitting.selection.mark_model_errors: a live element, which the search must see again)."""
-    return bool(f.equivalent_to) and f.support != "model error"
+    return bool(f.equivalent_to) and not f.model_error_elements
 
 
 def _pack_fit(pm: ParamMap, old: ModelFit, rig: Rig) -> np.ndarray:
