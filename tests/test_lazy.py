@@ -12,7 +12,11 @@ import sys
 import velab.fitting, velab.fitservice
 print(sorted(m for m in sys.modules if m.split(".")[0] in ("velab", "numpy", "scipy")))
 assert {"fit_run", "fit_sweep", "FitOptions", "format_report"} <= set(dir(velab.fitting)), dir(velab.fitting)
-assert {"FitService", "FitRequest", "RunFiles", "execute"} <= set(dir(velab.fitservice)), dir(velab.fitservice)
+assert {"FitService", "FitRequest", "RunFiles"} <= set(dir(velab.fitservice)), dir(velab.fitservice)
+# (execute is not a package name: once its module is imported, the package's attribute is that module)
+import velab.fitservice.execute
+from velab.fitservice.execute import execute
+assert callable(execute) and "execute" not in velab.fitservice.__all__
 from velab.fitservice import FitRequest
 from velab.fitservice.request import FitRequest as direct
 assert FitRequest is direct and "velab.fitservice.service" not in sys.modules

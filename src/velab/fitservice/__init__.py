@@ -29,8 +29,7 @@ _EXPORTS = {
     "Record": "request", "FitProgress": "request",
     "FitFuture": "future",
     "FitCancelled": "errors", "FitWorkerDied": "errors", "FitFailed": "errors", "WorkerMismatch": "errors",
-    "execute": "execute",
-}
+}  # (not ``execute``: a name the same as its module's is the module once that is imported; import it from there)
 __all__ = list(_EXPORTS)
 
 __getattr__, __dir__ = lazy_exports(__name__, globals(), _EXPORTS)
