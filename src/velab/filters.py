@@ -18,7 +18,7 @@ MOC's (velab.moc.kernel) and compiled without ``fastmath``: that would reorder t
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, uint64
 
 # the Hamming window's coefficient: w = A0 - (1 - A0) cos(2 pi n / (M - 1)), as a generalized cosine window
 HAMMING_A0 = 0.54
@@ -156,12 +156,16 @@ def fir_decimate(x, h, q: int, axis: int = -1) -> np.ndarray:
     h = np.asarray(h, dtype=float)
     if q < 1 or h.ndim != 1 or h.size < 1:
         raise ValueError("fir_decimate needs q >= 1 and a 1-D filter")
-    rows, _, moved = _rows(x, axis)
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 0:
+        raise ValueError("x must be at least 1-D")
+    moved = list(np.moveaxis(x, axis, -1).shape)
+    rows = np.moveaxis(x, axis, -1).reshape(-1, moved[-1])  # a view where it can be: ext below is a new array
     n = rows.shape[1]
     if n == 0:
         raise ValueError("fir_decimate needs at least one sample")
     if q == 1:
-        return _unrows(rows, moved, axis)
+        return _unrows(rows.copy(), moved, axis)
     if n == 1:
         return _unrows(np.full((rows.shape[0], 1), np.nan), moved, axis)
     half = (h.size - 1) // 2
@@ -172,8 +176,9 @@ def fir_decimate(x, h, q: int, axis: int = -1) -> np.ndarray:
     ext = np.concatenate([rows[:, :1] + np.arange(-left, 0) * slope, rows,
                           rows[:, -1:] + np.arange(1, right + 1) * slope], axis=1)
     out = np.empty((rows.shape[0], n_out))
-    # output i is sum_m h[m] ext[i q + half + left - m], m from len(h) - 1 down to 0 (scipy's order of the sum)
-    _fir_rows(ext, np.ascontiguousarray(h[::-1]), q, half + left - (h.size - 1), out)
+    # output i is sum_m h[m] ext[i q + half + left - m] with half + left = len(h) - 1, m from len(h) - 1 down to 0
+    # (scipy's order of the sum): sum_k hr[k] ext[i q + k] with hr = h reversed, k upwards
+    _fir_rows(ext, np.ascontiguousarray(h[::-1]), q, out)
     return _unrows(out, moved[:-1] + [n_out], axis)
 
 
@@ -238,18 +243,20 @@ def _sos_rows(sos, x, zi, backward):
 
 
 @njit(cache=True, nogil=True)
-def _fir_rows(ext, hr, q, start, out):
-    """out[r, i] = sum over k = 0 .. L-1 of hr[k] ext[r, i q + start + k], each sum in that order (hr: the filter
+def _fir_rows(ext, hr, q, out):
+    """out[r, i] = sum over k = 0 .. L-1 of hr[k] ext[r, i q + k], each sum in that order (hr: the filter
     reversed, so that both run forward); four outputs at a time: four independent sums keep the CPU's adders
-    busy, the order within each unchanged."""
+    busy, the order within each unchanged. The indices are unsigned: numba checks a signed one for
+    wrap-around (a negative index counts from the end) at every access, which halved the speed."""
     rows, n_out = out.shape
-    taps = hr.size
+    taps = uint64(hr.size)
+    qu = uint64(q)
     for r in range(rows):
         e = ext[r]
         o = out[r]
         i = 0
         while i + 4 <= n_out:
-            b = i * q + start
+            b = uint64(i * q)
             a0 = 0.0
             a1 = 0.0
             a2 = 0.0
@@ -257,16 +264,16 @@ def _fir_rows(ext, hr, q, start, out):
             for k in range(taps):
                 c = hr[k]
                 a0 += c * e[b + k]
-                a1 += c * e[b + q + k]
-                a2 += c * e[b + 2 * q + k]
-                a3 += c * e[b + 3 * q + k]
+                a1 += c * e[b + qu + k]
+                a2 += c * e[b + uint64(2) * qu + k]
+                a3 += c * e[b + uint64(3) * qu + k]
             o[i] = a0
             o[i + 1] = a1
             o[i + 2] = a2
             o[i + 3] = a3
             i += 4
         while i < n_out:
-            b = i * q + start
+            b = uint64(i * q)
             acc = 0.0
             for k in range(taps):
                 acc += hr[k] * e[b + k]
