@@ -1,6 +1,6 @@
 """Start-up of velab's real processes (issue 51): the CPU and wall time their imports take, before and after.
 
-Run as ``python benchmarks/startup.py [--before PYTHON] [--repeats N]``: this interpreter runs this checkout's
+Run as ``python benchmarks/startup.py [--before PYTHON] [--repeats N] [--only COMMAND ...]``: this interpreter runs this checkout's
 velab ("after"); ``--before`` another one's (say a checkout of main with its own venv: ``.venv/bin/python``).
 Each command runs in a fresh interpreter, the two versions in turn so that both see the same machine load:
 
@@ -96,8 +96,11 @@ def run(python: str, module: str, args: list[str], mark: str = "", stdin: bytes 
     with tempfile.NamedTemporaryFile(suffix=".json", delete=False) as f:
         out = f.name
     try:
+        # bytecode written and read (PYTHONDONTWRITEBYTECODE dropped), as an installed package has it: a version
+        # without its .pyc files would spend its start-up compiling the sources
+        env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
         proc = subprocess.Popen([python, "-c", DRIVER, out, module, mark, *args], stdin=subprocess.PIPE,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
         if stdin is not None:
             proc.stdin.write(stdin)
         proc.stdin.close()
@@ -125,6 +128,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--before", help="the interpreter of the version to compare with (its own venv)")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--only", nargs="+", choices=("fit", "record", "extractor", "synth"), help="these commands only")
     opts = ap.parse_args()
     versions = {"after": sys.executable}
     if opts.before:
@@ -145,6 +149,7 @@ def main() -> None:
         "extractor": ("velab.catalogue.extract", [], "", paths),
         "synth": ("velab.cli", ["synth", "--material", "A", "-o", str(tmp / "s.h5"), "--force"], "", None),
     }
+    commands = {c: v for c, v in commands.items() if not opts.only or c in opts.only}
     for py in versions.values():  # warm the OS caches and numba's disk cache once per version
         for module, args, mark, stdin in commands.values():
             run(py, module, args, mark, stdin)
