@@ -92,3 +92,37 @@ def test_device_layer_does_not_import_the_application():
     assert "velab.simulators.bench" in loaded and "velab.drivers.streaming_adc" in loaded  # the code above ran
     heavy = [m for m in loaded if m.split(".")[1] in ("recording", "fitting", "gui", "commands", "runfiles")]
     assert not heavy, heavy
+
+
+# What the processes that never fit import (issue 51, start-up): the recorder with the simulated rig (its commands
+# and engine), velab synth, the catalogue extractor's child and the run-file reader, and the stored fit's
+# presentation: no scipy (the model transforms with numpy.fft) and none of the fitter's scipy modules (the
+# recorder takes the fit path's light policy modules, velab.fitting.options, lead and window; a stored fit's
+# results and presentation are numpy only). The fit path itself does not import scipy.signal (velab.filters),
+# whose import pulls in scipy.stats (~1.5 s).
+_LOADED = "import importlib, sys\nfor m in sys.argv[1:]:\n    importlib.import_module(m)\nprint(' '.join(sys.modules))"
+NEVER_FIT = ["velab.commands.record", "velab.recording", "velab.simulators.bench", "velab.synth", "velab.commands.synth",
+             "velab.catalogue.extract", "velab.catalogue.rows", "velab.runfiles.reader", "velab.fitting.results",
+             "velab.fitting.headline", "velab.fitting.report", "velab.fitservice.request"]
+FITTER = {"velab.fitting.friction", "velab.fitting.sweep", "velab.fitting.prepare", "velab.fitting.entry",
+          "velab.fitting.flows", "velab.fitting.solvers", "velab.fitting.data", "velab.fitting.refine"}
+
+
+def _loaded(modules: list[str]) -> set[str]:
+    p = subprocess.run([sys.executable, "-c", _LOADED, *modules], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    return set(p.stdout.split())
+
+
+def test_the_processes_that_never_fit_import_neither_scipy_nor_the_fitter():
+    loaded = _loaded(NEVER_FIT)
+    assert "velab.recording.engine" in loaded and "velab.simulators.rig" in loaded  # the code above ran
+    assert not [m for m in loaded if m == "scipy" or m.startswith("scipy.")]
+    assert not loaded & FITTER
+    assert "numba" not in loaded  # the MOC's kernel is loaded when a transient is computed, not at import
+
+
+def test_the_fit_path_does_not_import_scipy_signal():
+    loaded = _loaded(["velab.fitting.entry", "velab.fitservice.execute", "velab.fit_worker", "velab.fitting.joint"])
+    assert "velab.fitting.prepare" in loaded and "velab.filters" in loaded
+    assert not [m for m in loaded if m.startswith(("scipy.signal", "scipy.stats"))]

@@ -237,3 +237,28 @@ def test_model_reuse_across_materials(rig):
     model.head(load_material("B"))
     np.testing.assert_array_equal(model.head(load_material("A")), a1)
     np.testing.assert_allclose(a1, ValveHeadModel(rig, T20, band_hz="auto").head(load_material("A")), atol=1e-12)
+
+
+# --------------------------------------------------------------------------- FFT sizes and transforms
+
+
+def test_fft_sizes_and_transforms_are_scipy_ffts():
+    """The model transforms with numpy.fft (no scipy.fft import, velab.model.next_fast_len_real): the same
+    sizes as scipy.fft.next_fast_len(real=True) and the same spectra (1e-12 of the scale; on x86-64 the same
+    pocketfft gives the same bits)."""
+    import scipy.fft as sfft
+
+    from velab.model import next_fast_len_real
+
+    sizes = list(range(1, 5000)) + [40500, 40501, 2 * 20251 + 7, 10**6 + 1, 3**13 + 1, 2**20 + 1]
+    assert [next_fast_len_real(n) for n in sizes] == [sfft.next_fast_len(n, real=True) for n in sizes]
+    with pytest.raises(ValueError):
+        next_fast_len_real(0)
+    rng = np.random.default_rng(5)
+    for n in (40500, 1000, 19683, 15625):
+        x = rng.standard_normal(n - 13)
+        ref = sfft.rfft(x, n)
+        np.testing.assert_allclose(np.fft.rfft(x, n), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+        np.testing.assert_array_equal(np.fft.rfftfreq(n, 1e-3), sfft.rfftfreq(n, 1e-3))
+    model = ValveHeadModel(load_rig("perugia"), T20, band_hz="auto")
+    assert model.n_fft == sfft.next_fast_len(int(np.ceil(2.0 * model.n_int)), real=True)

@@ -77,11 +77,14 @@ def _read(stream):
 
 # --------------------------------------------------------------------------- the child
 def _warm_up() -> None:
-    """Load the time-domain kernel (numba: compiled once, then from its disk cache) before the first job."""
+    """Load the time-domain kernel and the filters' (numba: compiled once, then from the disk cache) before the
+    first job."""
     try:
+        from velab import filters
         from velab.moc import warm_up
 
         warm_up()
+        filters.warm_up()
     except Exception:  # noqa: BLE001 - a job that needs the kernel will say what is wrong
         log.debug("kernel warm-up failed", exc_info=True)
 

@@ -21,13 +21,31 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.fft as sfft
 
 from velab import complexops
 
 from velab.config import Material
 from velab.rig import GRAVITY_M_S2, Rig
 from velab.friction import unsteady_resistance
+
+
+def next_fast_len_real(n: int) -> int:
+    """The smallest 2^a 3^b 5^c >= n (n >= 1): the real FFT's fast sizes, scipy.fft.next_fast_len(n, real=True).
+
+    numpy.fft, not scipy.fft, transforms the model's series: the same pocketfft (the same numbers here,
+    tests/test_model.py), without scipy.fft's import in the processes that never fit (the simulated rig,
+    velab synth, a stored fit's report): ~0.6 s alone, 0.13 s after the scipy.linalg that numba loads."""
+    if n < 1:
+        raise ValueError(f"FFT length must be positive, got {n}")
+    best = 1 << max(0, (n - 1).bit_length())  # the power of two
+    p5 = 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            best = min(best, p35 << (-(-n // p35) - 1).bit_length())  # p35 2^j, 2^j >= n / p35
+            p35 *= 3
+        p5 *= 5
+    return best
 
 
 def spring_modulus_pa(rig: Rig, wave_speed_m_s: float) -> float:
@@ -241,10 +259,10 @@ class ValveHeadModel:
             q = np.concatenate([np.zeros(lead), np.asarray(flow, dtype=float)[self.first :]])
             step = float(q[lead]) if n else 0.0
         self.n_int = lead + n
-        self.n_fft = sfft.next_fast_len(int(np.ceil(max(pad, 2.0) * self.n_int)), real=True)
+        self.n_fft = next_fast_len_real(int(np.ceil(max(pad, 2.0) * self.n_int)))
         self.sigma = sigma_T / (self.n_fft * dt)
         self.growth = np.exp(self.sigma * np.arange(self.n_int) * dt)  # undoes the window after the inverse FFT
-        omega = 2 * np.pi * sfft.rfftfreq(self.n_fft, dt)
+        omega = 2 * np.pi * np.fft.rfftfreq(self.n_fft, dt)
         s_all = self.sigma + 1j * omega
         self._after = t_int >= -1e-12 * dt
         self._step_phase = np.exp(s_all * t0)  # exp(-s tau0), tau0 = -t0 the trigger instant on the internal grid
@@ -265,7 +283,7 @@ class ValveHeadModel:
         smooth = q - step * self._after  # continuous at the trigger
         if zero_lead:
             smooth[: self.lead] = 0.0
-        return sfft.rfft(np.diff(smooth, prepend=0.0) / self.growth, self.n_fft) + step * self._step_phase
+        return np.fft.rfft(np.diff(smooth, prepend=0.0) / self.growth, self.n_fft) + step * self._step_phase
 
     def flow_sums(self, flow) -> np.ndarray:
         """:attr:`spec_sum` of another flow on the same grid (``flow`` as the constructor takes it): the

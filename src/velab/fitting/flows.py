@@ -18,8 +18,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import butter, sosfiltfilt
 
+from velab.filters import butter_lowpass_sos, sosfiltfilt
 from velab.rig import Rig
 from velab.fitting.friction import TimeDomainModel
 from velab.model import ValveHeadModel, flow_perturbation, manoeuvre_band_hz
@@ -90,8 +90,7 @@ def coupling_head(t, h, rig: Rig) -> np.ndarray:
     fc = COUPLING_BAND_FACTOR * manoeuvre_band_hz(rig)
     if fc >= 0.45 * fs:
         return h
-    sos = butter(4, fc, fs=fs, output="sos")
-    return sosfiltfilt(sos, h)
+    return sosfiltfilt(butter_lowpass_sos(4, fc, fs), h)
 
 
 def closure_flow(t, h, rig: Rig, params) -> np.ndarray:

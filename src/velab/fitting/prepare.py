@@ -9,11 +9,12 @@ velab.fitting.entry.fit_record), so an offline re-fit of a recorded run reproduc
    states this rule and the window's for every caller (the recorder, the run-file reader);
 2. window: samples with trigger - dt/2 <= t < trigger + window - dt/2, time from the trigger;
 3. anti-alias decimation to the fit rate: q = the largest whole divisor of the record rate
-   with record rate / q >= FIT_RATE_PER_BAND x the manoeuvre's band, zero-phase FIR (scipy.signal.firwin, Hamming, 20 q + 1 taps, the
-   filter of scipy.signal.decimate) applied by polyphase resampling with the window's ends
-   extended linearly. At the reference rig (band 31 Hz) a 1 kHz record is fitted as it is
-   and a 10 kHz record at 1 kHz: the model's head has no content above the band, so the
-   calibration sees the same signal and 1/q of the out-of-band noise.
+   with record rate / q >= FIT_RATE_PER_BAND x the manoeuvre's band, zero-phase FIR (scipy.signal's firwin,
+   Hamming, 20 q + 1 taps, the filter of scipy.signal.decimate) applied as its polyphase resampling does, with
+   the window's ends extended linearly (velab.filters: the same numbers, without importing scipy.signal).
+   At the reference rig (band 31 Hz) a 1 kHz record is fitted as it is and a 10 kHz record at 1 kHz: the
+   model's head has no content above the band, so the calibration sees the same signal and 1/q of the
+   out-of-band noise.
 
 The full-rate data stay in the run file; the rate, the filter and the steady head used are
 in the fit's settings (``settings["record"]``) and in ``SweepResult.record_rate_hz`` /
@@ -26,8 +27,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import firwin, resample_poly
 
+from velab.filters import fir_decimate, firwin_lowpass
 from velab.rig import Rig
 from velab.errors import DataError
 from velab.fitting.adequacy import assess, baseline_noise
@@ -118,8 +119,7 @@ def decimate_head(h: np.ndarray, q: int) -> np.ndarray:
     """Anti-alias filtered h sampled at every q-th sample (sample i of the result is at input i q)."""
     if q <= 1:
         return np.array(h, dtype=float)
-    b = firwin(FIR_TAPS_PER_Q * q + 1, 1.0 / q, window="hamming")
-    return resample_poly(np.asarray(h, dtype=float), 1, q, window=b, padtype="line")
+    return fir_decimate(np.asarray(h, dtype=float), firwin_lowpass(FIR_TAPS_PER_Q * q + 1, 1.0 / q), q)
 
 
 def prepare_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | None, *,

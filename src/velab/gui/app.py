@@ -30,14 +30,15 @@ def ensure_app():
 
 
 def preload(simulate: bool) -> None:
-    """Import (and for the simulated rig, load the compiled MOC kernel of) what a run will need, now,
+    """Import (and load the compiled kernels of: the filters, the simulated rig's MOC) what a run will need, now,
     before the window shows: an import or a kernel load on an engine thread holds the GIL for tens
     of milliseconds at a time (extension modules, numba's cache), which the GUI thread would wait
     through during the operator's first run (docs/gui.md, "Latency")."""
-    import scipy.signal  # noqa: F401 - the online fit's decimation
-
     import velab.fitting  # noqa: F401
     import velab.model  # noqa: F401 - the fit panel's model curves
+    from velab import filters
+
+    filters.warm_up()  # the fit panel's model curves filter the coupling's head (velab.fitting.flows)
 
     if simulate:
         import velab.simulators.bench  # noqa: F401
