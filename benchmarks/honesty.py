@@ -21,7 +21,7 @@ import time
 from dataclasses import replace
 
 from velab.config import Material, load_material, load_rig
-from velab.fitting.prepare import fit_record
+from velab.fitting.entry import fit_record
 from velab.synth import SynthSettings, synthesise, with_valve_law
 
 
