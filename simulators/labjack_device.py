@@ -102,6 +102,7 @@ class SimLabJackT:
         self.fio_state = 0
         self.fio_direction = 0
         self._session: _Session | None = None
+        self._ended: _Session | None = None  # a stream ended by its device with its last packet not yet all sent
         self.client: socket.socket | None = None  # the stream connection (set by the handle)
         self.packets_sent = 0
 
@@ -240,6 +241,7 @@ class SimLabJackT:
         for a in scan:
             rng = float(self._get("AIN#(0:249)_RANGE", a // 2)) or 10.0
             gains.append({10.0: 0, 1.0: 1, 0.1: 2, 0.01: 3}[round(rng, 2)])
+        self._ended = None
         self._session = _Session(t0=now, rate=rate, inputs=[a // 2 for a in scan], gains=gains, spp=spp,
                                  capacity=size // 2 - (size // 2) % nch,
                                  autorecover_disabled=bool(self._get("STREAM_AUTORECOVER_DISABLE")))
@@ -248,6 +250,10 @@ class SimLabJackT:
         """Advance the stream to the rig clock's now: scan, fill the FIFO, send what is due (the handle's thread)."""
         with self._lock:
             s = self._session
+            if s is None and self._ended is not None:  # the packet that ended the stream, still going out
+                self._flush(self._ended)
+                if not self._ended.outgoing:
+                    self._ended = None
             if s is None or self.stream_faults.stall:
                 return
             now = self.rig.clock.now()
@@ -289,6 +295,9 @@ class SimLabJackT:
             s.fifo = np.concatenate([s.fifo, flat])
 
     def _send_due(self, s: "_Session") -> None:
+        # what is still to go first: a packet the host's socket took only part of, or one made before the host's
+        # connection was accepted (with no retry here it was held for good: the stream fell silent)
+        self._flush(s)
         if s.recovering and s.fifo.size < s.spp:  # emptied: new scans again, after a dummy scan
             status_end = s.skipped
             s.recovering, s.skipped = False, 0
@@ -326,6 +335,7 @@ class SimLabJackT:
         s.outgoing += self._packet(s, np.zeros(0, np.uint16), status, 0)
         self._flush(s)
         self._session = None
+        self._ended = s if s.outgoing else None
 
     def _flush(self, s: "_Session") -> None:
         c = self.client
@@ -343,8 +353,9 @@ class SimLabJackT:
 
     def flush(self) -> None:
         with self._lock:
-            if self._session is not None:
-                self._flush(self._session)
+            for s in (self._ended, self._session):
+                if s is not None:
+                    self._flush(s)
 
 
 class _Refused(Exception):
