@@ -14,7 +14,7 @@ What the device does, from LabJack's documents (velab.drivers.labjack_registers,
 * FIO#: a write makes the line an output at that level and calls ``on_digital(line, level, t)``;
 * stream: STREAM_ENABLE = 1 checks the configuration (a bad one: a Modbus exception, as the device refuses it),
   then scans are taken at the scan rate on the rig's clock into a FIFO of STREAM_BUFFER_SIZE_BYTES (default 4096,
-  the T7's), sent as packets of STREAM_SAMPLES_PER_PACKET to the connection on the stream port; a full FIFO
+  the T7's; on a clock K x real time K x as many, the same host time: velab.simulators.clock.buffer_scale), sent as packets of STREAM_SAMPLES_PER_PACKET to the connection on the stream port; a full FIFO
   starts auto-recovery (2940 .. 2941 with the skipped scans and a dummy 0xFFFF scan), or with
   STREAM_AUTORECOVER_DISABLE = 1 ends the stream with STREAM_BUFFER_FULL (2945);
 * STREAM_SCANRATE_HZ reads back the actual rate: the scan interval in whole steps of 0.1 us (1, 10, 100 us,
@@ -40,6 +40,7 @@ import numpy as np
 from velab.drivers import labjack_registers as ljr
 from velab.drivers.labjack_stream import DUMMY_SAMPLE, MAX_SAMPLES_PER_PACKET, T7Calibration, encode_packet
 from velab.drivers.modbus_types import decode_registers, encode_value
+from velab.simulators.clock import buffer_scale
 from velab.simulators.faults import DeviceFaults
 
 ILLEGAL_ADDRESS, ILLEGAL_VALUE, DEVICE_FAILURE = 2, 3, 4
@@ -242,8 +243,12 @@ class SimLabJackT:
             rng = float(self._get("AIN#(0:249)_RANGE", a // 2)) or 10.0
             gains.append({10.0: 0, 1.0: 1, 0.1: 2, 0.01: 3}[round(rng, 2)])
         self._ended = None
+        # the FIFO holds the device's STREAM_BUFFER_SIZE_BYTES of *host* time: on a clock K x real time, K x as many
+        # bytes (velab.simulators.clock.buffer_scale; without it the fast clock's 32 KB were 0.7 s of a loaded host's
+        # hiccup, and a run lost 12437 scans to an auto-recovery the real device would never have needed)
+        room = int(size * buffer_scale(self.rig.clock)) // 2
         self._session = _Session(t0=now, rate=rate, inputs=[a // 2 for a in scan], gains=gains, spp=spp,
-                                 capacity=size // 2 - (size // 2) % nch,
+                                 capacity=room - room % nch,
                                  autorecover_disabled=bool(self._get("STREAM_AUTORECOVER_DISABLE")))
 
     def tick(self) -> None:
