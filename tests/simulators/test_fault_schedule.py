@@ -31,9 +31,9 @@ CONFIG = {
     },
 }
 # A sound reply's wait: the simulated devices answer from this process's threads, which a loaded 2-core host
-# (three suites at once) kept past 0.25 s and past 1 s (a buffer read of the stuck-position test timed out);
-# the manual clock does not move meanwhile, so a long wait changes no outcome, it only costs time where
-# silence is the outcome (two reads of the silent test).
+# kept past 0.25 s (the stuck-position test's reads; two other tests had been raised to 1 s one by one for the
+# same reason); the manual clock does not move meanwhile, so a long wait changes no outcome, it only costs time
+# where a timeout is the outcome (the silent and the lost-reply tests).
 TIMEOUT = 2.0
 # The late-reply test's own: its reply, delayed LATE_REPLY_S, must miss this timeout and come while the next
 # request is being answered.
