@@ -395,7 +395,10 @@ class DataqDAQ:
     @_names_device
     def read_analog(self, channel: str) -> Reading:
         """One value of a channel: the latest sample while streaming, else a short scan (>= 20 samples,
-        their mean and worst quality). The next start() restores the configuration in force before."""
+        their mean and worst quality). The next start() restores the configuration in force before. Started and
+        not stopped, its reader ended on a fatal error: that error (no scan list of one channel mid-run)."""
+        if self._thread is not None and not self.running and self.error is not None:
+            raise self.error.again(f"{self.name}: {channel}: no reading: the scan (not stopped) ended: {self.error}")
         if self.running:
             r = self.latest(channel)
             if r is None:

@@ -73,7 +73,9 @@ class DaqLine:
 
 class DaqPosition:
     """The valve position on a DAQ's analog channel: the newest streamed sample while the DAQ streams
-    (``latest``), a command-response read otherwise (``read_analog``)."""
+    (``latest``), a command-response read otherwise (``read_analog``: a DAQ whose stream is still enabled after
+    its reader ended on a fatal error raises that error there, the LabJack's StreamSilent or StreamFault,
+    rather than send a read the streaming device refuses)."""
 
     FIRST_SAMPLE_S = 2.0  # a stream just started: how long its first sample may take
 

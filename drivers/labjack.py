@@ -17,7 +17,8 @@ STREAM_DATATYPE = 0, STREAM_ENABLE = 1 last; the 702 connection is opened before
 Conditions, each named within seconds: a lost packet (transaction id gap) -> ``lost_before`` of the next block
 (exact: whole packets); auto-recovery (2940 .. 2941) -> the skipped scans as ``lost_before``, ``overrun``;
 STREAM_SCAN_OVERLAP, STREAM_AUTO_RECOVER_END_OVERFLOW, STREAM_BUFFER_FULL -> StreamFault (the stream is not
-continuous, or has stopped); no packet for ``data_s`` -> StreamSilent; the 702 connection closed ->
+continuous, or has stopped); no packet for ``data_timeout_s`` (the profile's ``data_s``, at least
+SILENT_PACKETS packet intervals) -> StreamSilent; the 702 connection closed ->
 DeviceDisconnected. A fatal error ends the reader: ``get_block`` raises it, ``error`` keeps it.
 """
 
@@ -45,6 +46,11 @@ from velab.drivers.silence import Silence
 READ_WAIT_S = 0.05  # one read of the 702 connection waits at most this
 QUEUE_BLOCKS = 256
 PACKETS_PER_S = 20  # samples_per_packet = 0: about this many packets a second
+# The device sends a packet every samples_per_packet / channels scans: up to 512 scans, and below 20 scans/s
+# (auto) one scan a packet, 1 s apart at 1 scan/s, where the profile's data_s (1 s) alone would name a sound
+# stream silent. The silence that does is at least this many packet intervals (LJM's default receive timeout
+# is likewise calculated from the scan rate: LabJackM.h, LJM_STREAM_RECEIVE_TIMEOUT_MODE_CALCULATED).
+SILENT_PACKETS = 3
 FATAL_STATUS = (ljr.STREAM_SCAN_OVERLAP, ljr.STREAM_AUTO_RECOVER_END_OVERFLOW, ljr.STREAM_BUFFER_FULL,
                 ljr.STREAM_BURST_COMPLETE)
 
@@ -108,6 +114,10 @@ class LabJackT:
         self._latest: dict[str, Reading] = {}
         self._lock = threading.Lock()
         self._link: ByteTransport | None = None
+        # STREAM_ENABLE = 1 written by start() and not yet 0 by stop(): the device streams as far as the host knows,
+        # even once the reader has ended on a fatal error (``error``); its AIN# are then not readable by
+        # command-response (the device refuses: datasheet 3.2)
+        self._enabled = False
 
     # ------------------------------------------------------------ bus access (errors name this device)
     def _named(self, exc: DeviceError) -> DeviceError:
@@ -203,7 +213,11 @@ class LabJackT:
         """One command-response read of a channel's AIN (volts) -> engineering units, NE43 quality. The
         device cannot read analogue inputs by command-response while it streams (datasheet 3.2): refused."""
         c = self.channel(channel)
-        if self.streaming:
+        if self._enabled:
+            err = self.error
+            if err is not None and not self.streaming:  # the stream's own outcome, not a read the device refuses
+                raise self._named(err.again(f"{self.name}: {c.name}: no reading: the stream (still enabled) ended: "
+                                            f"{err}"))
             raise DeviceException(f"{self.name}: {c.name}: AIN{c.ain} cannot be read by command-response while "
                                   f"streaming (use latest())", device=self.name)
         volts = float(self._read("AIN#(0:249)", c.ain))
@@ -237,6 +251,14 @@ class LabJackT:
     @property
     def rate_hz(self) -> float:
         return self._rate
+
+    @property
+    def data_timeout_s(self) -> float:
+        """No stream packet for this long (the time the reader listened): StreamSilent. The profile's
+        ``data_s``, and at least SILENT_PACKETS intervals between the configured stream's packets."""
+        if not (self._rate > 0 and self._channels):
+            return self.profile.data_s
+        return max(self.profile.data_s, SILENT_PACKETS * (self._spp / len(self._channels)) / self._rate)
 
     def configure(self, rate_hz: float | None = None, channels=None) -> float:
         """Stop any stream, set the inputs (range, single ended) and the stream registers; the scan rate the
@@ -307,6 +329,7 @@ class LabJackT:
             link.close()
             self._link = None
             raise
+        self._enabled = True
         self._stop_evt.clear()
         self._thread = threading.Thread(target=self._run, name=f"{self.name} stream reader", daemon=True)
         self._thread.start()
@@ -318,7 +341,7 @@ class LabJackT:
         if t is None:
             return self.stats
         self._stop_evt.set()
-        t.join(READ_WAIT_S * 4 + self.profile.data_s + 2.0)
+        t.join(READ_WAIT_S * 4 + self.data_timeout_s + 2.0)
         self._thread = None
         with self._lock:
             self._latest = {}
@@ -331,11 +354,12 @@ class LabJackT:
             pass
         if not isinstance(self.error, DeviceDisconnected):
             self._stop_stream_register()
+        self._enabled = False
         return self.stats
 
     def get_block(self, timeout: float | None = None) -> SampleBlock:
         """The next block; the reader's fatal error; DeviceTimeout if nothing came within ``timeout``."""
-        timeout = self.profile.data_s if timeout is None else timeout
+        timeout = self.data_timeout_s if timeout is None else timeout
         try:
             item = self._queue.get(timeout=timeout)
         except queue.Empty:
@@ -381,6 +405,7 @@ class LabJackT:
         reader = PacketReader(f"{self.name} stream")
         silence = Silence.for_wait(READ_WAIT_S)
         state = _Decode(len(self._channels), self._spp)
+        silent_s = self.data_timeout_s
         try:
             while not self._stop_evt.is_set():
                 data = self._link.read(65536, time.monotonic() + READ_WAIT_S)
@@ -388,10 +413,9 @@ class LabJackT:
                 if packets:
                     self._deliver(state, packets, time.time())
                     silence.reset()
-                elif silence.passed() > self.profile.data_s:
+                elif silence.passed() > silent_s:
                     raise StreamSilent(f"{self.name}: no stream packet on port {self.profile.stream_port} for "
-                                       f"{self.profile.data_s:g} s ({self.stats.packets} packets so far)",
-                                       device=self.name)
+                                       f"{silent_s:g} s ({self.stats.packets} packets so far)", device=self.name)
         except DeviceError as exc:
             self._fail(exc)
         except Exception as exc:  # a bug: still a named outcome
@@ -532,4 +556,4 @@ class _Decode:
         return scans[:k].ravel(), np.concatenate([scans[k + 1:].ravel(), samples[n:]])
 
 
-__all__ = ["LJStreamStats", "LabJackT", "StreamFault", "auto_samples_per_packet"]
+__all__ = ["LJStreamStats", "LabJackT", "SILENT_PACKETS", "StreamFault", "auto_samples_per_packet"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import re
+import struct
 import time
 from pathlib import Path
 from typing import Any
@@ -112,6 +113,21 @@ class SADCLink:
             return self._port.read(max(n, size))
         except Exception as exc:
             raise DeviceDisconnected(f"{self.name}: read failed: {exc}") from exc
+
+    def _received(self) -> int:
+        """Bytes received for this port and not read yet: the OS's count (FIONREAD, for a tty and a socket alike:
+        pyserial's socket ``in_waiting`` says only whether there are any), else ``in_waiting``; 0 if neither says."""
+        port = self._port
+        try:
+            import fcntl
+            import termios
+
+            return max(0, struct.unpack("i", fcntl.ioctl(port.fileno(), termios.FIONREAD, b"\0" * 4))[0])
+        except Exception:  # no fileno (a test's fake), no fcntl (Windows)
+            try:
+                return max(0, int(port.in_waiting))
+            except Exception:
+                return 0
 
     # ---------------------------------------------------------------- commands
 

@@ -165,6 +165,7 @@ class StreamingADC(SADCLink):
         self._queue = queue.Queue(maxsize=self.profile.queue_blocks) if callback is None else None
         self.error = None
         self._stop_error = None
+        self._stop_backlog = 0  # bytes received before STOP went out still to read (the reader's, at stop())
         with self._stats_lock:
             self._stats = StreamStats()
         self._asm = BlockAssembler(self.config, self.profile, self._stats, self._stats_lock)
@@ -237,7 +238,13 @@ class StreamingADC(SADCLink):
         if t is None:
             return self.stats
         self._stop_evt.set()
-        t.join(self.profile.poll_s * 4 + 5 * self.profile.command_timeout_s + 2.0)  # _stop_streaming's bound
+        bound = self.profile.poll_s * 4 + 5 * self.profile.command_timeout_s + 2.0  # _stop_streaming's bound ...
+        deadline, left = time.monotonic() + bound, 0
+        while t.is_alive() and time.monotonic() < deadline:
+            t.join(min(0.1, max(0.0, deadline - time.monotonic())))
+            now_left = self._stop_backlog
+            if 0 < now_left != left:  # ... counted once the bytes received before STOP are read (while reads take them)
+                deadline, left = time.monotonic() + bound, now_left
         alive = t.is_alive()
         self._thread = None
         self._streaming = False
@@ -336,6 +343,10 @@ class StreamingADC(SADCLink):
     def _stop_streaming(self) -> None:
         """In the reader thread: send STOP, keep parsing frames until ``OK STOP <n>``."""
         self._write(b"STOP\n")
+        # what had been received when STOP went out, the device sent before it could see STOP: parsing it says
+        # nothing of a device that streams on, so the bound on frames starts once it is read (a loaded host held
+        # ~1 MB of frames on a TCP link, more than 5 s of its parsing: "no reply to 'STOP' within 5 s of frames")
+        backlog = self._stop_backlog = self._received()
         t_cmd = self.profile.command_timeout_s
         hard = 5 * t_cmd  # frames still in flight are parsed, within bounds
         # both in the time this thread listened (velab.drivers.silence): a pass the host held it longer than a
@@ -347,13 +358,17 @@ class StreamingADC(SADCLink):
             # once the time is up, one more read: what came while this thread was not running (a slow consumer
             # of the last frames, a loaded host) is still the device's answer; that look is the last unless it
             # brought bytes before the hard bound
+            if backlog > 0:
+                since_stop.reset()
             over = since_stop.passed() >= hard
             expired = quiet.passed() >= t_cmd or over
-            try:
-                data = self._read(self.config.frame_len)
+            try:  # (the backlog in big reads: a frame a pass took seconds on a loaded host)
+                data = self._read(max(self.config.frame_len, min(backlog, 1 << 16)))
             except DeviceDisconnected as exc:
                 self._stop_error = exc
                 return
+            backlog -= len(data)
+            self._stop_backlog = max(0, backlog)
             final = expired and (not data or over)
             if data:
                 quiet.reset()

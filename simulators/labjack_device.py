@@ -14,7 +14,7 @@ What the device does, from LabJack's documents (velab.drivers.labjack_registers,
 * FIO#: a write makes the line an output at that level and calls ``on_digital(line, level, t)``;
 * stream: STREAM_ENABLE = 1 checks the configuration (a bad one: a Modbus exception, as the device refuses it),
   then scans are taken at the scan rate on the rig's clock into a FIFO of STREAM_BUFFER_SIZE_BYTES (default 4096,
-  the T7's), sent as packets of STREAM_SAMPLES_PER_PACKET to the connection on the stream port; a full FIFO
+  the T7's; on a clock K x real time K x as many, the same host time: velab.simulators.clock.buffer_scale), sent as packets of STREAM_SAMPLES_PER_PACKET to the connection on the stream port; a full FIFO
   starts auto-recovery (2940 .. 2941 with the skipped scans and a dummy 0xFFFF scan), or with
   STREAM_AUTORECOVER_DISABLE = 1 ends the stream with STREAM_BUFFER_FULL (2945);
 * STREAM_SCANRATE_HZ reads back the actual rate: the scan interval in whole steps of 0.1 us (1, 10, 100 us,
@@ -40,6 +40,7 @@ import numpy as np
 from velab.drivers import labjack_registers as ljr
 from velab.drivers.labjack_stream import DUMMY_SAMPLE, MAX_SAMPLES_PER_PACKET, T7Calibration, encode_packet
 from velab.drivers.modbus_types import decode_registers, encode_value
+from velab.simulators.clock import buffer_scale
 from velab.simulators.faults import DeviceFaults
 
 ILLEGAL_ADDRESS, ILLEGAL_VALUE, DEVICE_FAILURE = 2, 3, 4
@@ -102,6 +103,7 @@ class SimLabJackT:
         self.fio_state = 0
         self.fio_direction = 0
         self._session: _Session | None = None
+        self._ended: _Session | None = None  # a stream ended by its device with its last packet not yet all sent
         self.client: socket.socket | None = None  # the stream connection (set by the handle)
         self.packets_sent = 0
 
@@ -240,14 +242,23 @@ class SimLabJackT:
         for a in scan:
             rng = float(self._get("AIN#(0:249)_RANGE", a // 2)) or 10.0
             gains.append({10.0: 0, 1.0: 1, 0.1: 2, 0.01: 3}[round(rng, 2)])
+        self._ended = None
+        # the FIFO holds the device's STREAM_BUFFER_SIZE_BYTES of *host* time: on a clock K x real time, K x as many
+        # bytes (velab.simulators.clock.buffer_scale; without it the fast clock's 32 KB were 0.7 s of a loaded host's
+        # hiccup, and a run lost 12437 scans to an auto-recovery the real device would never have needed)
+        room = int(size * buffer_scale(self.rig.clock)) // 2
         self._session = _Session(t0=now, rate=rate, inputs=[a // 2 for a in scan], gains=gains, spp=spp,
-                                 capacity=size // 2 - (size // 2) % nch,
+                                 capacity=room - room % nch,
                                  autorecover_disabled=bool(self._get("STREAM_AUTORECOVER_DISABLE")))
 
     def tick(self) -> None:
         """Advance the stream to the rig clock's now: scan, fill the FIFO, send what is due (the handle's thread)."""
         with self._lock:
             s = self._session
+            if s is None and self._ended is not None:  # the packet that ended the stream, still going out
+                self._flush(self._ended)
+                if not self._ended.outgoing:
+                    self._ended = None
             if s is None or self.stream_faults.stall:
                 return
             now = self.rig.clock.now()
@@ -289,6 +300,9 @@ class SimLabJackT:
             s.fifo = np.concatenate([s.fifo, flat])
 
     def _send_due(self, s: "_Session") -> None:
+        # what is still to go first: a packet the host's socket took only part of, or one made before the host's
+        # connection was accepted (with no retry here it was held for good: the stream fell silent)
+        self._flush(s)
         if s.recovering and s.fifo.size < s.spp:  # emptied: new scans again, after a dummy scan
             status_end = s.skipped
             s.recovering, s.skipped = False, 0
@@ -326,6 +340,7 @@ class SimLabJackT:
         s.outgoing += self._packet(s, np.zeros(0, np.uint16), status, 0)
         self._flush(s)
         self._session = None
+        self._ended = s if s.outgoing else None
 
     def _flush(self, s: "_Session") -> None:
         c = self.client
@@ -343,8 +358,9 @@ class SimLabJackT:
 
     def flush(self) -> None:
         with self._lock:
-            if self._session is not None:
-                self._flush(self._session)
+            for s in (self._ended, self._session):
+                if s is not None:
+                    self._flush(s)
 
 
 class _Refused(Exception):

@@ -12,7 +12,8 @@ The analogue inputs come from ``source(t) -> (n, 4)`` in mA (the interface of
 device time on that clock's axis: t = clock.now() at START + i / fs); they are quantised to the
 ADC's int16 counts. Pacing: ``realtime=True`` emits frames when the device clock
 says they are due; ``realtime=False`` (fast mode) streams as fast as the reader
-consumes, the device clock still advancing by 1/fs per sample. ``baud`` adds the
+consumes (at most ``fast_backlog_bytes`` ahead of it, and as much in a TCP link's
+send buffer), the device clock still advancing by 1/fs per sample. ``baud`` adds the
 wire time of 10 bits per byte. Fault injection through :class:`FaultPlan`; every
 sample the simulator generated but did not deliver intact is counted in
 ``stats.samples_lost`` so tests can compare it with the driver's count.
@@ -245,6 +246,12 @@ class StreamingADCSimulator(SADCDevice):
                 conn.close()
                 continue
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            if not self.realtime:
+                # fast mode runs ``fast_backlog_bytes`` ahead of the host's reads, and the kernel's send buffer as
+                # much again: left to itself it grows to megabytes on loopback (~1 MB of frames after STOP, 12 s of
+                # the device's 10 kHz x 4 channels, that a loaded host parsed for over 5 s: "no reply to 'STOP'
+                # within 5 s of frames"; ~0.2 MB with this bound)
+                conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.fast_backlog_bytes)
             conn.setblocking(False)
             link = _Link(conn.fileno(), conn)
             why = self._session(link)

@@ -197,6 +197,19 @@ def test_configure_byte_exact_di1100_has_no_dec_nor_digital_commands():
         daq.write_digital(0, True)
 
 
+def test_read_analog_after_the_reader_failed_raises_its_error():
+    """Started, the reader ended on StreamSilent, not stopped: a position read (the fired valve's DaqPosition) is
+    that error, named; nothing is sent (no short scan of one channel in the middle of a run)."""
+    t = ExpectedProtocol([])
+    daq = DataqDAQ(t, profile())
+    daq._thread = threading.Thread(target=lambda: None)  # (never started: not alive)
+    daq.error = StreamSilent("DATAQ DAQ: no in-frame scan for 1 s", device="DATAQ DAQ")
+    with pytest.raises(StreamSilent, match="valve_position: no reading: the scan .* ended: .*no in-frame scan"):
+        daq.read_analog("valve_position")
+    daq._thread = None
+    t.done()
+
+
 def test_wrong_model_is_a_profile_error():
     t = ExpectedProtocol(IDENTIFY_2108[:2] + [(b"info 1\r", b"info 1 1100\r")] + IDENTIFY_2108[3:])
     with pytest.raises(ProfileError, match="for a DI-2108, the device says it is a DI-1100"):

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from velab.drivers import labjack_registers as ljr
-from velab.drivers.base import DeviceException, FrameError, ImplausibleReply, ProtocolError
-from velab.drivers.labjack import LabJackT, StreamFault, _Decode, auto_samples_per_packet
+from velab.drivers.base import DeviceException, FrameError, ImplausibleReply, ProtocolError, StreamSilent
+from velab.drivers.labjack import SILENT_PACKETS, LabJackT, StreamFault, _Decode, auto_samples_per_packet
 from velab.drivers.labjack_profile import load_profile
 from velab.drivers.labjack_stream import PacketReader, StreamPacket, T7Calibration, encode_packet
 from velab.drivers.modbus import ModbusClient
@@ -184,9 +184,37 @@ def test_calibration_is_read_from_flash():
 def test_read_analog_refused_while_streaming():
     lj = LabJackT(None, NOMINAL)
     lj._thread = type("T", (), {"is_alive": lambda self: True})()
+    lj._enabled = True  # (start() wrote STREAM_ENABLE = 1)
     with pytest.raises(DeviceException, match="while streaming"):
         lj.read_analog("pressure")
-    lj._thread = None
+    lj._thread, lj._enabled = None, False
+
+
+def test_read_analog_after_the_stream_failed_raises_the_streams_error():
+    """The reader ended on StreamSilent, the stream still enabled (not stopped): the device would refuse an AIN
+    read, so none is sent (the bus is None here); the stream's own error is raised, naming the channel."""
+    lj = LabJackT(None, NOMINAL, name="lj")
+    lj._thread = type("T", (), {"is_alive": lambda self: False})()
+    lj._enabled = True
+    lj.error = StreamSilent("lj: no stream packet on port 702 for 1 s (40 packets so far)", device="lj")
+    with pytest.raises(StreamSilent, match="^lj: valve_position: no reading: the stream .*for 1 s") as e:
+        lj.read_analog("valve_position")
+    assert e.value.device == "lj" and e.value is not lj.error
+    lj._thread, lj._enabled = None, False
+
+
+@pytest.mark.parametrize("rate, spp, channels, timeout", [
+    (2000.0, 0, 2, 1.0),  # ~20 packets/s: the profile's data_s
+    (1.0, 0, 2, SILENT_PACKETS * 1.0),  # one scan a packet, 1 s apart
+    (100.0, 512, 2, SILENT_PACKETS * 256 / 100.0),  # 2.56 s a packet
+])
+def test_the_data_timeout_is_at_least_a_few_packet_intervals(rate, spp, channels, timeout):
+    prof = replace(NOMINAL, samples_per_packet=spp)
+    lj = LabJackT(None, prof)
+    assert lj.data_timeout_s == prof.data_s  # nothing configured yet
+    lj._channels, lj._rate = prof.channels[:channels], rate
+    lj._spp = spp or auto_samples_per_packet(rate, channels)
+    assert lj.data_timeout_s == pytest.approx(timeout)
 
 
 # ------------------------------------------------------------------ decoding packets into runs

@@ -483,6 +483,53 @@ def test_a_stop_reply_after_the_host_held_reader_and_device_is_taken():
     assert fake.reads_after_stop >= 3 and stats.samples == 4 and stats.lost == 0
 
 
+class SlowDrain(ExpectedProtocol):
+    """A port that hands over at most one frame a read, each read ``per_read_s`` of a loaded host's time; after
+    STOP, ``endless``: the device streams on (a frame added at each read), else nothing more comes."""
+
+    def __init__(self, pairs, frame_len, per_read_s, endless=False):
+        super().__init__(pairs)
+        self.frame_len, self.per_read_s, self.endless, self.seq = frame_len, per_read_s, endless, 0
+
+    def read(self, size: int = 1) -> bytes:
+        stopping = self.written[-2:] == [b"START\n", b"STOP\n"]
+        if stopping and size > 0:
+            time.sleep(self.per_read_s)
+            if self.endless:
+                self.seq += 1
+                self.feed(frame(self.seq, 4 * self.seq, counts(4 * self.seq)))
+        return super().read(min(size, self.frame_len) if stopping else size)
+
+
+def _stop_behind(n_frames, endless=False):
+    """The host fell ``n_frames`` frames behind (all received, not yet read) when it sent STOP (they become
+    readable as it is written, so the reader cannot have taken them before)."""
+    backlog = b"".join(frame(n, 4 * n, counts(4 * n)) for n in range(n_frames))
+    reply = b"" if endless else b"OK STOP %d\n" % (4 * n_frames)
+    fake = SlowDrain(CONFIG_2CH + [(b"START\n", b"OK START\n"), (b"STOP\n", backlog + reply)],
+                     len(frame(0, 0, counts(0))), per_read_s=0.05, endless=endless)
+    adc = StreamingADC(fake, profile(command_timeout_s=0.2, data_timeout_s=60.0))  # 1 s of frames after STOP
+    adc.configure(10_000, ["pressure", "valve_position"], block_samples=4)
+    adc.start(callback=lambda b: None)
+    return adc
+
+
+def test_frames_received_before_stop_went_out_do_not_count_against_its_reply():
+    """40 frames already received when STOP is sent, read one a pass at 0.05 s (2 s, beyond the 1 s bound of
+    frames after STOP): the device sent them before it could see STOP, so its reply after them is taken."""
+    adc = _stop_behind(40)
+    stats = adc.stop()
+    assert stats.lost == 0 and stats.samples == 160
+
+
+def test_a_device_that_streams_on_after_stop_is_named():
+    adc = _stop_behind(4, endless=True)
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeout, match="no reply to 'STOP' within 1 s of frames"):
+        adc.stop()
+    assert time.monotonic() - t0 < 5.0
+
+
 def test_a_stop_never_answered_names_the_device_s_silence():
     fake, adc = configured([(b"START\n", b"OK START\n"), (b"STOP\n", b"")], data_timeout_s=60.0)
     adc.start()

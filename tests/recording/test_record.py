@@ -293,9 +293,12 @@ def _trigger_when_baseline_is_in(rec, timeout=30.0):
 def test_second_run_on_the_same_connection_after_reset_valve(tmp_path):
     """A finished recorder re-arms on the same connection once the valve is reset (reopened);
     the measured trigger instant is published as soon as it is known."""
-    # records of 6 s of device time (0.5 s of host time at the fast clock): a 2-3 s one (0.17-0.25 s of host time)
-    # ended on a loaded host before the stroke its late TRIGGER started was in its samples ("no stroke seen")
-    s = RecordSettings(duration_s=6.0, pretrigger_s=0.5, fit=False, out_dir=tmp_path)
+    # The record ends `duration_s` after the stroke's latest start as the blocks bound it (the device's index at the
+    # TRIGGER's reply), which is behind the true start by the least delay of any block (x 12 at the fast clock):
+    # "no stroke seen" if that exceeds the record less the stroke. A 2-3 s record (0.17-0.25 s of host time) did on
+    # another 2-core host; 6 and 5 s left 0.47 and 0.39 s of host time, where a host at load 25 was measured 0.17 s
+    # late. Records of 15 and 12 s (1.25 and 1 s of host time) leave at least 0.9 s.
+    s = RecordSettings(duration_s=15.0, pretrigger_s=0.5, fit=False, out_dir=tmp_path)
     with Recorder.simulated(s, clock="fast") as rec:
         events = []
         rec.add_listener(events.append)
@@ -322,8 +325,8 @@ def test_second_run_on_the_same_connection_after_reset_valve(tmp_path):
         assert st.state.name == "IDLE" and st.position.value >= 99.0 and rec.valve_open is True
         assert rec.sim.rig.state().name == "IDLE"
         # new settings go with the arm command; same driver objects (the same connection)
-        path = rec.arm(settings=s.with_changes(duration_s=5.0, run_number=2)).result(timeout=60)
-        assert rec.devices == devices and rec.settings.duration_s == 5.0
+        path = rec.arm(settings=s.with_changes(duration_s=12.0, run_number=2)).result(timeout=60)
+        assert rec.devices == devices and rec.settings.duration_s == 12.0
         second = _trigger_when_baseline_is_in(rec)
         assert second.status == "completed" and second.path == path != first.path, (second.status, second.reason)
         assert rec.sim.rig.trigger_count == 2

@@ -91,21 +91,25 @@ def test_a_bad_deadline_is_one_line_naming_the_variable(sound, tmp_path, monkeyp
     assert "\n" not in str(e.value)
 
 
+WALK_DEADLINE_S = 4.0  # a small file's walk: ~40 ms of CPU; 1 s was missed at load 16 on a 2-core host
+SLOW_START_S = WALK_DEADLINE_S + 1.0
+
+
 def test_the_deadline_is_the_walks_not_the_start_up(sound, tmp_path, monkeypatch):
     """A deadline shorter than a fresh child's start-up still passes a sound file: start-up is apart. The
-    child's start-up is made 3 s long (a sitecustomize that sleeps, as a cold disk or a loaded host would),
-    the deadline 1 s (a small file's walk: milliseconds, even with another suite running beside)."""
+    child's start-up is made longer than the deadline (a sitecustomize that sleeps, as a cold disk or a loaded
+    host would); the deadline is ample for the walk of a small file on a loaded host."""
     _forget()
     if probe._walker is not None:
         probe._walker.close()
         probe._walker = None
     slow = tmp_path / "slow_start"
     slow.mkdir()
-    (slow / "sitecustomize.py").write_text("import time\ntime.sleep(3.0)\n")
+    (slow / "sitecustomize.py").write_text(f"import time\ntime.sleep({SLOW_START_S!r})\n")
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(slow), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
-    monkeypatch.setenv("VELAB_PROBE_TIMEOUT_S", "1.0")
+    monkeypatch.setenv("VELAB_PROBE_TIMEOUT_S", str(WALK_DEADLINE_S))
     t0 = time.monotonic()
     probe.ensure_walkable(_copy(sound, tmp_path, "quick.h5"))
-    assert time.monotonic() - t0 >= 3.0  # (the start-up did take longer than the deadline)
+    assert time.monotonic() - t0 >= SLOW_START_S  # (the start-up did take longer than the deadline)
     probe._walker.close()  # (not kept for the other tests: it starts slowly)
     probe._walker = None

@@ -30,7 +30,15 @@ CONFIG = {
         "flowmeter": {"kind": "flowmeter", "endpoints": [{"transport": "rtu-pty"}, {"transport": "tcp"}]},
     },
 }
-TIMEOUT = 0.25  # short (silence costs a timeout per request) but not tight on a loaded machine
+# A sound reply's wait: the simulated devices answer from this process's threads, which a loaded 2-core host
+# kept past 0.25 s (the stuck-position test's reads; two other tests had been raised to 1 s one by one for the
+# same reason); the manual clock does not move meanwhile, so a long wait changes no outcome, it only costs time
+# where a timeout is the outcome (the silent and the lost-reply tests).
+TIMEOUT = 2.0
+# The late-reply test's own: its reply, delayed LATE_REPLY_S, must miss this timeout and come while the next
+# request is being answered.
+SHORT_TIMEOUT = 0.25
+LATE_REPLY_S = 0.6
 
 
 @pytest.fixture(scope="module")
@@ -200,8 +208,7 @@ def test_exception_from_arm_until_cleared(sim):
 def test_fault_before_arm_at_start_offset(sim):
     now = sim.clock.now()
     sim.schedule_fault("flowmeter", at=now + 0.5, duration_s=0.25, garble=True)
-    # (no silence here: a sound reply is waited for 1 s, which two suites at once made 0.25 s miss)
-    fm = connect(sim, "flowmeter", "rtu-pty", timeout_s=1.0)
+    fm = connect(sim, "flowmeter", "rtu-pty")
     try:
         assert works(fm.read_flow) is True
         sim.clock.set(now + 0.5)
@@ -226,9 +233,7 @@ CORRUPTIONS = [
                          + [("tcp", *c) for c in CORRUPTIONS if "corrupt_crc" not in c[0]])
 def test_corrupted_replies_are_named_never_used(sim, transport, fault, cls, reason):
     sim.set_fault("flowmeter", **fault)
-    # (1 s, not the module's 0.25 s, which the late-reply test needs: the sound reply after the fault is cleared
-    # was not in within 0.25 s of a pty bridge in this process, held with two other suites on a 2-core host)
-    fm = connect(sim, "flowmeter", transport, timeout_s=1.0)
+    fm = connect(sim, "flowmeter", transport)
     try:
         with pytest.raises(cls) as ei:
             fm.read_flow()
@@ -244,9 +249,9 @@ def test_corrupted_replies_are_named_never_used(sim, transport, fault, cls, reas
 @pytest.mark.parametrize("transport", ["rtu-pty", "tcp"])
 def test_late_reply_is_not_taken_for_the_next_request(sim, transport):
     """A reply delayed past the timeout arrives late; the next (other) request gets its own reply."""
-    fm = connect(sim, "flowmeter", transport)
+    fm = connect(sim, "flowmeter", transport, timeout_s=SHORT_TIMEOUT)
     try:
-        sim.set_fault("flowmeter", delay_s=0.6, count=1)
+        sim.set_fault("flowmeter", delay_s=LATE_REPLY_S, count=1)
         with pytest.raises(DeviceTimeout):
             fm.read_value("flow")  # the reply comes 0.6 s later, after the 0.25 s timeout
         fm.bus.retries = 2  # the device is busy until then: later attempts meet the late reply first

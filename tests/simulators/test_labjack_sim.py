@@ -4,6 +4,7 @@ simulator read by clients that are not velab's (pyModbusTCP; a raw socket decodi
 import dataclasses
 import socket
 import struct
+import threading
 import time
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 
 from velab.config import load_material, load_rig
 from velab.drivers.base import DeviceDisconnected, FrameError, StreamSilent
+from velab.drivers.fired_valve import DaqPosition
 from velab.drivers.bench import BenchDevice
 from velab.drivers.labjack import StreamFault
 from velab.drivers.labjack_bench import open_labjack
@@ -212,6 +214,56 @@ def test_a_stalled_stream_is_stream_silent(sim):
         sim.stream_faults.stall = True
         assert "no stream packet" in str(wait_error(lj, StreamSilent))
         lj.stop()
+    finally:
+        lj.close()
+
+
+def test_packets_made_before_the_host_connection_is_accepted_are_sent_once_it_is(rig, monkeypatch):
+    """The simulated T7 made its first packet while the host's 702 connection waited in the listener's backlog
+    (its accept thread not yet run: a loaded host); that packet went out once the connection was accepted, and
+    the ones after it (they were held for good: the stream silent, StreamSilent, then the fired valve's position
+    read refused by the streaming device, "read holding 2+2 refused (exception 4)")."""
+    gate = threading.Event()
+    accept = LabJackSimHandle._accept
+    monkeypatch.setattr(LabJackSimHandle, "_accept", lambda self: (gate.wait(10.0), accept(self)))
+    h = LabJackSimHandle("daq", rig, {}, "127.0.0.1")
+    h.start()
+    lj = connect(h, data_s=5.0)
+    try:
+        lj.configure(RATE, ["pressure", "valve_position"])
+        lj.start()
+        end = time.monotonic() + 10.0
+        while not (h.lj._session is not None and h.lj._session.outgoing) and time.monotonic() < end:
+            time.sleep(0.005)
+        assert h.lj.client is None and h.lj._session.outgoing  # a packet made, no host connection yet
+        gate.set()
+        blocks = collect(lj, 2000)
+        assert blocks[0].first_index == 0 and all(b.lost_before == 0 for b in blocks)
+        lj.stop()
+    finally:
+        gate.set()
+        lj.close()
+        h.stop()
+
+
+def test_a_position_read_after_the_stream_failed_is_the_streams_error(sim):
+    """While the stream is enabled the device refuses command-response AIN reads: once its reader has ended on
+    a fatal error, a read of the valve position (the fired valve's DaqPosition) raises that error, named, and
+    sends nothing the device would refuse; after stop() the command-response read works again."""
+    lj = connect(sim, data_s=1.0)
+    try:
+        lj.configure(RATE, ["pressure", "valve_position"])
+        lj.start()
+        collect(lj, 100)
+        sim.stream_faults.stall = True
+        wait_error(lj, StreamSilent)
+        requests = lj.bus.stats.requests
+        with pytest.raises(StreamSilent, match="valve_position: no reading: the stream .* ended: .*no stream packet"):
+            DaqPosition(lj, "valve_position").read()
+        assert lj.bus.stats.requests == requests
+        lj.stop()
+        sim.stream_faults.stall = False
+        assert DaqPosition(lj, "valve_position").read().value == pytest.approx(100.0, abs=0.5)
     finally:
         lj.close()
 
