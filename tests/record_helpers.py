@@ -3,10 +3,13 @@ and catch what escapes any engine thread (a traceback somewhere)."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import logging
 import threading
 import time
+from types import SimpleNamespace
 
 import pytest
 
@@ -124,3 +127,19 @@ def assert_halted_fit(summary, halt_s: float, busy: list) -> None:
     while any(w.alive for w in busy) and time.monotonic() < end:
         time.sleep(0.02)
     assert busy and not any(w.alive for w in busy)
+
+
+def cli(argv) -> SimpleNamespace:
+    """``velab ARGV`` in this process, as the entry point runs it (velab.cli.main): ``returncode`` and ``stderr``.
+    For a command's refusals, decided before anything is recorded; a ``velab record`` process of its own
+    records and refuses in tests/recording/test_record.py, test_record_process.py, test_record_faults.py and
+    tests/commands/test_record_arguments.py (each child costs ~1-2 s of CPU in imports alone)."""
+    from velab.cli import main
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            code = main([str(a) for a in argv])
+        except SystemExit as exc:
+            code = exc.code
+    return SimpleNamespace(returncode=code, stderr=err.getvalue())

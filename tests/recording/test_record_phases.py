@@ -11,7 +11,7 @@ import sys
 import h5py
 import pytest
 
-from record_helpers import rate_clock
+from record_helpers import cli, rate_clock
 from velab.errors import VelabError
 from velab.recording import Recorder, RecorderEvent, RecordSettings
 from velab.runfiles.layout import read_json
@@ -160,8 +160,7 @@ def test_run_is_self_describing_and_offline_fit_reproduces_the_online_fit(tmp_pa
 
 def test_record_options_are_checked(tmp_path):
     def rec(*a):
-        return subprocess.run(CLI + ["record", "--simulate", "--fast", "--no-fit", "--out-dir", str(tmp_path), *a],
-                              capture_output=True, text=True, timeout=120)
+        return cli(["record", "--simulate", "--fast", "--no-fit", "--out-dir", str(tmp_path), *a])
     for bad in (["--ceiling", "inf"], ["--duration", "nan"], ["--rate", "-5"], ["--repeat", "0"]):
         r = rec(*bad)
         assert r.returncode == 2 and "Traceback" not in r.stderr, (bad, r.stderr)
@@ -173,8 +172,7 @@ def test_record_options_are_checked(tmp_path):
     assert r.returncode == 2 and "above the limiting pressure" in r.stderr
     blocked = tmp_path / "file"
     blocked.write_text("x")
-    r = subprocess.run(CLI + ["record", "--simulate", "--out-dir", str(blocked / "sub")], capture_output=True,
-                       text=True, timeout=60)
+    r = cli(["record", "--simulate", "--out-dir", str(blocked / "sub")])
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--out-dir" in r.stderr
 
 
