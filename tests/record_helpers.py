@@ -130,16 +130,18 @@ def assert_halted_fit(summary, halt_s: float, busy: list) -> None:
 
 
 def cli(argv) -> SimpleNamespace:
-    """``velab ARGV`` in this process, as the entry point runs it (velab.cli.main): ``returncode`` and ``stderr``.
-    For a command's refusals, decided before anything is recorded; a ``velab record`` process of its own
-    records and refuses in tests/recording/test_record.py, test_record_process.py, test_record_faults.py and
-    tests/commands/test_record_arguments.py (each child costs ~1-2 s of CPU in imports alone)."""
+    """``velab ARGV`` in this process, as the entry point runs it (velab.cli.main): ``returncode``, ``stdout`` and
+    ``stderr``, as subprocess.run gives them. For a command whose outcome, not its process, is what a test checks
+    (a refusal decided before anything is recorded, an offline fit or listing of a file); ``velab record`` and
+    ``velab fit`` as processes of their own record, fit, refuse and are killed in tests/recording/test_record.py,
+    test_record_process.py, test_record_faults.py, tests/runfiles/test_runfile_atomic.py and
+    tests/commands/test_record_arguments.py (each child costs 1-4 s of CPU in imports alone)."""
     from velab.cli import main
 
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
         try:
             code = main([str(a) for a in argv])
         except SystemExit as exc:
             code = exc.code
-    return SimpleNamespace(returncode=code, stderr=err.getvalue())
+    return SimpleNamespace(returncode=code, stdout=out.getvalue(), stderr=err.getvalue())

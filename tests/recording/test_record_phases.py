@@ -148,8 +148,7 @@ def test_run_is_self_describing_and_offline_fit_reproduces_the_online_fit(tmp_pa
     assert "[registers.state]" in profiles["valve"]["toml"]
     assert bench["devices"]
     assert {"velab", "numpy", "scipy", "h5py", "pymodbus"} <= set(setup["versions"])
-    off = subprocess.run(CLI + ["fit", path, "--window", "12", "--models", "1-3", "--json", "--no-save"],
-                         capture_output=True, text=True, timeout=240)
+    off = cli(["fit", path, "--window", "12", "--models", "1-3", "--json", "--no-save"])
     assert off.returncode == 0, off.stderr
     offline = json.loads(off.stdout)
     best = offline["best"]
