@@ -3,10 +3,13 @@ and catch what escapes any engine thread (a traceback somewhere)."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import logging
 import threading
 import time
+from types import SimpleNamespace
 
 import pytest
 
@@ -124,3 +127,21 @@ def assert_halted_fit(summary, halt_s: float, busy: list) -> None:
     while any(w.alive for w in busy) and time.monotonic() < end:
         time.sleep(0.02)
     assert busy and not any(w.alive for w in busy)
+
+
+def cli(argv) -> SimpleNamespace:
+    """``velab ARGV`` in this process, as the entry point runs it (velab.cli.main): ``returncode``, ``stdout`` and
+    ``stderr``, as subprocess.run gives them. For a command whose outcome, not its process, is what a test checks
+    (a refusal decided before anything is recorded, an offline fit or listing of a file); ``velab record`` and
+    ``velab fit`` as processes of their own record, fit, refuse and are killed in tests/recording/test_record.py,
+    test_record_process.py, test_record_faults.py, tests/runfiles/test_runfile_atomic.py and
+    tests/commands/test_record_arguments.py (each child costs 1-4 s of CPU in imports alone)."""
+    from velab.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
+        try:
+            code = main([str(a) for a in argv])
+        except SystemExit as exc:
+            code = exc.code
+    return SimpleNamespace(returncode=code, stdout=out.getvalue(), stderr=err.getvalue())

@@ -10,13 +10,12 @@ from __future__ import annotations
 import csv
 import json
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from record_helpers import cli
 from velab.cavitation import (DETECTION_MARGIN_M, cavitating, predict_downsurge, rig_vapour_head_m,
                               vapour_head_m, vapour_pressure_pa)
 from velab.cli import main
@@ -110,9 +109,8 @@ def test_interlock_refuses_a_manoeuvre_that_would_cavitate(tmp_path):
 
 def test_velab_record_refuses_with_exit_3(tmp_path):
     rig_path = _rig_file(tmp_path, law="orifice")
-    p = subprocess.run([sys.executable, "-m", "velab.cli", "record", "--simulate", "--fast", "--sim-config",
-                        str(_sim_config(tmp_path, rig_path)), "--rig", str(rig_path), "--duration", "3", "--no-fit",
-                        "--out-dir", str(tmp_path)], capture_output=True, text=True, timeout=120)
+    p = cli(["record", "--simulate", "--fast", "--sim-config", str(_sim_config(tmp_path, rig_path)), "--rig",
+             str(rig_path), "--duration", "3", "--no-fit", "--out-dir", str(tmp_path)])
     assert p.returncode == 3, p.stderr
     lines = [line for line in p.stderr.splitlines() if "cavitation" in line]
     assert len(lines) == 1 and "vapour-pressure head" in lines[0] and "Traceback" not in p.stderr

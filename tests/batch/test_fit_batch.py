@@ -76,9 +76,26 @@ def _digest(p: Path) -> str:
     return hashlib.sha256(p.read_bytes()).hexdigest()
 
 
+# Dask's housekeeping timers, slowed in the test cluster's processes (scheduler, nannies, workers; not the
+# client): the event loop's tick monitor (20 ms), the workers' stack profiler (10 ms), the memory, system and
+# work-stealing monitors (0.1-0.5 s). At their defaults the idle cluster cost 0.17 CPU-s per second of wall
+# time, and the module's cluster lives for its tests (ten minutes of wall in a loaded suite: ~100 s of CPU);
+# at these, 0.02. None of them decides where a task runs, when a lost scheduler or worker is noticed
+# (heartbeats and comm timeouts keep their defaults) or what a fit computes.
+QUIET_DASK = {
+    "DASK_DISTRIBUTED__ADMIN__TICK__INTERVAL": "1s",
+    "DASK_DISTRIBUTED__ADMIN__SYSTEM_MONITOR__INTERVAL": "5s",
+    "DASK_DISTRIBUTED__WORKER__PROFILE__INTERVAL": "1s",
+    "DASK_DISTRIBUTED__WORKER__PROFILE__CYCLE": "10s",
+    "DASK_DISTRIBUTED__WORKER__MEMORY__MONITOR_INTERVAL": "5s",
+    "DASK_DISTRIBUTED__SCHEDULER__WORK_STEALING_INTERVAL": "1s",
+}
+
+
 def _start_cluster():
     proc = subprocess.Popen([sys.executable, "-c", CLUSTER_SCRIPT], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True, start_new_session=True)
+                            stderr=subprocess.DEVNULL, text=True, start_new_session=True,
+                            env=os.environ | QUIET_DASK)
     address = proc.stdout.readline().strip()
     assert address.startswith("tcp://127.0.0.1:"), address
     return proc, address
@@ -164,19 +181,22 @@ def test_fifty_runs_on_a_local_cluster_give_the_local_fits(sources, tmp_path, cl
     # both worker processes fitted runs, and neither is the client
     workers = {r["worker"] for r in doc["runs"]}
     assert len(workers) == 2, workers
+    # each stored fit read once (the files do not change from here on; a read is ~50 ms of h5py calls, and the
+    # checks below looked at each remote fit three times)
+    stored = {p: _stored(p) for p in local + remote}
     for a, b in zip(local, remote):
         assert runs[b.name]["status"] == "saved" and runs[b.name]["fit_name"] == FIT_NAME
-        fa, fb = _stored(a), _stored(b)
+        fa, fb = stored[a], stored[b]
         _close(fa, fb, a.name)  # the same fit, stored the same way
         common = set(runs[b.name]) & set(fb)
         assert {"models", "best", "n", "settings"} <= common
         _close({k: runs[b.name][k] for k in common}, {k: fb[k] for k in common}, f"json {b.name}")
         assert _head(b) == heads[a.name]  # the recorded data untouched
     # the five different records gave five different fits, each where it belongs
-    best_speed = {round(_stored(p)["models"][1]["wave_speed"], 6) for p in remote}
+    best_speed = {round(stored[p]["models"][1]["wave_speed"], 6) for p in remote}
     assert len(best_speed) == len(SOURCES)
     for i, p in enumerate(remote):
-        _close(_stored(p), _stored(remote[i % len(SOURCES)]), p.name)
+        _close(stored[p], stored[remote[i % len(SOURCES)]], p.name)
     assert not [f for f in os.listdir(tmp_path / "cluster") if f.startswith(".")]  # no temporary or lock file
 
 

@@ -16,7 +16,7 @@ import h5py
 import numpy as np
 import pytest
 
-from record_helpers import rate_clock
+from record_helpers import cli, rate_clock
 from velab.errors import SafetyError, VelabError
 from velab.recording import Recorder, RecordSettings, RunRefused
 from velab.runfiles.reader import read_run
@@ -217,12 +217,11 @@ def test_cli_a_manoeuvre_outside_the_actuators_profile_is_bad_input_and_writes_n
     a device failure, exit 5, with a "failed" run file); --ceiling under the predicted peak: exit 3, none."""
     for extra, code, said in ((["--beta", "5000"], 2, "beta = 5000.0 1/s is above the profile maximum 200"),
                               (["--ceiling", "40"], 3, "reaches the pressure ceiling 40.0 m")):
-        out = subprocess.run(
+        out = cli(
             # the servo actuator's bench (its profile's range; a fired valve takes no manoeuvre at all:
             # tests/recording/test_record_daq_benches.py)
-            [sys.executable, "-m", "velab.cli", "record", "--simulate", "--sim-config", "default", "--fast",
-             "--duration", "3", "--no-fit", "--out-dir", str(tmp_path), *extra], capture_output=True, text=True,
-            timeout=120)
+            ["record", "--simulate", "--sim-config", "default", "--fast",
+             "--duration", "3", "--no-fit", "--out-dir", str(tmp_path), *extra])
         assert out.returncode == code, out.stderr
         errors = [line for line in out.stderr.splitlines() if line.startswith("velab:")]
         assert len(errors) == 1 and said in errors[0] and "Traceback" not in out.stderr, out.stderr
@@ -267,13 +266,11 @@ def test_cli_simulate_with_another_rig_simulates_that_rig(tmp_path):
 
 
 def test_cli_refusal_exit_code_and_one_line_error(tmp_path):
-    out = subprocess.run(
-        [sys.executable, "-m", "velab.cli", "record", "--simulate", "--fast", "--duration", "3", "--no-fit",
-         "--surge-margin", "1.0", "--out-dir", str(tmp_path)], capture_output=True, text=True, timeout=120)
+    out = cli(["record", "--simulate", "--fast", "--duration", "3", "--no-fit", "--surge-margin", "1.0",
+                "--out-dir", str(tmp_path)])
     assert out.returncode == 3
     assert "Traceback" not in out.stderr and "refused" in out.stderr
-    bad = subprocess.run([sys.executable, "-m", "velab.cli", "record", "--simulate", "--duration", "3",
-                          "--window", "20", "--out-dir", str(tmp_path)], capture_output=True, text=True, timeout=60)
+    bad = cli(["record", "--simulate", "--duration", "3", "--window", "20", "--out-dir", str(tmp_path)])
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
 
 

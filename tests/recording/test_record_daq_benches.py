@@ -17,6 +17,7 @@ import h5py
 import numpy as np
 import pytest
 
+from record_helpers import cli
 from velab.recording import Recorder, RecordSettings
 from velab.runfiles.reader import read_run
 from velab.simulators.rig import ValveState
@@ -93,9 +94,8 @@ def test_a_fired_valve_that_does_not_move_is_a_named_fault(tmp_path):
 
 def test_a_commanded_manoeuvre_is_refused_for_a_fired_valve(tmp_path):
     """A fired actuator's stroke is its own: a --beta for it is bad input, refused before anything moves."""
-    out = subprocess.run([sys.executable, "-m", "velab.cli", "record", "--simulate", "--fast", "--beta", "40",
-                          "--no-fit", "--duration", "3", "--out-dir", str(tmp_path)],
-                         capture_output=True, text=True, timeout=120)
+    out = cli(["record", "--simulate", "--fast", "--beta", "40", "--no-fit", "--duration", "3",
+               "--out-dir", str(tmp_path)])
     assert out.returncode == 2, (out.returncode, out.stderr)
     errors = [x for x in out.stderr.splitlines() if x.startswith("velab:")]  # (the progress lines before it)
     assert len(errors) == 1 and "fired" in errors[0], out.stderr

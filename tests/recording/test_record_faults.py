@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 import pytest
 
-from record_helpers import CWF, fast_sim, recorder, run_bounded, short_settings, thread_errors  # noqa: F401 - a fixture
+from record_helpers import CWF, cli, fast_sim, recorder, run_bounded, short_settings, thread_errors  # noqa: F401 - a fixture
 from velab.recording import Recorder, RecordSettings, RunRefused
 from velab.runfiles.reader import read_run
 
@@ -86,15 +86,13 @@ def test_sigkill_keeps_every_flushed_sample(tmp_path):
     assert run.n_samples >= seen  # everything a reader saw before the kill is in the file
     assert np.allclose(np.diff(run.time_s), 1e-3)
     assert np.array_equal(run.channels["sample_index"], np.arange(run.n_samples))
-    info = subprocess.run([sys.executable, "-m", "velab.cli", "info", str(path)], capture_output=True, text=True,
-                          timeout=60)
+    info = cli(["info", str(path)])
     assert "INCOMPLETE" in info.stdout
     # the incomplete file is fitted over what it holds after the trigger: a 4 s window
     after = run.duration_after_trigger_s
     assert after >= 4.2, after  # the instant measured from the feedback may move it a little
     window = "4.0"
-    fit = subprocess.run([sys.executable, "-m", "velab.cli", "fit", str(path), "--window", window, "--models", "1-3",
-                          "--json", "--no-save"], capture_output=True, text=True, timeout=120)
+    fit = cli(["fit", str(path), "--window", window, "--models", "1-3", "--json", "--no-save"])
     assert fit.returncode == 0, fit.stderr
 
 

@@ -11,7 +11,7 @@ import sys
 import h5py
 import pytest
 
-from record_helpers import rate_clock
+from record_helpers import cli, rate_clock
 from velab.errors import VelabError
 from velab.recording import Recorder, RecorderEvent, RecordSettings
 from velab.runfiles.layout import read_json
@@ -148,8 +148,7 @@ def test_run_is_self_describing_and_offline_fit_reproduces_the_online_fit(tmp_pa
     assert "[registers.state]" in profiles["valve"]["toml"]
     assert bench["devices"]
     assert {"velab", "numpy", "scipy", "h5py", "pymodbus"} <= set(setup["versions"])
-    off = subprocess.run(CLI + ["fit", path, "--window", "12", "--models", "1-3", "--json", "--no-save"],
-                         capture_output=True, text=True, timeout=240)
+    off = cli(["fit", path, "--window", "12", "--models", "1-3", "--json", "--no-save"])
     assert off.returncode == 0, off.stderr
     offline = json.loads(off.stdout)
     best = offline["best"]
@@ -160,8 +159,7 @@ def test_run_is_self_describing_and_offline_fit_reproduces_the_online_fit(tmp_pa
 
 def test_record_options_are_checked(tmp_path):
     def rec(*a):
-        return subprocess.run(CLI + ["record", "--simulate", "--fast", "--no-fit", "--out-dir", str(tmp_path), *a],
-                              capture_output=True, text=True, timeout=120)
+        return cli(["record", "--simulate", "--fast", "--no-fit", "--out-dir", str(tmp_path), *a])
     for bad in (["--ceiling", "inf"], ["--duration", "nan"], ["--rate", "-5"], ["--repeat", "0"]):
         r = rec(*bad)
         assert r.returncode == 2 and "Traceback" not in r.stderr, (bad, r.stderr)
@@ -173,8 +171,7 @@ def test_record_options_are_checked(tmp_path):
     assert r.returncode == 2 and "above the limiting pressure" in r.stderr
     blocked = tmp_path / "file"
     blocked.write_text("x")
-    r = subprocess.run(CLI + ["record", "--simulate", "--out-dir", str(blocked / "sub")], capture_output=True,
-                       text=True, timeout=60)
+    r = cli(["record", "--simulate", "--out-dir", str(blocked / "sub")])
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--out-dir" in r.stderr
 
 
