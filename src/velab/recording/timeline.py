@@ -126,8 +126,8 @@ class Timeline:
         self.lead_window_s = lead_window_s
         self.on_lead = on_lead
         self._lead_sent = False
-        # quick fits at these instants after the trigger; with a lead at 80 %, not the one just
-        # before it (the lead would cancel it)
+        # quick fits at these instants after the trigger; with a lead, only those well before its end
+        # (the lead would cancel them)
         quick = [f * settings.fit_window_s for f in QUICK_FRACTIONS]
         if lead_window_s is not None:
             quick = [w for w in quick if w <= lead_window_s - 0.1 * settings.fit_window_s]
