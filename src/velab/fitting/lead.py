@@ -21,7 +21,7 @@ samples; the online fit's lead is checked against what the offline one would com
 
 This module is light (no scipy): the recorder reads ``lead_window_s`` to know when to start the
 lead. The lead applies to the default search (FitOptions.default_search: method "auto", polish on, all starts) of a
-window whose first part holds at least MIN_LEAD_PERIODS wave periods 4L/a: a shorter one is
+window whose first MAX_LEAD_SHARE holds at least MIN_LEAD_PERIODS wave periods 4L/a: a shorter one is
 fitted in one step.
 """
 
