@@ -3,8 +3,9 @@ at 1 kHz, within 1 s wall on two cores): the fit path of today against the same 
 this round off, in the same process, in turn; and ``velab fit FILE --no-save`` as a user runs it (a fresh
 process: imports and the time-domain kernel's cache load included).
 
-The switches (this round's "baseline", set back to their previous values): ``velab.fitting.lead.LEAD_SHARE``
-0.8 (the lead on the window's first 80 %, the twenty-first round's; this round: half the window).
+The switches (this round's "baseline", set back to their previous values):
+``velab.fitting.prepare.LEAD_TIME_DOMAIN_POLISH`` True (the twenty-second round's lead fit polished its models on
+the time-domain model, which its continuation does again; this round: only the continuation does).
 
 The record is ``velab synth --material A`` (made once in a temporary folder). The twentieth round's switch,
 ``velab.complexops.ENABLED`` (the head model's complex tanh, sqrt and division from real ufuncs), is on in
@@ -29,11 +30,11 @@ import sys
 import tempfile
 import time
 
-from velab.fitting import fit_run, lead
+from velab.fitting import fit_run, prepare
 from velab.moc import warm_up
 from velab.runfiles import read_run
 
-SWITCHES = ((lead, "LEAD_SHARE", 0.8, 0.5),)  # (module, name, baseline's value, this round's)
+SWITCHES = ((prepare, "LEAD_TIME_DOMAIN_POLISH", True, False),)  # (module, name, baseline's value, this round's)
 
 
 @contextlib.contextmanager

@@ -58,6 +58,10 @@ CLOSURE_ROUNDS = 2
 # there than the named model under its own, it is the fit's answer. A closure refined with the S3 wall had given
 # S2 (the truth) 6 AIC units behind S3 on two records of six; under its own closure S2 gained 15 in n ln F
 RIVAL_DAIC = 20.0
+# a lead fit only seeds its continuation, which polishes on the time-domain model every model that competes
+# on the whole window: polishing the lead's as well (the continuation's starts) moved no model's F by 1e-8 on
+# the default record and cost a tenth of the fit (benchmarks/fit_speed.py's switch)
+LEAD_TIME_DOMAIN_POLISH = False
 
 
 @dataclass(frozen=True)
@@ -208,12 +212,13 @@ def fit_prepared(rec: PreparedRecord, rig: Rig, options: FitOptions | None = Non
     vi = valve_input(rec.t, rec.h, frig, rec.window_s, position_pct=rec.position, mode=opts.manoeuvre,
                      closure=closure, shape=CLOSURE_SHAPE)
     # a closure still to be refined: this sweep only seeds a continuation (the lead's, or this fit's
-    # own), which makes the time-domain polish
+    # own), which makes the time-domain polish; so does a lead fit (LEAD_TIME_DOMAIN_POLISH)
     refining = vi.source == "fitted" and closure is None
+    seeding = refining or (refine == "only" and not LEAD_TIME_DOMAIN_POLISH)
     # every model fits the steady head's offset, the baseline its prior (velab.fitting.offset);
     # a continuation under a closure its lead refined: the lead's early-window closure had taken up
     # what a fast element does, so what vanished there is searched again
-    ctx = SweepContext(lead=lead, flow=vi.flow, time_domain_polish=not refining,
+    ctx = SweepContext(lead=lead, flow=vi.flow, time_domain_polish=not seeding,
                        marginalise=None if refining else marginalise_single(frig, rec.t, rec.h, vi),
                        trust_lead=vi.source != "fitted", baseline_n=rec.steady_samples)
     result = fit_sweep(rec.t, rec.h, rig, opts, progress=progress, context=ctx)
