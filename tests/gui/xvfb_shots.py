@@ -159,8 +159,10 @@ def scenario_run(out: Path, clock: str, quick: bool = False) -> int:
     rp.operator_edit.setText("M. Rossi")
     rp.duration_spin.setValue(5.0)
     rp.pre_spin.setValue(4.5)  # 1.5 s of the armed phase at the 3x clock: time for its shot
-    rp.fit_window_spin.setValue(1.5)
-    rp.models_edit.setText("0-1")
+    # a final fit that lasts long enough to be seen (EL..S3 on 3 s): with EL, S1 on 1.5 s it could end within one
+    # of the window's phase updates on a quiet host, and the fitting phase was never shown
+    rp.fit_window_spin.setValue(3.0)
+    rp.models_edit.setText("0-3")
     rp.rate_combo.setCurrentIndex(rp.rate_combo.findData(1000.0))
     rp.out_edit.setText(str(tmp / "runs"))
     screen = win.screen().geometry()
