@@ -57,7 +57,7 @@ def test_the_same_evaluations_and_minimum_as_scipy(name):
             assert (got.nfev, got.status) == (ref.nfev, ref.status), where
 
 
-def test_the_equivalent_friction_search_is_scipys(monkeypatch):
+def test_the_equivalent_friction_search_is_scipys():
     """The fit's own call (velab.fitting.friction.equivalent_friction's cost on (-1, 1), xatol 1e-3) on a
     cost of its shape: a smooth bowl in the resistance's share."""
     for centre in (-0.7, -0.2, 0.0, 0.31, 0.95):

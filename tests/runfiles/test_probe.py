@@ -1,11 +1,13 @@
 """velab.runfiles.probe: the child that walks a file's HDF5 structure before this process reads it is kept
 for the next file, replaced after a damaged file, not shared with a forked process, and bounded by its
-deadline (VELAB_PROBE_TIMEOUT_S)."""
+deadline (VELAB_PROBE_TIMEOUT_S); started ahead (start_walker, velab fit) without being waited for."""
 
 from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
 import time
 
 import pytest
@@ -152,9 +154,6 @@ def test_start_walker_starts_nothing_for_files_it_would_not_walk(sound, tmp_path
 def test_a_child_started_ahead_and_never_used_does_not_hold_up_the_exit(sound, tmp_path):
     """A command that fails before reading its file (a bad option) exits at once: the child started ahead is
     killed at exit, not waited for (its start-up made longer than the wait would be, as on a loaded host)."""
-    import subprocess
-    import sys
-
     slow = tmp_path / "slow_start"
     slow.mkdir()
     (slow / "sitecustomize.py").write_text("import time\ntime.sleep(30)\n")
