@@ -11,9 +11,10 @@ Each command runs in a fresh interpreter, the two versions in turn so that both 
 
 The command runs in-process under a small driver that times every outermost import (``builtins.__import__`` and
 ``importlib.import_module``, per thread: CPU by ``time.thread_time``, wall by ``perf_counter``); the process's
-own CPU (user + system, interpreter start included) comes from ``os.wait4``. Printed: medians over the repeats,
-the ratio after / before of each, and which heavy modules each version imported. No assertions: timings
-depend on the machine; the ratios are what to compare.
+own CPU (user + system, interpreter start included, and its reaped children's: the reader's probe child) comes
+from ``os.wait4``; the wall time spent waiting for the probe child (velab.runfiles.probe's select) is summed too.
+Printed: medians over the repeats, the ratio after / before of each, and which heavy modules each version
+imported. No assertions: timings depend on the machine; the ratios are what to compare.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-HEAVY = ("scipy.signal", "scipy.stats", "scipy.fft", "scipy.optimize", "scipy.linalg", "scipy", "numba",
+HEAVY = ("scipy.signal", "scipy.stats", "scipy.fft", "scipy.optimize", "scipy.sparse", "scipy.linalg", "scipy", "numba",
          "velab.fitting.friction")
 
 # runs in the child: argv = [result file, mode, module, mark or "", args...]
@@ -64,6 +65,22 @@ def timed(fn):
 builtins.__import__ = timed(builtins.__import__)
 importlib.import_module = timed(importlib.import_module)
 
+# the wall time this process waits for the reader's probe child (velab.runfiles.probe: its select on the child)
+import select
+probe_wait = [0.0]
+_select = select.select
+
+def timed_select(*a, **k):
+    if not sys._getframe(1).f_code.co_filename.endswith("probe.py"):
+        return _select(*a, **k)
+    w0 = time.perf_counter()
+    try:
+        return _select(*a, **k)
+    finally:
+        probe_wait[0] += time.perf_counter() - w0
+
+select.select = timed_select
+
 class Watch:
     def __init__(self, stream):
         self.stream = stream
@@ -84,6 +101,7 @@ try:
 except SystemExit as exc:
     code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
 res = {"import_cpu": tot["cpu"], "import_wall": tot["wall"], "wall": time.perf_counter() - t0, "code": code,
+       "probe_wait": probe_wait[0],
        "modules": sorted(m for m in sys.modules if m.startswith(("scipy", "numba", "velab.fitting.friction"))),
        "mark": at_mark}
 with open(out_path, "w") as f:
@@ -161,23 +179,26 @@ def main() -> None:
     load = os.getloadavg()
     print(f"# start-up of velab's processes, {platform.python_implementation()} {platform.python_version()}, "
           f"{os.cpu_count()} CPUs, load {load[0]:.1f}, {opts.repeats} runs each, medians (s)")
-    cols = ["imports cpu", "imports wall", "process cpu", "process wall"]
+    cols = ["imports cpu", "imports wall", "process cpu", "process wall", "probe wait"]
     print(f"{'command':<11}{'version':<8}" + "".join(f"{c:>14}" for c in cols) + "   heavy modules imported")
     for c, (_, _, mark, _) in commands.items():
         med = {}
         for v in versions:
             rs = results[c, v]
             if mark:  # up to the mark: the record's imports and CPU until it is armed
-                vals = [[r["mark"]["import_cpu"], r["mark"]["import_wall"], r["mark"]["cpu"], r["mark"]["wall"]]
-                        for r in rs]
+                vals = [[r["mark"]["import_cpu"], r["mark"]["import_wall"], r["mark"]["cpu"], r["mark"]["wall"],
+                         r["probe_wait"]] for r in rs]
             else:
-                vals = [[r["import_cpu"], r["import_wall"], r["cpu"], r["wall"]] for r in rs]
+                vals = [[r["import_cpu"], r["import_wall"], r["cpu"], r["wall"], r["probe_wait"]] for r in rs]
             med[v] = [statistics.median(x) for x in zip(*vals)]
             print(f"{c:<11}{v:<8}" + "".join(f"{x:>14.3f}" for x in med[v]) + "   " + heavy_of(rs[-1]["modules"]))
         if "before" in med:
-            print(f"{'':<11}{'ratio':<8}" + "".join(f"{x / y:>14.2f}" for x, y in zip(med["after"], med["before"])))
+            print(f"{'':<11}{'ratio':<8}" + "".join(f"{x / y:>14.2f}" if y > 0 else f"{'-':>14}"
+                                                    for x, y in zip(med["after"], med["before"])))
     print("record: up to its 'armed' line (process cpu: the process's CPU by then; wall: from the command's "
-          "start); the others to their end; fit: the whole fit, its imports wherever they happen")
+          "start); the others to their end; fit: the whole fit, its imports wherever they happen; probe wait: "
+          "the wall time waiting for the child that walks a run file before it is read (velab.runfiles.probe; "
+          "its start-up, then its walk)")
 
 
 if __name__ == "__main__":

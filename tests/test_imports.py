@@ -122,7 +122,41 @@ def test_the_processes_that_never_fit_import_neither_scipy_nor_the_fitter():
     assert "numba" not in loaded  # the MOC's kernel is loaded when a transient is computed, not at import
 
 
+FIT_PATH = ["velab.fitting.entry", "velab.fitservice.execute", "velab.fit_worker", "velab.fitting.joint",
+            "velab.fitting.sweep", "velab.commands.fit"]
+
+
 def test_the_fit_path_does_not_import_scipy_signal():
-    loaded = _loaded(["velab.fitting.entry", "velab.fitservice.execute", "velab.fit_worker", "velab.fitting.joint"])
+    loaded = _loaded(FIT_PATH)
     assert "velab.fitting.prepare" in loaded and "velab.filters" in loaded
     assert not [m for m in loaded if m.startswith(("scipy.signal", "scipy.stats"))]
+
+
+# scipy.optimize (~0.2-0.4 s of start-up, with scipy.sparse, scipy.spatial, scipy.constants) is imported by the
+# options that use it only (--method nelder-mead, evolution; Brunone's friction): a default fit's one scipy.optimize
+# call, the equivalent friction's bounded search, is velab.fitting.bounded (scipy's steps: tests/fitting/test_bounded.py)
+def test_the_fit_path_does_not_import_scipy_optimize():
+    loaded = _loaded(FIT_PATH)
+    assert "velab.fitting.friction" in loaded and "velab.fitting.solvers" in loaded
+    assert not [m for m in loaded if m.startswith(("scipy.optimize", "scipy.sparse", "scipy.spatial"))]
+
+
+_FIT_LOADED = r"""
+import sys, tempfile
+from pathlib import Path
+from velab.cli import main
+p = str(Path(tempfile.mkdtemp()) / "q.h5")
+assert main(["synth", "--rate", "200", "--duration", "3", "-o", p, "-q"]) == 0  # quadratic friction: the MOC
+assert main(["fit", p, "--models", "0-1", "--window", "3", "--no-save", "-q"]) == 0
+print(" ".join(sys.modules))
+"""
+
+
+@pytest.mark.timeout(300)
+def test_a_default_fit_does_not_import_scipy_optimize():
+    """The default fit of a quadratic-friction record (the equivalent friction's search runs) in a fresh process."""
+    p = subprocess.run([sys.executable, "-c", _FIT_LOADED], capture_output=True, text=True, timeout=280)
+    assert p.returncode == 0, p.stderr
+    loaded = set(p.stdout.split())
+    assert "velab.fitting.bounded" in loaded and "velab.moc.kernel" in loaded  # the fit ran, with the MOC
+    assert not [m for m in loaded if m.startswith(("scipy.optimize", "scipy.sparse", "scipy.spatial"))]

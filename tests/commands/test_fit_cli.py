@@ -280,3 +280,35 @@ def test_execute_fits_the_runs_it_is_given_only_for_their_request(two_runs):
     for request in (FitRequest(RunFiles(tuple(reversed(two_runs))), 1.5), FitRequest(RunFile(two_runs[0]), 1.5)):
         with pytest.raises(ValueError, match="not the request's"):
             execute(request, sources=sources)
+
+
+def test_the_walker_is_started_before_the_fitter_is_imported(two_runs, monkeypatch, capsys):
+    """`velab fit` starts the child that walks its run files (velab.runfiles.probe) before it imports the fitter
+    (its options' check), when the runs are read in this process: one run, a joint fit, a batch fitted here. Runs
+    fitted in fit processes (--jobs N) or on a cluster are walked there: no child here for them."""
+    from velab.commands import fit
+    from velab.errors import DataError
+    from velab.runfiles import probe
+
+    seen = []
+
+    def options(args):
+        seen.append(probe._walker)
+        raise DataError("stop here")
+
+    monkeypatch.setattr(fit, "_options", options)
+    cases = [([two_runs[0]], True), ([*two_runs, "--joint"], True), ([*two_runs, "--jobs", "1"], True),
+             ([*two_runs, "--jobs", "2"], os.cpu_count() == 1),
+             ([two_runs[0], "--scheduler", "tcp://127.0.0.1:1"], False)]
+    for argv, started in cases:
+        with probe._lock:
+            probe._known.clear()  # (the runs were written by this process: trusted, never walked)
+        if probe._walker is not None:
+            probe._walker.close()
+            probe._walker = None
+        seen.clear()
+        assert main(["fit", *argv, "--no-save"]) != 0
+        assert "stop here" in capsys.readouterr().err
+        assert (seen[0] is not None) == started, argv
+        if started:
+            assert seen[0].owner == os.getpid() and not seen[0].ready  # started, not waited for

@@ -1,11 +1,13 @@
 """velab.runfiles.probe: the child that walks a file's HDF5 structure before this process reads it is kept
 for the next file, replaced after a damaged file, not shared with a forked process, and bounded by its
-deadline (VELAB_PROBE_TIMEOUT_S)."""
+deadline (VELAB_PROBE_TIMEOUT_S); started ahead (start_walker, velab fit) without being waited for."""
 
 from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
 import time
 
 import pytest
@@ -113,3 +115,58 @@ def test_the_deadline_is_the_walks_not_the_start_up(sound, tmp_path, monkeypatch
     assert time.monotonic() - t0 >= SLOW_START_S  # (the start-up did take longer than the deadline)
     probe._walker.close()  # (not kept for the other tests: it starts slowly)
     probe._walker = None
+
+
+def _no_walker():
+    if probe._walker is not None:
+        probe._walker.close()
+        probe._walker = None
+
+
+def test_start_walker_starts_the_child_without_waiting_and_the_walk_uses_it(sound, tmp_path):
+    """velab fit starts the child as soon as it knows its files (before its own imports): the call returns at once,
+    the child's start-up runs beside this process, and the first walk is served by that child."""
+    _forget()
+    _no_walker()
+    p = _copy(sound, tmp_path, "ahead.h5")
+    probe.start_walker([str(p)])
+    started = probe._walker
+    assert started is not None and not started.ready and started.owner == os.getpid()
+    probe.start_walker([str(p)])  # a second call keeps it
+    assert probe._walker is started
+    probe.ensure_walkable(p)
+    assert probe._walker is started and started.ready and started.proc.poll() is None
+
+
+def test_start_walker_starts_nothing_for_files_it_would_not_walk(sound, tmp_path, monkeypatch):
+    _forget()
+    _no_walker()
+    probe.start_walker([str(tmp_path / "missing.h5")])  # the read will say what is wrong: no child for it
+    known = _copy(sound, tmp_path, "known.h5")
+    probe.trust(known)  # written by this process
+    probe.start_walker([known])
+    assert probe._walker is None
+    monkeypatch.setenv("VELAB_PROBE_CHILD", "1")  # the child itself: no grandchildren
+    probe.start_walker([_copy(sound, tmp_path, "other.h5")])
+    assert probe._walker is None
+
+
+def test_a_child_started_ahead_and_never_used_does_not_hold_up_the_exit(sound, tmp_path):
+    """A command that fails before reading its file (a bad option) exits at once: the child started ahead is
+    killed at exit, not waited for (its start-up made longer than the wait would be, as on a loaded host)."""
+    slow = tmp_path / "slow_start"
+    slow.mkdir()
+    (slow / "sitecustomize.py").write_text("import time\ntime.sleep(30)\n")
+    code = ("import os, sys, time\n"
+            f"os.environ['PYTHONPATH'] = {str(slow)!r} + os.pathsep + os.environ.get('PYTHONPATH', '')\n"
+            "from velab.runfiles import probe\n"
+            f"probe.start_walker([{str(_copy(sound, tmp_path, 'never.h5'))!r}])\n"
+            "assert probe._walker is not None and not probe._walker.ready\n"
+            "print(probe._walker.proc.pid, flush=True)\n")
+    t0 = time.monotonic()
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    assert time.monotonic() - t0 < 20  # not the child's 30 s start-up
+    pid = int(p.stdout.split()[0])
+    with pytest.raises(ProcessLookupError):  # killed and reaped by its parent before it ended
+        os.kill(pid, 0)

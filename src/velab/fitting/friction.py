@@ -31,10 +31,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize, minimize_scalar
 
 from velab.rig import GRAVITY_M_S2, Rig
 from velab.errors import DataError
+from velab.fitting.bounded import minimize_bounded
 from velab.friction import STEADY_LAWS, UNSTEADY_LAWS, unsteady_resistance
 from velab.model import ValveHeadModel, creep_scale, valve_head
 from velab.moc import moc_head
@@ -175,11 +175,13 @@ def equivalent_friction(ev, params, h_time: np.ndarray, unsteady: bool = False) 
     best = EquivalentFriction()
     best_cost = cost(best)
     if R > 0:
-        r = minimize_scalar(lambda v: cost(EquivalentFriction(v * R)), bounds=(-1.0, 1.0), method="bounded",
-                            options={"xatol": 1e-3})
+        # scipy.optimize.minimize_scalar(method="bounded"), step for step, without importing scipy.optimize
+        r = minimize_bounded(lambda v: cost(EquivalentFriction(v * R)), (-1.0, 1.0), xatol=1e-3)
         if r.fun < best_cost:
             best, best_cost = EquivalentFriction(float(r.x) * R), float(r.fun)
     if unsteady:
+        from scipy.optimize import minimize  # (buys start-up time: scipy.optimize only for Brunone's friction)
+
         x0 = np.array([best.dR / scale, 1.0])
         r = minimize(lambda v: cost(EquivalentFriction(v[0] * scale, max(v[1], 0.0))), x0, method="Nelder-Mead",
                      options={"xatol": 1e-3, "fatol": 1e-6 * best_cost, "maxfev": 60})

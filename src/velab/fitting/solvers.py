@@ -6,7 +6,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import differential_evolution, minimize
 
 from velab.fitting.engine import HeadEvaluator, dot, gram, sumsq
 from velab.fitting.offset import objective, project_gram
@@ -234,6 +233,8 @@ class Stage:
             step = 0.05 * max(1.0, abs(x0[i])) if i else 0.02
             xi[i] = x0[i] + step if x0[i] + step <= hi[i] else x0[i] - step
             simplex.append(xi)
+        from scipy.optimize import minimize  # (buys start-up time: scipy.optimize only for --method nelder-mead)
+
         r = minimize(f, x0, method="Nelder-Mead",
                      options={"xatol": 1e-10, "fatol": 1e-16, "maxfev": maxfev, "adaptive": True,
                               "initial_simplex": np.array(simplex)})
@@ -243,6 +244,8 @@ class Stage:
 
     def evolution(self, pm: ParamMap, seed: int, maxiter: int, x0=None) -> Sol:
         """scipy's differential evolution over the whole box (seeded with ``x0`` if given)."""
+        from scipy.optimize import differential_evolution  # (buys start-up time: only for --method evolution)
+
         lo, hi = pm.bounds()
         r = differential_evolution(
             lambda x: self.F(pm, pm.project(x)), list(zip(lo, hi)), seed=seed, maxiter=maxiter,

@@ -12,7 +12,12 @@ never touched by the parent's HDF5.
 
 The child is a small server kept for the next file (its start-up, the imports,
 costs ~0.3 s: paid once per process, not once per file, so a batch of fifty runs
-does not spend fifteen seconds starting interpreters). A child that failed on a
+does not spend fifteen seconds starting interpreters). :func:`start_walker` starts it
+without waiting for it, as soon as a command knows the files it will read (``velab fit``,
+before it imports the fitter): its start-up then runs on another core while this
+process goes on, and the first walk finds it ready. Nothing else changes: the walk's
+deadline starts when its path is sent, the start-up's own when it is first waited for,
+and a child started so that was never used is killed at exit, not waited for. A child that failed on a
 file, timed out or died is not reused: the next file gets a fresh one, so a
 damaged file can never leave a library state that another file's walk would see.
 A process that forked after starting a child does not share it (the pipes are
@@ -142,14 +147,44 @@ class _Walker:
 _walker: _Walker | None = None
 
 
+def _ours() -> _Walker | None:
+    """The walker of this process, or None (called with _walk_lock held)."""
+    global _walker
+    if _walker is not None and (_walker.owner != os.getpid() or _walker.proc.poll() is not None):
+        _walker = None  # forked from the process that started it, or gone: not ours to use
+    return _walker
+
+
+def start_walker(paths=()) -> None:
+    """Start the child that walks files now, without waiting for its start-up, when one of ``paths`` is a file
+    that :func:`ensure_walkable` will walk (not one this process wrote or walked; never in the child itself). A
+    command calls it as soon as it knows its files, so that the child's imports run beside its own. Nothing is
+    raised: a child that cannot be started is tried again, and failed as before, at the first walk."""
+    global _walker
+    if os.environ.get("VELAB_PROBE_CHILD"):
+        return
+    keys = [_key(Path(p)) for p in paths]
+    with _lock:
+        if not any(k is not None and k not in _known for k in keys):
+            return  # nothing to walk (missing files included: the read says what is wrong)
+    if not _walk_lock.acquire(blocking=False):
+        return  # a walk is under way: the child exists
+    try:
+        if _ours() is None:
+            _walker = _Walker()
+    except OSError:
+        pass
+    finally:
+        _walk_lock.release()
+
+
 def _walk(path: Path) -> tuple[int, str]:
-    """Walk ``path`` in the child (started on first use, replaced after any failure)."""
+    """Walk ``path`` in the child (started on first use, or by :func:`start_walker`; replaced after any
+    failure)."""
     global _walker
     timeout_s = probe_timeout_s()
     with _walk_lock:
-        if _walker is not None and (_walker.owner != os.getpid() or _walker.proc.poll() is not None):
-            _walker = None  # forked from the process that started it, or gone: not ours to use
-        if _walker is None:
+        if _ours() is None:
             _walker = _Walker()
         w = _walker
         try:
@@ -177,6 +212,9 @@ def _walk(path: Path) -> tuple[int, str]:
 def _close_walker() -> None:
     w = _walker
     if w is not None and w.owner == os.getpid():
+        if not w.ready:  # started ahead (start_walker) and never used: its imports are not waited for
+            w.close()
+            return
         try:
             w.proc.stdin.close()  # the server ends at its input's end
             w.proc.wait(timeout=2.0)
