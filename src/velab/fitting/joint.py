@@ -44,8 +44,10 @@ from velab.fitting.parallel import map_each
 from velab.fitting.jointresult import JointResult
 from velab.fitting.params import ParamMap, derive_bounds
 from velab.fitting.parts import Part, Record
+# the single path's closure rules, one fact in one place: the stacked engine applies them too (refine_closures)
+from velab.fitting.prepare import CLOSURE_ROUNDS, RIVAL_DAIC
 from velab.fitting.results import ModelFit, SweepResult, model_name
-from velab.fitting.selection import aic_of, apply_criteria, pays, pooled_ar1
+from velab.fitting.selection import aic_ar1, aic_of, apply_criteria, pays, pooled_ar1
 from velab.fitting.solvers import Sol, Stage
 from velab.fitting.starts import (RACE_KEEP, distinct, nested_starts, race_starts, reduced_then_full, scan_wave_speed,
                                   tau_grids)
@@ -114,7 +116,8 @@ class StackedSweep:
         self.runs, self.bounds, self.selection, self.progress = runs, bounds, selection, progress
         self.final: dict[int, _Model] = {}
         self.not_searched: list[int] = []
-        self.not_continued: list[int] = []  # models not polished after the closures' refinement (refine_closures)
+        self.not_continued: list[int] = []  # models not polished after the closures' last refinement (refine_closures)
+        self.closure_notes: list[str] = []  # what the closures' rounds and the rival's comparison did (refine_closures)
         dt = min(float(r.rec.t[1] - r.rec.t[0]) * r.qc for r in runs)
         window = max(r.rec.window_s for r in runs)
         self.tau_lo = max(2 * dt, bounds.tau_min_s)
@@ -267,6 +270,30 @@ class StackedSweep:
             r.var = float(F)
 
     # ------------------------------------------------------------ summary
+    def pooled(self, fin: _Model) -> tuple[float, float, float]:
+        """(F, rho, s_e^2) of ``fin`` over the parts: F = exp(sum n_r ln F_r / N), and each part's residual lag-1
+        and AR(1) innovation variance pooled (velab.fitting.selection.pooled_ar1) -- the summary's."""
+        terms = []
+        for r, h in zip(self.runs, fin.heads):
+            raw = h - r.rec.h
+            res = fitted(raw, r.steady_n)  # (with the part's steady head offset, velab.fitting.offset)
+            rho = lag1(res)
+            base_term = (objective(raw, r.steady_n) - sumsq(res)) / r.n
+            terms.append((r.n, rho, ar1_innovation_var(res, rho) + base_term))
+        n_tot = sum(r.n for r in self.runs)
+        rho_p, innovation_var = pooled_ar1(terms, n_tot)
+        return math.exp(fin.loglik(self.runs) / n_tot), rho_p, innovation_var
+
+    def criterion(self, fin: _Model, k_nuisance: int) -> float:
+        """The selection criterion of ``fin`` as its summary gives it to apply_criteria (AIC_AR1 of the pooled
+        terms, or the white AIC; k = the wall's 2m + 1 plus ``k_nuisance``), without the summary's Jacobian."""
+        n_tot = sum(r.n for r in self.runs)
+        k = fin.sol.pm.size + k_nuisance
+        if self.selection == "ar1":
+            _, rho, innovation_var = self.pooled(fin)
+            return aic_ar1(n_tot, k, innovation_var, rho)
+        return aic_of(fin.loglik(self.runs), k)
+
     def summarise(self, m: int, fin: _Model, k_nuisance: int, nuisance=None) -> ModelFit:
         """The ModelFit of the joint wall: standard errors from the stacked weighted Jacobian at the fit
         rate (weights 1/F_r; inflated for the residuals' lag-1 as for one run), marginalised over the records'
@@ -298,16 +325,7 @@ class StackedSweep:
                              objective(res, st.baseline) / res.size, lag1(fitted(res, st.baseline)), self.runs[0].rig)
         for r, v in zip(self.runs, saved):
             r.var = v
-        # per run: its residual's lag-1 and AR(1) innovation variance, pooled (velab.fitting.selection.pooled_ar1)
-        terms = []
-        for r, h in zip(self.runs, fin.heads):
-            raw = h - r.rec.h
-            res = fitted(raw, r.steady_n)  # (with the part's steady head offset, velab.fitting.offset)
-            rho = lag1(res)
-            base_term = (objective(raw, r.steady_n) - sumsq(res)) / r.n
-            terms.append((r.n, rho, ar1_innovation_var(res, rho) + base_term))
-        rho_p, innovation_var = pooled_ar1(terms, n_tot)
-        F = math.exp(fin.loglik(self.runs) / n_tot)
+        F, rho_p, innovation_var = self.pooled(fin)
         ratio = None
         if all(r.noise_var for r in self.runs):
             ratio = math.exp(sum(r.n * math.log(F_r / r.noise_var) for r, F_r in zip(self.runs, fin.F_runs)) / n_tot)
@@ -385,7 +403,8 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options
     if sw.not_continued:
         result.notes.append(", ".join(model_name(m) for m in sw.not_continued)
                             + f": not polished again after the closures' refinement (behind the best by more than "
-                              f"{continue_margin(parts):.0f} in AIC): the first pass's wall under the refined closures")
+                              f"{continue_margin(parts):.0f} in AIC): the wall before it under the refined closures")
+    result.notes.extend(sw.closure_notes)
     result.duration_s = time.perf_counter() - t0
     result.evaluations = 0
     return result
@@ -395,21 +414,91 @@ def refine_closures(sw: StackedSweep, records: list[Record], ms) -> None:
     """The fitted closures refined on each record's whole window with the first pass's best wall (every wave
     front carries the closure's shape; from its early window alone a slow element takes up a wrong shape),
     then every model within CONTINUE_MARGIN of the best continued from its optimum under them (the others
-    evaluated there: ``sw.not_continued``)."""
-    for _ in range(REFINE_PASSES if any(r.vi.source == "fitted" for r in records) else 0):
-        first = _first_pass_best(sw, ms)
-        p = first.sol.pm.unpack(first.sol.x)
-        map_each(lambda r: r.refine(p, sw.bounds), records)
-        top = max(ms)
-        at = {m: sw.evaluate(sw.final[m].sol) for m in range(top + 1) if m not in sw.not_searched}
-        best = min(f.white_aic(sw.runs) for f in at.values())
-        margin = continue_margin(sw.runs)
-        for m in range(0, top + 1):
-            if m in at and at[m].white_aic(sw.runs) > best + margin:
-                sw.not_continued.append(m)
-                sw.final[m] = sw.guarded(m, at[m])
-            else:
-                sw.final[m] = sw.continue_model(m, sw.final[m], at.get(m))
+    evaluated there: ``sw.not_continued``). Then the single path's closure honesty (velab.fitting.prepare):
+    when the model named (the selection criterion, as the summary gives it) is not the one the closures were
+    refined with, they are refined again with its wall and every model continued, at most CLOSURE_ROUNDS times
+    and only while a closure moves; and the nearest smaller rival within RIVAL_DAIC of the named model is
+    compared under the closures refined with its own wall (``_own_closures``). What they did:
+    ``sw.closure_notes``."""
+    if not any(r.vi.source == "fitted" for r in records):
+        return
+    for _ in range(REFINE_PASSES):
+        _refine_and_continue(sw, records, ms, _first_pass_best(sw, ms), always=True)
+    k_nuis = sum(r.vi.k for r in records)
+    for _ in range(CLOSURE_ROUNDS):
+        named = _named(sw, ms, k_nuis)
+        if all(r.vi.source != "fitted" or not r.vi.refined_with or r.vi.refined_with == model_name(named)
+               for r in records):
+            break
+        before = records[0].vi.refined_with if len(records) == 1 else "another model"
+        if not _refine_and_continue(sw, records, ms, sw.final[named]):
+            break  # (the refinement found no better closure for that model)
+        sw.closure_notes.append(f"the closure{'s' if len(records) > 1 else ''} refined again with the "
+                                f"{model_name(named)} wall (the model named under those refined with {before}'s), "
+                                f"every model continued")
+    _own_closures(sw, records, ms, k_nuis)
+
+
+def _named(sw: StackedSweep, ms, k_nuis: int) -> int:
+    """The model the fit names: the least selection criterion of ``ms`` (ties to the smaller), as summarised."""
+    return min(sorted(ms), key=lambda m: sw.criterion(sw.final[m], k_nuis))
+
+
+def _refine_and_continue(sw: StackedSweep, records: list[Record], ms, wall: _Model, always: bool = False) -> bool:
+    """Each record's fitted closure refined with the wall of ``wall`` and, if one moved (or ``always``), every
+    model continued under them (``_continue_all``); whether one moved."""
+    p = wall.sol.pm.unpack(wall.sol.x)
+    moved = any(map_each(lambda r: r.refine(p, sw.bounds), records))
+    if moved or always:
+        _continue_all(sw, ms)
+    return moved
+
+
+def _continue_all(sw: StackedSweep, ms) -> None:
+    """Every model within CONTINUE_MARGIN of the best (white AIC at its wall under the records' present
+    closures) polished again from its optimum, the others evaluated there (``sw.not_continued``)."""
+    top = max(ms)
+    at = {m: sw.evaluate(sw.final[m].sol) for m in range(top + 1) if m not in sw.not_searched}
+    best = min(f.white_aic(sw.runs) for f in at.values())
+    margin = continue_margin(sw.runs)
+    sw.not_continued = []
+    for m in range(0, top + 1):
+        if m in at and at[m].white_aic(sw.runs) > best + margin:
+            sw.not_continued.append(m)
+            sw.final[m] = sw.guarded(m, at[m])
+        else:
+            sw.final[m] = sw.continue_model(m, sw.final[m], at.get(m))
+
+
+def _own_closures(sw: StackedSweep, records: list[Record], ms, k_nuis: int) -> None:
+    """The named model against its nearest smaller rival within RIVAL_DAIC, each under the closures refined
+    with its own wall (velab.fitting.prepare._own_closures: the closure is a nuisance shared by every model, so
+    AIC compares the models at their own optimum over it; a closure refined with one wall favours that model).
+    The rival wins when the continuation under its closures names it and its criterion there is below the
+    named model's under its own: then every model stays under the rival's closures; else all is put back. Not
+    tried when the closures are the rival's own already (last moved by a refinement with its wall: the named
+    model was better under them)."""
+    crit = {m: sw.criterion(sw.final[m], k_nuis) for m in ms}
+    named = min(sorted(ms), key=crit.get)
+    rivals = [m for m in ms if m < named and math.isfinite(crit[m]) and crit[m] - crit[named] < RIVAL_DAIC]
+    fitted_ = [r for r in records if r.vi.source == "fitted" and r.vi.refined_with]
+    if not rivals or not fitted_:
+        return
+    rival = min(rivals, key=crit.get)
+    if all(r.moved_with == model_name(rival) for r in fitted_):
+        return
+    saved = (dict(sw.final), list(sw.not_continued), [r.var for r in sw.runs], [r.state() for r in records])
+    if _refine_and_continue(sw, records, ms, sw.final[rival]):
+        again = _named(sw, ms, k_nuis)
+        if again == rival and sw.criterion(sw.final[rival], k_nuis) < crit[named]:
+            sw.closure_notes.append(f"{model_name(rival)} under the closure refined with its own wall is better than "
+                                    f"{model_name(named)} under its own: the closure is {model_name(rival)}'s")
+            return
+    sw.final, sw.not_continued = saved[0], saved[1]
+    for r, v in zip(sw.runs, saved[2]):
+        r.var = v
+    for r, state in zip(records, saved[3]):
+        r.restore(state)
 
 
 def continue_margin(parts) -> float:

@@ -51,6 +51,12 @@ class SharedTime:
             self.tm = TimeDomainModel(self.tm.rig, self.tm.t, flow=flow)
             self._key = None
 
+    def set_model(self, tm: TimeDomainModel) -> None:
+        """The time-domain model put back (``Record.restore``)."""
+        with self._lock:
+            self.tm = tm
+            self._key = None
+
     def head(self, i: int, a, J_rel, tau) -> np.ndarray:
         if len(self.xs) == 1:  # one section (at the valve): the record's own time-domain head
             return self.tm.head(a, J_rel, tau)
@@ -169,23 +175,43 @@ class Record:
         valve_rec = recs[at_valve[0]]
         self.vi = valve_input(valve_rec.t, valve_rec.h, rig, valve_rec.window_s, position_pct=valve_rec.position,
                               mode=manoeuvre, shape=CLOSURE_SHAPE)
+        self.moved_with = ""  # the model whose wall's refinement last moved the fitted closure (``refine``)
         self.shared = SharedTime(rig, valve_rec.t, self.vi.flow, [s.position_m for s in sections])
         self.parts = [Part(self, s.name, s.position_m, recs[s.name], i) for i, s in enumerate(sections)]
         self.valve = self.parts[names.index(at_valve[0])]
 
-    def refine(self, params, bounds) -> None:
+    def refine(self, params, bounds) -> bool:
         """The fitted closure refined on the valve section's whole window with the wall ``params`` = (a, J',
         tau) as the start (velab.fitting.refine: the wall is free there, only the closure is kept); every
-        part then driven by it, with its linear friction stand-in at that wall."""
+        part then driven by it, with its linear friction stand-in at that wall. Whether the closure moved (False
+        for a flow not fitted; a closure refined before that this wall does not move keeps its flow and parts,
+        and says it was refined with this wall too, as the single path's rounds do)."""
         if self.vi.source != "fitted":
-            return
+            return False
         a, J, tau = params
         E = creep_const(self.rig) * a * a / np.asarray(J)
         wall = ModelFit(name=model_name(len(J)), m=len(J), k=1 + 2 * len(J), reduced=False, n=self.valve.n,
                         F=math.nan, wave_speed_m_s=a, E_pa=tuple(E), eta_pa_s=tuple(E * np.asarray(tau)),
                         lag1_autocorr=0.0)
-        self.vi = refine_closure(self.valve.rec.t, self.valve.rec.h, self.rig, self.vi, wall, bounds)
+        old = self.vi
+        self.vi = refine_closure(self.valve.rec.t, self.valve.rec.h, self.rig, old, wall, bounds)
+        moved = self.vi.params != old.params
+        if not moved and old.refined_with:
+            return False
+        if moved:
+            self.moved_with = wall.name
         self.shared.set_flow(self.vi.flow)
         for p in self.parts:
             p.set_flow(self.vi)
             p.set_friction(params)
+        return moved
+
+    def state(self) -> tuple:
+        """The record's flow at the valve and its parts' models (``restore`` puts them back)."""
+        return self.vi, self.moved_with, self.shared.tm, [(p.ev_c, p.ev_m, p.ev_f) for p in self.parts]
+
+    def restore(self, state: tuple) -> None:
+        self.vi, self.moved_with, tm, evs = state
+        self.shared.set_model(tm)
+        for p, (ev_c, ev_m, ev_f) in zip(self.parts, evs):
+            p.ev_c, p.ev_m, p.ev_f = ev_c, ev_m, ev_f

@@ -60,7 +60,8 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
                            tau_min_s=tau_min_s, tau_max_s=tau_max_s)
     sw = StackedSweep(runs, bounds, selection, progress)
     sw.sweep(ms, progress)
-    # the fitted closure refined on the valve's whole window with the best wall, then every model continued
+    # the fitted closure refined on the valve's whole window with the best wall, then every model continued (and
+    # again with the named model's wall, and a smaller rival under its own: refine_closures)
     refine_closures(sw, [record], ms)
     top = min(sw.final.values(), key=lambda f: f.loglik(runs))
     sw.reweight(top)
@@ -88,6 +89,7 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
         result.warnings.append({"code": "model_error", "message": model_error_message(best)})
     result.notes.append(f"fit of {len(runs)} sections ({', '.join(f'{r.name} at {r.position_m:g} m' for r in runs)}): "
                         f"one wall, one flow at the valve ({vi.source}), each section's noise its own")
+    result.notes.extend(sw.closure_notes)
     result.duration_s = time.perf_counter() - t0
     result.evaluations = 0
     return result
