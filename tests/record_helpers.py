@@ -126,7 +126,8 @@ def assert_halted_fit(summary, halt_s: float, busy: list) -> None:
     end = time.monotonic() + 5
     while any(w.alive for w in busy) and time.monotonic() < end:
         time.sleep(0.02)
-    assert busy and not any(w.alive for w in busy)
+    assert busy, "no fit process was seen computing the final fit before the halt"
+    assert not any(w.alive for w in busy), "a fit process still alive 5 s after the halt"
 
 
 def cli(argv) -> SimpleNamespace:

@@ -116,7 +116,9 @@ def _on_window_closed(rec, action):
     rec.add_listener(listen)
 
 
-def _busy_workers(timeout=5.0):
+def _busy_workers(timeout=30.0):
+    """The fit processes computing a job, as soon as one is (a fresh fit process's imports take seconds on a
+    loaded host before it takes the final fit: 5 s was too short at load 6)."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         ws = [w for w in list(worker._live) if w.alive and w.busy]
