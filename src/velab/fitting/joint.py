@@ -56,7 +56,12 @@ from velab.fitting.stats import ar1_innovation_var, lag1
 from velab.fitting.summary import summarise
 from velab.fitting.options import FitOptions, stacked_search
 
-REFRESHES = 3  # time-domain (friction) refreshes of each model's optimum, at most
+# time-domain (friction) refreshes of each model's optimum, at most; each polish stops at a refresh that gains less
+# than REFRESH_GAIN in sum n ln F. Three had stopped S1 of tests/fitting/test_fit_truths.py's imperial S1 truth (the
+# rig's flow) 10.7 short of its optimum, still gaining 1,900 at the third (the first correction is the model below's,
+# far from this wall); S2 = S1 + a vanished element took those back and was named. Measured: 5 there, and on
+# benchmarks/fit_joint.py's campaign S1 and S2 (far behind S3) still gaining 250 and 0.8 at the third
+REFRESHES = 8
 REFRESH_GAIN = 0.05
 # closure refinements (each run's, with the joint wall) followed by a continuation of every model; a
 # second pass was measured to change nothing that matters (J(0.05 s) moved 0.1 %, a 0.003 m/s) for 1.5 x the time
@@ -411,10 +416,12 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options
 
 
 def refine_closures(sw: StackedSweep, records: list[Record], ms) -> None:
-    """The fitted closures refined on each record's whole window with the first pass's best wall (every wave
-    front carries the closure's shape; from its early window alone a slow element takes up a wrong shape),
-    then every model within CONTINUE_MARGIN of the best continued from its optimum under them (the others
-    evaluated there: ``sw.not_continued``). Then the single path's closure honesty (velab.fitting.prepare):
+    """The fitted closures refined with the first pass's best wall on each record's window's first part (the
+    single path's lead window, velab.fitting.parts.Record.refine: that wall was calibrated under the early-window
+    closure, and refined from it on the whole window the closure made up for the wall's error), driving the
+    whole window; then every model within CONTINUE_MARGIN of the best continued from its optimum under them (the
+    others evaluated there: ``sw.not_continued``). The rounds below refine on the whole window (every wave front
+    carries the closure's shape), each from a wall calibrated under the closure it refines. Then the single path's closure honesty (velab.fitting.prepare):
     when the model named (the selection criterion, as the summary gives it) is not the one the closures were
     refined with, they are refined again with its wall and every model continued, at most CLOSURE_ROUNDS times
     and only while a closure moves; and the nearest smaller rival within RIVAL_DAIC of the named model is
@@ -423,7 +430,7 @@ def refine_closures(sw: StackedSweep, records: list[Record], ms) -> None:
     if not any(r.vi.source == "fitted" for r in records):
         return
     for _ in range(REFINE_PASSES):
-        _refine_and_continue(sw, records, ms, _first_pass_best(sw, ms), always=True)
+        _refine_and_continue(sw, records, ms, _first_pass_best(sw, ms), always=True, first_part=True)
     k_nuis = sum(r.vi.k for r in records)
     for _ in range(CLOSURE_ROUNDS):
         named = _named(sw, ms, k_nuis)
@@ -444,11 +451,13 @@ def _named(sw: StackedSweep, ms, k_nuis: int) -> int:
     return min(sorted(ms), key=lambda m: sw.criterion(sw.final[m], k_nuis))
 
 
-def _refine_and_continue(sw: StackedSweep, records: list[Record], ms, wall: _Model, always: bool = False) -> bool:
-    """Each record's fitted closure refined with the wall of ``wall`` and, if one moved (or ``always``), every
-    model continued under them (``_continue_all``); whether one moved."""
+def _refine_and_continue(sw: StackedSweep, records: list[Record], ms, wall: _Model, always: bool = False,
+                         first_part: bool = False) -> bool:
+    """Each record's fitted closure refined with the wall of ``wall`` (on its window's first part:
+    velab.fitting.parts.Record.refine) and, if one moved (or ``always``), every model continued under them
+    (``_continue_all``); whether one moved."""
     p = wall.sol.pm.unpack(wall.sol.x)
-    moved = any(map_each(lambda r: r.refine(p, sw.bounds), records))
+    moved = any(map_each(lambda r: r.refine(p, sw.bounds, first_part), records))
     if moved or always:
         _continue_all(sw, ms)
     return moved

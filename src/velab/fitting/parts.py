@@ -14,6 +14,7 @@ fit of a campaign (velab.fitting.joint) stacks every part of every run, run afte
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from threading import Lock
 
 import numpy as np
@@ -22,7 +23,9 @@ from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator
 from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
+from velab.fitting.lead import lead_window_s
 from velab.fitting.manoeuvre import CLOSURE_SHAPE, valve_input
+from velab.fitting.options import FitOptions
 from velab.fitting.nuisance import closure_models, rows_at
 from velab.fitting.params import creep_const
 from velab.fitting.prepare import prepare_record
@@ -180,12 +183,20 @@ class Record:
         self.parts = [Part(self, s.name, s.position_m, recs[s.name], i) for i, s in enumerate(sections)]
         self.valve = self.parts[names.index(at_valve[0])]
 
-    def refine(self, params, bounds) -> bool:
+    def refine(self, params, bounds, first_part: bool = False) -> bool:
         """The fitted closure refined on the valve section's whole window with the wall ``params`` = (a, J',
         tau) as the start (velab.fitting.refine: the wall is free there, only the closure is kept); every
         part then driven by it, with its linear friction stand-in at that wall. Whether the closure moved (False
         for a flow not fitted; a closure refined before that this wall does not move keeps its flow and parts,
-        and says it was refined with this wall too, as the single path's rounds do)."""
+        and says it was refined with this wall too, as the single path's rounds do).
+
+        ``first_part``: refined on the window's first part only (``first_part_s``: the single path's lead
+        window) and then driving the whole window, as the single path's lead refines the closure its
+        continuation takes (velab.fitting.prepare). The first refinement of a closure fitted on the early
+        window starts from a wall calibrated under that closure, off by several standard errors; refined from
+        there on the whole window, the closure had made up for the wall's error in its beta and tail (an elastic
+        pipe's record: every model 3-8 in n ln F short of its fit under the closure refined on the first half,
+        and an element at the lower tau bound named; docs/decisions.md, "One engine")."""
         if self.vi.source != "fitted":
             return False
         a, J, tau = params
@@ -194,7 +205,13 @@ class Record:
                         F=math.nan, wave_speed_m_s=a, E_pa=tuple(E), eta_pa_s=tuple(E * np.asarray(tau)),
                         lag1_autocorr=0.0)
         old = self.vi
-        self.vi = refine_closure(self.valve.rec.t, self.valve.rec.h, self.rig, old, wall, bounds)
+        rec = self.valve.rec
+        n = self.first_part_n() if first_part else rec.t.size
+        if n < rec.t.size:
+            part = refine_closure(rec.t[:n], rec.h[:n], self.rig, replace(old, flow=old.flow[:n]), wall, bounds)
+            self.vi = valve_input(rec.t, rec.h, self.rig, rec.window_s, closure=part)
+        else:
+            self.vi = refine_closure(rec.t, rec.h, self.rig, old, wall, bounds)
         moved = self.vi.params != old.params
         if not moved and old.refined_with:
             return False
@@ -206,6 +223,11 @@ class Record:
             p.set_friction(params)
         return moved
 
+    def first_part_n(self) -> int:
+        """The samples of the valve section's window in its first part (``first_part_s``)."""
+        rec = self.valve.rec
+        return int(np.count_nonzero(rec.t < first_part_s(self.rig, rec.window_s) - 0.5 * float(rec.t[1] - rec.t[0])))
+
     def state(self) -> tuple:
         """The record's flow at the valve and its parts' models (``restore`` puts them back)."""
         return self.vi, self.moved_with, self.shared.tm, [(p.ev_c, p.ev_m, p.ev_f) for p in self.parts]
@@ -215,3 +237,10 @@ class Record:
         self.shared.set_model(tm)
         for p, (ev_c, ev_m, ev_f) in zip(self.parts, evs):
             p.ev_c, p.ev_m, p.ev_f = ev_c, ev_m, ev_f
+
+
+def first_part_s(rig: Rig, window_s: float) -> float:
+    """The window's first part on which a closure is first refined (``Record.refine``): the single path's lead
+    window (velab.fitting.lead.lead_window_s of the default search), the whole window if that has none."""
+    lw = lead_window_s(rig, window_s, FitOptions())
+    return window_s if lw is None else lw
