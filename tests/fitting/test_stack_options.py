@@ -114,6 +114,9 @@ def test_a_stacked_fit_without_the_polish(kind, record, runs, defaults):
     assert r.best.name == d.best.name
     for name in ("EL", "S1", "S2"):
         assert r[name].F == pytest.approx(d[name].F, rel=1e-3)
+    if kind == "campaign":  # each run's own wall (polished from the joint wall on the coarse grids too)
+        for run, run_d in zip(r.runs, d.runs):
+            assert run["own"]["F"] == pytest.approx(run_d["own"]["F"], rel=1e-3), (run["own"], run_d["own"])
 
 
 def test_the_reduced_models_are_still_refused_in_one_line(record, runs):

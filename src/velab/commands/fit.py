@@ -235,7 +235,8 @@ def _run_batch(args, opts: dict) -> int:
 
 # options of a single fit that a joint fit does not take (--method, --starts and --no-polish it does: the stacked
 # search takes them as a single fit's; the reduced models it does not fit, velab.fitting.options.stacked_search)
-_NOT_JOINT = (("reduced", "--reduced"), ("scheduler", "--scheduler"))
+_NOT_JOINT = (("reduced", "--reduced", ": the stacked sweep has no reduced models S1r..S5r"),
+              ("scheduler", "--scheduler", ""))
 
 
 def _joint_sources(args, window_s):
@@ -244,9 +245,9 @@ def _joint_sources(args, window_s):
 
     if len(args.runs) < 2:
         raise DataError("--joint needs two or more runs")
-    for key, option in _NOT_JOINT:
+    for key, option, why in _NOT_JOINT:
         if getattr(args, key, None):
-            raise DataError(f"{option} does not apply to a joint fit (--joint)")
+            raise DataError(f"{option} does not apply to a joint fit (--joint{why})")
     if args.jobs != 1:
         raise DataError("--jobs does not apply to a joint fit (--joint: one fit over all the runs)")
     return read_sources(args.runs, window_s)

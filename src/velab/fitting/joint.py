@@ -678,8 +678,9 @@ def _pooled_ratio(secs: list[dict]):
 
 def _own_wall(sw: StackedSweep, idx: list[int], fin: _Model, m: int, bounds) -> ModelFit:
     """The best model's wall fitted on one run alone -- its parts ``idx``, every section of it -- from the
-    joint wall (polish grids, the time-domain correction at the joint wall, one refresh, each section weighted
-    by its joint F), summarised at the fit rate; its F pooled over the sections as the joint F is."""
+    joint wall (polish grids -- the coarse ones without the polish, ``sw.polish_grid`` --, the time-domain
+    correction at the joint wall, one refresh, each section weighted by its joint F), summarised at the fit rate;
+    its F pooled over the sections as the joint F is."""
     parts = [sw.runs[i] for i in idx]
     weights = [1.0] if len(parts) == 1 else [1.0 / math.sqrt(float(fin.F_runs[i])) for i in idx]
     pm = fin.sol.pm
@@ -689,7 +690,7 @@ def _own_wall(sw: StackedSweep, idx: list[int], fin: _Model, m: int, bounds) -> 
     def data(grid, heads, x):
         out = []
         for r, h in zip(parts, heads):
-            ev, q = (r.ev_m, r.qm) if grid == "m" else (r.ev_f, 1)
+            ev, q = {"c": (r.ev_c, r.qc), "m": (r.ev_m, r.qm), "f": (r.ev_f, 1)}[grid]
             if not r.tm.active:
                 out.append(lowpass_decimate(r.rec.h, q) if q > 1 else r.rec.h)
             else:
@@ -697,9 +698,10 @@ def _own_wall(sw: StackedSweep, idx: list[int], fin: _Model, m: int, bounds) -> 
                 out.append((lowpass_decimate(dcorr, q) if q > 1 else dcorr) + ev.head(*pm.unpack(x)))
         return out
 
+    grid = sw.polish_grid
     for _ in range(2):
-        st = StackedEvaluator([r.ev_m for r in parts], weights)
-        x = Stage(st, st.stack(data("m", heads, x)), baseline_blocks(parts, st)).lsq(pm, x, max_nfev=30, ftol=1e-10).x
+        st = StackedEvaluator([r.ev_m if grid == "m" else r.ev_c for r in parts], weights)
+        x = Stage(st, st.stack(data(grid, heads, x)), baseline_blocks(parts, st)).lsq(pm, x, max_nfev=30, ftol=1e-10).x
         heads = [r.model_head(pm.unpack(x)) for r in parts]
     st = StackedEvaluator([r.ev_f for r in parts], weights)
     f = summarise(Stage(st, st.stack(data("f", heads, x)), baseline_blocks(parts, st)), Sol(x, math.nan, pm),
