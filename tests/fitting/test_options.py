@@ -54,9 +54,12 @@ def test_options_normalise_and_change_by_name():
 
 def test_a_stacked_fit_names_the_search_choice_it_cannot_honour():
     assert stacked_search(FitOptions(models=(1, 2)), "2 runs").models == (1, 2)
-    for choice in (dict(method="evolution"), dict(reduced=True), dict(starts=2), dict(polish=False)):
-        with pytest.raises(DataError, match="not for a fit of several sections or runs \\(2 runs;"):
-            stacked_search(FitOptions(**choice), "2 runs")
+    # every method, a cap on the starts, no polish: the stacked sweep's too (issue 51)
+    for choice in (dict(method="evolution"), dict(method="nelder-mead"), dict(method="least-squares"),
+                   dict(starts=2), dict(polish=False)):
+        assert stacked_search(FitOptions(**choice), "2 runs") == FitOptions(**choice)
+    with pytest.raises(DataError, match="reduced = True: not for a fit of several sections or runs \\(2 runs; .*S1r"):
+        stacked_search(FitOptions(reduced=True), "2 runs")
 
 
 def test_settings_are_typed_frozen_and_their_json_is_the_dict_they_were_made_from():

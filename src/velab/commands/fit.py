@@ -63,7 +63,8 @@ def register(sub) -> None:
     p.add_argument("--joint", action="store_true",
                    help="calibrate ONE wall on all the runs together (runs of one pipe: a campaign): each run keeps "
                    "its steady state, manoeuvre, friction at its Q0 and noise; the fit is saved into every run, naming "
-                   "the others (docs/fitting.md, 'Joint fits')")
+                   "the others (docs/fitting.md, 'Joint fits'); takes --method, --starts and --no-polish, not "
+                   "--reduced")
     p.add_argument("--jobs", type=int_range(1, 256), default=1, help="runs fitted in parallel (processes; default 1)")
     p.add_argument("--scheduler", type=scheduler_address, default=None, metavar="ADDRESS",
                    help="fit the runs on a Dask cluster, e.g. tcp://10.0.0.5:8786 (needs the velab[cluster] extra; "
@@ -232,9 +233,10 @@ def _run_batch(args, opts: dict) -> int:
     return report.exit_code(batch)
 
 
-# options of a single fit that a joint fit does not take (the joint search is its own)
-_NOT_JOINT = (("reduced", "--reduced"), ("starts", "--starts"), ("no_polish", "--no-polish"),
-              ("scheduler", "--scheduler"))
+# options of a single fit that a joint fit does not take (--method, --starts and --no-polish it does: the stacked
+# search takes them as a single fit's; the reduced models it does not fit, velab.fitting.options.stacked_search)
+_NOT_JOINT = (("reduced", "--reduced", ": the stacked sweep has no reduced models S1r..S5r"),
+              ("scheduler", "--scheduler", ""))
 
 
 def _joint_sources(args, window_s):
@@ -243,13 +245,11 @@ def _joint_sources(args, window_s):
 
     if len(args.runs) < 2:
         raise DataError("--joint needs two or more runs")
-    for key, option in _NOT_JOINT:
+    for key, option, why in _NOT_JOINT:
         if getattr(args, key, None):
-            raise DataError(f"{option} does not apply to a joint fit (--joint)")
+            raise DataError(f"{option} does not apply to a joint fit (--joint{why})")
     if args.jobs != 1:
         raise DataError("--jobs does not apply to a joint fit (--joint: one fit over all the runs)")
-    if args.method != "auto":
-        raise DataError(f"--method {args.method}: a joint fit has its own search (--joint takes the default)")
     return read_sources(args.runs, window_s)
 
 

@@ -49,8 +49,8 @@ from velab.fitting.prepare import CLOSURE_ROUNDS, RIVAL_DAIC
 from velab.fitting.results import ModelFit, SweepResult, model_name
 from velab.fitting.selection import aic_ar1, aic_of, apply_criteria, pays, pooled_ar1
 from velab.fitting.solvers import Sol, Stage
-from velab.fitting.starts import (RACE_KEEP, distinct, nested_starts, race_starts, reduced_then_full, scan_wave_speed,
-                                  tau_grids)
+from velab.fitting.starts import (RACE_KEEP, cap_starts, coarse_search, continues_by_lsq, distinct, nested_starts,
+                                  reduced_then_full, scan_wave_speed, tau_grids)
 from velab.fitting.stacked import StackedEvaluator
 from velab.fitting.stats import ar1_innovation_var, lag1
 from velab.fitting.summary import summarise
@@ -115,10 +115,19 @@ def assess_part(best: ModelFit, part, head, F: float, method: str) -> SweepResul
 
 class StackedSweep:
     """The sweep over stacked parts (velab.fitting.parts.Part: a run's section; named ``runs`` here, as a joint
-    fit of single-section runs has one part per run)."""
+    fit of single-section runs has one part per run).
 
-    def __init__(self, runs: list[Part], bounds, selection: str, progress=None):
+    The search (velab.fitting.options.FitOptions, as the single sweep's): ``method`` the coarse local solver
+    (velab.fitting.starts.coarse_search; "least-squares": one start), ``starts`` at most this many coarse starts a
+    model, ``seed`` the evolution's (plus m), ``polish`` False: each model's wall polished, refreshed and
+    reweighted on the coarse grid, not the polish grid ("m")."""
+
+    def __init__(self, runs: list[Part], bounds, selection: str, progress=None, *, method: str = "auto",
+                 starts: int | None = None, seed: int = 0, polish: bool = True):
         self.runs, self.bounds, self.selection, self.progress = runs, bounds, selection, progress
+        self.method, self.seed, self.polish_full = method, seed, polish
+        self.max_starts = 1 if method == "least-squares" else starts
+        self.polish_grid = "m" if polish else "c"
         self.final: dict[int, _Model] = {}
         self.not_searched: list[int] = []
         self.not_continued: list[int] = []  # models not polished after the closures' last refinement (refine_closures)
@@ -209,13 +218,17 @@ class StackedSweep:
         a_base = base.sol.pm.unpack(base.sol.x)[0]
         cands = nested_starts(base.sol, pm, self.bounds, self.tau_lo, self.tau_hi)[:-1] if base.sol.pm.m else []
         if m <= 3 and not (m == 3 and self.saturated(m)):
-            cands += [reduced_then_full(search, pm, g, a_base, "auto") for g in tau_grids(m, self.tau_lo, self.tau_hi)]
-        sols = race_starts(search, pm, cands, 60)
-        sols.sort(key=lambda s: s.F)
+            grids = tau_grids(m, self.tau_lo, self.tau_hi)
+            if self.max_starts is not None:  # (only those the cap keeps are solved)
+                grids = grids[: max(0, max(1, self.max_starts) - len(cands))]
+            cands += [reduced_then_full(search, pm, g, a_base, self.method) for g in grids]
+        sols = coarse_search(search, pm, cap_starts(cands, self.max_starts), self.method, self.seed + m, 60)
         if search is not coarse:  # the search's best distinct solutions ranked on every part
             kept = distinct([s.x for s in sols], RACE_KEEP)
             sols = sorted((coarse.sol(pm, x) for x in kept), key=lambda s: s.F)
-        x = coarse.lsq(pm, sols[0].x, max_nfev=150, ftol=1e-12).x
+        x = sols[0].x
+        if continues_by_lsq(self.method, pm):
+            x = coarse.lsq(pm, x, max_nfev=150, ftol=1e-12).x
         fin = self.polish(pm, x, base)
         if ref is not None and fin.loglik(self.runs) > ref.loglik(self.runs):
             # the nesting guard: S(m) contains S(m-1) (an element can vanish)
@@ -226,12 +239,17 @@ class StackedSweep:
     def polish(self, pm: ParamMap, x, base: _Model, first_nfev: int = 40) -> _Model:
         """Polish on the stacked polish grids with the time-domain correction at ``base``, refreshed at the
         optimum, and the runs' weights moved to their own F there (the profile likelihood's fixed point:
-        iteratively reweighted least squares), until sum n_r ln F_r stops moving."""
+        iteratively reweighted least squares), until sum n_r ln F_r stops moving. Without the polish
+        (``polish_full`` False) the same on the coarse grids, by the simplex with "nelder-mead" (as the single
+        sweep's polish_final)."""
         best = None
         cur = base
         for it in range(REFRESHES):
-            st = self.stage("m", cur)
-            x = st.lsq(pm, x, max_nfev=first_nfev if it == 0 else 20, ftol=1e-10).x
+            st = self.stage(self.polish_grid, cur)
+            if self.polish_grid == "c" and self.method == "nelder-mead" and pm.size > 1:
+                x = st.nelder_mead(pm, x, maxfev=1000).x
+            else:
+                x = st.lsq(pm, x, max_nfev=first_nfev if it == 0 else 20, ftol=1e-10).x
             cur = self.evaluate(Sol(pm.project(x), math.nan, pm))
             gain = best.loglik(self.runs) - cur.loglik(self.runs) if best is not None else math.inf
             if gain > 0:
@@ -366,7 +384,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options
     dt = min(float(p.rec.t[1] - p.rec.t[0]) for p in parts)
     bounds = derive_bounds(parts[0].rig, dt, max(p.rec.window_s for p in parts), tau_min_s=tau_min_s,
                            tau_max_s=tau_max_s)
-    sw = StackedSweep(parts, bounds, selection, progress)
+    sw = StackedSweep(parts, bounds, selection, progress, **search_options(opts))
     sw.sweep(ms, progress)
     refine_closures(sw, records, ms)
     top = min(sw.final.values(), key=lambda f: f.loglik(parts))
@@ -409,6 +427,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options
         result.notes.append(", ".join(model_name(m) for m in sw.not_continued)
                             + f": not polished again after the closures' refinement (behind the best by more than "
                               f"{continue_margin(parts):.0f} in AIC): the wall before it under the refined closures")
+    result.notes.extend(search_notes(sw))
     result.notes.extend(sw.closure_notes)
     result.duration_s = time.perf_counter() - t0
     result.evaluations = 0
@@ -544,7 +563,7 @@ def _first_pass_best(sw: StackedSweep, ms) -> _Model:
 
 def _settings(records, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s) -> dict:
     tm = records[0].parts[0].tm
-    return {"models": ms, "reduced": False, "polish": True, "selection": selection, "joint": True,
+    return {"models": ms, **search_settings(sw), "selection": selection, "joint": True,
             "bounds": bounds.to_dict(), "tau_min_s": tau_min_s, "tau_max_s": tau_max_s,
             "tau_start_range_s": [sw.tau_lo, sw.tau_hi], "not_searched": [model_name(m) for m in sw.not_searched],
             "not_continued": [model_name(m) for m in sw.not_continued],
@@ -555,6 +574,38 @@ def _settings(records, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s) 
                          "text": "each run's head is its time-domain model (its own Q0) at the wall, fitted through "
                                  "its frequency model plus a correction refreshed at the optimum"
                                  if tm.active else tm.describe()}}
+
+
+def search_options(opts: FitOptions) -> dict:
+    """The StackedSweep's search keywords from a fit's options (what velab.fitting.options.stacked_search let
+    through)."""
+    return {"method": opts.method, "starts": opts.starts, "seed": opts.seed, "polish": opts.polish}
+
+
+def search_settings(sw: StackedSweep) -> dict:
+    """What the stacked fit's settings say of its search: the method, the starts' cap, the seed, the polish."""
+    return {"reduced": False, "polish": sw.polish_full, "starts": sw.max_starts, "seed": sw.seed, "method": sw.method}
+
+
+def search_notes(sw: StackedSweep) -> list[str]:
+    """The notes of a stacked fit's search that is not the default (what F means without the polish)."""
+    out = []
+    if sw.method != "auto":
+        out.append({"least-squares": "method least-squares: each model from one start (the model below's, or the "
+                                     "first tau grid's) by least squares",
+                    "nelder-mead": "method nelder-mead: the coarse search by the simplex from every start",
+                    "evolution": "method evolution: the coarse search also by differential evolution over the whole "
+                                 f"box (seed {sw.seed} + m), seeded with the first start"}[sw.method]
+                   + " (EL: the wave-speed scan, as every method)")
+    if sw.max_starts is not None and sw.method != "least-squares":
+        out.append(f"at most {sw.max_starts} coarse start{'s' if sw.max_starts > 1 else ''} a model")
+    if not sw.polish_full:
+        q = sorted({r.qc for r in sw.runs})
+        out.append("no polish: each model's wall is fitted (its time-domain refreshes and weights too) on the "
+                   f"low-passed data decimated by {'/'.join(map(str, q))}, not on the polish grid; F is still each "
+                   "part's model head at that wall against every sample of the window (pooled over the parts), at "
+                   "the coarse grids' optimum, not the polish grids'")
+    return out
 
 
 def assess_parts(best: ModelFit, parts, fin: _Model, first: int, method: str):
@@ -627,8 +678,9 @@ def _pooled_ratio(secs: list[dict]):
 
 def _own_wall(sw: StackedSweep, idx: list[int], fin: _Model, m: int, bounds) -> ModelFit:
     """The best model's wall fitted on one run alone -- its parts ``idx``, every section of it -- from the
-    joint wall (polish grids, the time-domain correction at the joint wall, one refresh, each section weighted
-    by its joint F), summarised at the fit rate; its F pooled over the sections as the joint F is."""
+    joint wall (polish grids -- the coarse ones without the polish, ``sw.polish_grid`` --, the time-domain
+    correction at the joint wall, one refresh, each section weighted by its joint F), summarised at the fit rate;
+    its F pooled over the sections as the joint F is."""
     parts = [sw.runs[i] for i in idx]
     weights = [1.0] if len(parts) == 1 else [1.0 / math.sqrt(float(fin.F_runs[i])) for i in idx]
     pm = fin.sol.pm
@@ -638,7 +690,7 @@ def _own_wall(sw: StackedSweep, idx: list[int], fin: _Model, m: int, bounds) -> 
     def data(grid, heads, x):
         out = []
         for r, h in zip(parts, heads):
-            ev, q = (r.ev_m, r.qm) if grid == "m" else (r.ev_f, 1)
+            ev, q = {"c": (r.ev_c, r.qc), "m": (r.ev_m, r.qm), "f": (r.ev_f, 1)}[grid]
             if not r.tm.active:
                 out.append(lowpass_decimate(r.rec.h, q) if q > 1 else r.rec.h)
             else:
@@ -646,9 +698,10 @@ def _own_wall(sw: StackedSweep, idx: list[int], fin: _Model, m: int, bounds) -> 
                 out.append((lowpass_decimate(dcorr, q) if q > 1 else dcorr) + ev.head(*pm.unpack(x)))
         return out
 
+    grid = sw.polish_grid
     for _ in range(2):
-        st = StackedEvaluator([r.ev_m for r in parts], weights)
-        x = Stage(st, st.stack(data("m", heads, x)), baseline_blocks(parts, st)).lsq(pm, x, max_nfev=30, ftol=1e-10).x
+        st = StackedEvaluator([r.ev_m if grid == "m" else r.ev_c for r in parts], weights)
+        x = Stage(st, st.stack(data(grid, heads, x)), baseline_blocks(parts, st)).lsq(pm, x, max_nfev=30, ftol=1e-10).x
         heads = [r.model_head(pm.unpack(x)) for r in parts]
     st = StackedEvaluator([r.ev_f for r in parts], weights)
     f = summarise(Stage(st, st.stack(data("f", heads, x)), baseline_blocks(parts, st)), Sol(x, math.nan, pm),

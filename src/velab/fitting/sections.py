@@ -18,7 +18,8 @@ from dataclasses import dataclass, field
 
 from velab.fitting.adequacy import bound_message, model_error_message
 from velab.fitting.campaignrun import run_heads
-from velab.fitting.joint import StackedSweep, assess_parts, closure_groups, pool_baseline, refine_closures
+from velab.fitting.joint import (StackedSweep, assess_parts, closure_groups, pool_baseline, refine_closures,
+                                 search_notes, search_options, search_settings)
 from velab.fitting.params import derive_bounds
 from velab.fitting.parts import Record
 from velab.fitting.results import SweepResult
@@ -58,7 +59,7 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
     runs, valve_rec = record.parts, record.valve.rec
     bounds = derive_bounds(record.rig, float(valve_rec.t[1] - valve_rec.t[0]), valve_rec.window_s,
                            tau_min_s=tau_min_s, tau_max_s=tau_max_s)
-    sw = StackedSweep(runs, bounds, selection, progress)
+    sw = StackedSweep(runs, bounds, selection, progress, **search_options(opts))
     sw.sweep(ms, progress)
     # the fitted closure refined on the valve's whole window with the best wall, then every model continued (and
     # again with the named model's wall, and a smaller rival under its own: refine_closures)
@@ -74,7 +75,8 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
     best = result.best
     result.sections, result.warnings = _per_section(runs, sw.final[best.m], best)
     tm = record.shared.tm
-    result.settings = {"models": ms, "selection": selection, "sections": True, "bounds": bounds.to_dict(),
+    result.settings = {"models": ms, **search_settings(sw), "selection": selection, "sections": True,
+                       "bounds": bounds.to_dict(),
                        "manoeuvre": vi.describe(), "k_nuisance": vi.k,
                        "likelihood": "sum over sections of n_s ln F_s (each section's variance its own)",
                        "friction": {"steady": tm.steady, "unsteady": tm.unsteady, "time_domain": tm.active}}
@@ -89,6 +91,7 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
         result.warnings.append({"code": "model_error", "message": model_error_message(best)})
     result.notes.append(f"fit of {len(runs)} sections ({', '.join(f'{r.name} at {r.position_m:g} m' for r in runs)}): "
                         f"one wall, one flow at the valve ({vi.source}), each section's noise its own")
+    result.notes.extend(search_notes(sw))
     result.notes.extend(sw.closure_notes)
     result.duration_s = time.perf_counter() - t0
     result.evaluations = 0

@@ -70,6 +70,7 @@ class FitSettings(Mapping):
     lead_for: object = UNSET  # a lead fit: what it was made for (velab.fitting.lead.options_key)
     window_s_requested: object = UNSET  # the window asked for (None: the whole record)
     # a stacked fit (several sections, several runs: velab.fitting.joint)
+    method: object = UNSET  # its coarse search (options.METHODS; the result's method is "joint"/"sections")
     joint: object = UNSET
     sections: object = UNSET
     not_continued: object = UNSET

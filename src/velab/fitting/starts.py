@@ -144,6 +144,37 @@ def race_starts(stage: Stage, pm: ParamMap, starts: list[np.ndarray], max_nfev: 
     return out + [s for s in short if not any(s.x is x for x in kept)]
 
 
+def coarse_search(stage: Stage, pm: ParamMap, starts: list[np.ndarray], method: str, seed: int, max_nfev: int,
+                  parallel: bool = False) -> list[Sol]:
+    """The coarse local solutions of one model from ``starts``, best first, by the fit ``method``
+    (velab.fitting.options.METHODS): "nelder-mead" the simplex from every start; else the race of the starts
+    (``race_starts``, to ``max_nfev``), and with "evolution" (more than one variable) also scipy's differential
+    evolution over the whole box seeded with the first start (``seed``), ended by least squares. ("least-squares"
+    is "auto" from one start: the caller caps ``starts``.) The single sweep's (velab.fitting.sweep) and the
+    stacked one's (velab.fitting.joint), one rule; with "nelder-mead" neither continues its winner by least squares
+    on the coarse grid (``continues_by_lsq``)."""
+    sols: list[Sol] = []
+    if method == "evolution" and pm.size > 1:
+        s = stage.evolution(pm, seed, maxiter=60, x0=starts[0] if starts else None)
+        sols.append(stage.lsq(pm, s.x, max_nfev=max_nfev, ftol=1e-10))
+    if method == "nelder-mead":
+        sols.extend(stage.nelder_mead(pm, x0, maxfev=1000) for x0 in starts)
+    else:
+        sols.extend(race_starts(stage, pm, starts, max_nfev, parallel=parallel))
+    sols.sort(key=lambda s: s.F)
+    return sols
+
+
+def continues_by_lsq(method: str, pm: ParamMap) -> bool:
+    """Whether the coarse search's winner goes on by least squares on the coarse grid (not the simplex's)."""
+    return pm.size > 1 and method != "nelder-mead"
+
+
+def cap_starts(starts: list[np.ndarray], cap: int | None) -> list[np.ndarray]:
+    """At most ``cap`` starts (None: all; at least one)."""
+    return starts if cap is None else starts[: max(1, cap)]
+
+
 def distinct(xs: list[np.ndarray], k: int, tol: float = 0.05) -> list[np.ndarray]:
     out: list[np.ndarray] = []
     for x in xs:

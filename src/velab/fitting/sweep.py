@@ -49,8 +49,8 @@ from velab.fitting.params import FitBounds, ParamMap, creep_const, derive_bounds
 from velab.fitting.results import ModelFit, SweepResult, model_name
 from velab.fitting.selection import ELEMENT_PRICE, apply_criteria, pays, white_aic
 from velab.fitting.solvers import Sol, Stage, levenberg_marquardt
-from velab.fitting.starts import (fan_out, nested_starts, race_starts, reduced_then_full, scan_wave_speed, split_all,
-                                  tau_grids)
+from velab.fitting.starts import (cap_starts, coarse_search, continues_by_lsq, fan_out, nested_starts, reduced_then_full,
+                                  scan_wave_speed, split_all, tau_grids)
 from velab.fitting.nesting import hand_back
 from velab.fitting.summary import summarise
 from velab.model import manoeuvre_band_hz
@@ -282,16 +282,8 @@ class _Sweep:
             dc = dc - (lowpass_decimate(self.stage_f.ev.head(*xb), self.q) - self.stage_c.ev.head(*xb))
         stage = self.stage_c.with_data(dc)
         cands = self.starts(pm, red, base, stage, name)
-        sols: list[Sol] = []
-        if self.method == "evolution" and pm.size > 1:
-            s = stage.evolution(pm, self.seed + m, maxiter=60, x0=cands[0] if cands else None)
-            sols.append(stage.lsq(pm, s.x, max_nfev=80, ftol=1e-10))
-        if self.method == "nelder-mead":
-            sols.extend(self.local(stage, pm, x0, fine=False) for x0 in cands)
-        else:
-            sols.extend(race_starts(stage, pm, cands, 80, parallel=self.parallel_starts))
-        sols.sort(key=lambda s: s.F)
-        if pm.size > 1 and self.method != "nelder-mead":
+        sols = coarse_search(stage, pm, cands, self.method, self.seed + m, 80, parallel=self.parallel_starts)
+        if continues_by_lsq(self.method, pm):
             # the winner continues on the cheap objective until it stops moving along the ridge
             sols[0] = stage.lsq(pm, sols[0].x, max_nfev=400, ftol=1e-13)
         if self.stage_f is None:
@@ -359,9 +351,7 @@ class _Sweep:
             if not self.saturated(m):
                 cands.extend(fan_out(stage, lambda st, grid: reduced_then_full(st, pm, grid, a_base, self.method),
                                      tau_grids(m, self.tau_lo, self.tau_hi), self.parallel_starts))
-        if self.max_starts is not None:
-            cands = cands[: max(1, self.max_starts)]
-        return cands
+        return cap_starts(cands, self.max_starts)
 
     def saturated(self, m: int) -> bool:
         """S(m-1)'s element did not pay for itself: n ln(F(S(m-2)) / F(S(m-1))) below the AIC price of its
