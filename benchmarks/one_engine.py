@@ -23,26 +23,18 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import replace
 
-import numpy as np
 
-from velab.config import Material, load_material, load_rig
+from velab.config import load_material, load_rig
 from velab.fitting import fit_sweep
 from velab.fitting.entry import fit_record
 from velab.fitting.sections import fit_sections
 from velab.synth import SynthSettings, synthesise, with_valve_law
 
+from honesty import case as honesty_case, seeds  # (the sibling script: run from benchmarks/ or as a path)
+
 A_TRUE = 353.73
 CASES = ("imposed", "elastic", "elastic-all", "default")
-
-
-def seeds(spec: str) -> list[int]:
-    out = []
-    for part in spec.split(","):
-        lo, _, hi = part.partition("-")
-        out += list(range(int(lo), int(hi or lo) + 1))
-    return out
 
 
 def records(case: str, ss: list[int]):
@@ -52,12 +44,8 @@ def records(case: str, ss: list[int]):
         t, head, _, pos = synthesise(rig, load_material("A"), SynthSettings())
         yield "default", t, head, pos, rig, None, "S3", A_TRUE
         return
-    if case == "imposed":
-        material, a_true, truth, models = load_material("A"), A_TRUE, "S3", None
-    else:
-        rig = rig.with_changes(pipe=replace(rig.pipe, length_m=80.0), nominal_wave_speed_m_s=420.0)
-        material, a_true, truth = Material(wave_speed_m_s=420.0, elements=(), name="elastic"), 420.0, "EL"
-        models = [0, 1, 2] if case == "elastic" else None
+    rig, material, a_true, truth = honesty_case(case != "imposed")  # benchmarks/honesty.py's records
+    models = [0, 1, 2] if case == "elastic" else None
     for seed in (ss if case == "imposed" else [s for s in ss if s <= 3]):
         t, head, _, _ = synthesise(with_valve_law(rig, "imposed"), material, SynthSettings(seed=seed, duration_s=20.0))
         yield f"seed {seed}", t, head, None, rig, models, truth, a_true
