@@ -247,7 +247,7 @@ class StackedSweep:
         for it in range(REFRESHES):
             st = self.stage(self.polish_grid, cur)
             if self.polish_grid == "c" and self.method == "nelder-mead" and pm.size > 1:
-                x = st.nelder_mead(pm, x, maxfev=1000).x
+                x = st.nelder_mead(pm, x).x
             else:
                 x = st.lsq(pm, x, max_nfev=first_nfev if it == 0 else 20, ftol=1e-10).x
             cur = self.evaluate(Sol(pm.project(x), math.nan, pm))

@@ -23,6 +23,11 @@ SECANT_1D = True
 XTOL_1D = 1e-10
 
 
+# the simplex's evaluations for one model's search or polish (method "nelder-mead": the single sweep's and the
+# stacked one's)
+NELDER_MEAD_MAXFEV = 1000
+
+
 @dataclass
 class Sol:
     x: np.ndarray
@@ -217,7 +222,7 @@ class Stage:
                     left = xt
         return Sol(np.array([x]), F, pm)
 
-    def nelder_mead(self, pm: ParamMap, x0, *, maxfev: int) -> Sol:
+    def nelder_mead(self, pm: ParamMap, x0, *, maxfev: int = NELDER_MEAD_MAXFEV) -> Sol:
         """The paper's simplex search (tolerance 1e-16 on F), never worse than the start."""
         x0 = pm.project(x0)
         F0 = self.F(pm, x0)

@@ -158,7 +158,7 @@ def coarse_search(stage: Stage, pm: ParamMap, starts: list[np.ndarray], method: 
         s = stage.evolution(pm, seed, maxiter=60, x0=starts[0] if starts else None)
         sols.append(stage.lsq(pm, s.x, max_nfev=max_nfev, ftol=1e-10))
     if method == "nelder-mead":
-        sols.extend(stage.nelder_mead(pm, x0, maxfev=1000) for x0 in starts)
+        sols.extend(stage.nelder_mead(pm, x0) for x0 in starts)
     else:
         sols.extend(race_starts(stage, pm, starts, max_nfev, parallel=parallel))
     sols.sort(key=lambda s: s.F)

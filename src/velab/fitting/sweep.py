@@ -227,7 +227,7 @@ class _Sweep:
             stall = (self.d.size, STALL_GAIN) if pm.m >= STALL_FROM_M and pm.tau_free else None
             return stage.lsq(pm, x0, max_nfev=40, ftol=1e-10, stall=stall)
         if self.method == "nelder-mead":
-            return stage.nelder_mead(pm, x0, maxfev=1000)
+            return stage.nelder_mead(pm, x0)
         return stage.lsq(pm, x0, max_nfev=80, ftol=1e-10)
 
     def polish_final(self, stage: Stage, pm: ParamMap, x0) -> Sol:
@@ -235,7 +235,7 @@ class _Sweep:
         if self.stage_f is not None:
             return self.local(stage, pm, x0, fine=True)
         if self.method == "nelder-mead":
-            return stage.nelder_mead(pm, x0, maxfev=1000)
+            return stage.nelder_mead(pm, x0)
         return stage.lsq(pm, x0, max_nfev=80, ftol=1e-10)
 
     # ------------------------------------------------------------------ one model
