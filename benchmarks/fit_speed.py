@@ -1,16 +1,12 @@
 """The default fit's own speed (issue 51, What to build 7: ``velab fit`` of the default synthetic record, 20 s
-at 1 kHz, within 1 s wall on two cores): the fit path of today against the same path with the switches of
-this round off, in the same process, in turn; and ``velab fit FILE --no-save`` as a user runs it (a fresh
-process: imports and the time-domain kernel's cache load included).
+at 1 kHz, within 1 s wall on two cores): the fit path of today (the record as a stack of one part,
+velab.fitting.recordfit) against the single sweep (velab.fitting.prepare.fit_prepared: ``_Sweep``, one step, the
+engine of the single path until this round, whose path then added a lead fit), in the same process, in turn; and
+``velab fit FILE --no-save`` as a user runs it (a fresh process: imports and the time-domain kernel's cache load
+included).
 
-The switches (this round's "baseline", set back to their previous values):
-``velab.fitting.prepare.LEAD_TIME_DOMAIN_POLISH`` True (the twenty-second round's lead fit polished its models on
-the time-domain model, which its continuation does again; this round: only the continuation does).
-
-The record is ``velab synth --material A`` (made once in a temporary folder). The twentieth round's switch,
-``velab.complexops.ENABLED`` (the head model's complex tanh, sqrt and division from real ufuncs), is on in
-both. Both paths must give the same best model and every model's F and wave speed to a small fraction
-of the wave speed's standard error (printed).
+The record is ``velab synth --material A`` (made once in a temporary folder). Both paths must give the same best
+model and every model's wave speed to a small fraction of its standard error (printed).
 
     python benchmarks/fit_speed.py [--repeat 3] [--no-cli]
 
@@ -21,7 +17,6 @@ and the CLI's wall and CPU time. Timings depend on the load: check ``uptime`` fi
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import resource
 import statistics
@@ -30,23 +25,17 @@ import sys
 import tempfile
 import time
 
-from velab.fitting import fit_run, prepare
+from velab.fitting import fit_run
+from velab.fitting.prepare import fit_prepared, prepare_record
 from velab.moc import warm_up
 from velab.runfiles import read_run
 
-SWITCHES = ((prepare, "LEAD_TIME_DOMAIN_POLISH", True, False),)  # (module, name, baseline's value, this round's)
 
-
-@contextlib.contextmanager
-def switches(on: bool):
-    old = [getattr(mod, name) for mod, name, _, _ in SWITCHES]
-    for mod, name, base, new in SWITCHES:
-        setattr(mod, name, new if on else base)
-    try:
-        yield
-    finally:
-        for (mod, name, _, _), v in zip(SWITCHES, old):
-            setattr(mod, name, v)
+def single_sweep(run):
+    """The baseline: the record prepared as fit_run does and fitted by the single sweep (one step)."""
+    rec = prepare_record(run.time_s, run.head_m, run.trigger_time_s, run.rig, None, record_rate_hz=run.sample_rate_hz,
+                         position_pct=run.channels.get("valve_position"))
+    return fit_prepared(rec, run.rig)
 
 
 def cli_fit(path: str) -> tuple[float, float]:
@@ -77,17 +66,16 @@ def main(argv=None) -> int:
         results = {}
         for _ in range(args.repeat):
             for on in (False, True):  # in turn: both see the same drift of the machine's speed
-                with switches(on):
-                    t0, c0 = time.perf_counter(), time.process_time()
-                    results[on] = fit_run(run, None)
-                    times[on].append((time.perf_counter() - t0, time.process_time() - c0))
+                t0, c0 = time.perf_counter(), time.process_time()
+                results[on] = fit_run(run, None) if on else single_sweep(run)
+                times[on].append((time.perf_counter() - t0, time.process_time() - c0))
         med = {on: (statistics.median(w for w, _ in v), statistics.median(c for _, c in v)) for on, v in times.items()}
-        for on, label in ((False, "baseline (switches off)"), (True, "this round")):
+        for on, label in ((False, "single sweep (baseline)"), (True, "the stack (fit path)")):
             b = results[on].best
             print(f"  {label:24s} {med[on][0]:6.2f} s wall {med[on][1]:6.2f} s CPU  "
                   f"({', '.join(f'{w:.2f}/{c:.2f}' for w, c in times[on])})  best {b.name}, "
                   f"a = {b.wave_speed_m_s:.4f} m/s")
-        print(f"  ratio this round / baseline: wall {med[True][0] / med[False][0]:.2f}, "
+        print(f"  ratio stack / single sweep: wall {med[True][0] / med[False][0]:.2f}, "
               f"CPU {med[True][1] / med[False][1]:.2f}")
         worst = 0.0
         for old, new in zip(results[False].models, results[True].models):

@@ -1,11 +1,12 @@
-"""One engine (issue 51): a single record fitted as a stack of one part, against the single path.
+"""One engine (issue 51): a single record fitted as a stack of one part, against the single sweep.
 
-Each record is fitted both ways in this run -- the single path (velab.fitting.entry.fit_record, the product's:
-lead fit, continuation, closure rounds, the rival's own closure, time-domain polish) and a one-part stack
-(velab.fitting.sections.fit_sections with the record's one head: velab.fitting.joint's StackedSweep) -- and
+Each record is fitted both ways in this run -- the single sweep (velab.fitting.prepare.fit_prepared: ``_Sweep``,
+one step, closure rounds, the rival's own closure, time-domain polish; the single path's engine until the
+twenty-fifth round, which had added a lead fit) and a one-part stack (velab.fitting.entry.fit_record, the
+product's path: velab.fitting.recordfit, velab.fitting.joint's StackedSweep) -- and
 per record prints the model named, its wave speed a, the standard error, z = (a - truth) / SE, and the CPU
 seconds of each; then per case how many have the truth within 2 SE, how many name the true model, and the CPU
-ratio stacked / single (summed over the case's records: the baseline is this run's single path).
+ratio stacked / single (summed over the case's records: the baseline is this run's single sweep).
 
 Records (as benchmarks/honesty.py and tests/fitting/test_fit_honesty.py make them): MOC records with the paper's
 imposed sigmoid, fitted head-only with the reference rig file (orifice valve: the closure is fitted) --
@@ -28,7 +29,8 @@ import time
 from velab.config import load_material, load_rig
 from velab.fitting import fit_sweep
 from velab.fitting.entry import fit_record
-from velab.fitting.sections import fit_sections
+from velab.fitting.options import FitOptions
+from velab.fitting.prepare import fit_prepared, prepare_record
 from velab.synth import SynthSettings, synthesise, with_valve_law
 
 from honesty import case as honesty_case, seeds  # (the sibling script: run from benchmarks/ or as a path)
@@ -71,13 +73,13 @@ def cell(d: dict) -> str:
 
 
 def run_case(case: str, ss: list[int]) -> dict:
-    print(f"\n== {case} (single path | one-part stack)", flush=True)
+    print(f"\n== {case} (single sweep | one-part stack: the fit path)", flush=True)
     tot = {"n": 0, "in1": 0, "in2": 0, "named1": 0, "named2": 0, "same": 0, "cpu1": 0.0, "cpu2": 0.0}
     for label, t, head, pos, rig, models, truth, a_true in records(case, ss):
         extra = {} if models is None else {"models": models}
-        one, c1 = timed(lambda: fit_record(t, head, 0.0, rig, 20.0, record_rate_hz=1000.0, position_pct=pos, **extra))
-        two, c2 = timed(lambda: fit_sections(t, {rig.head_section.name: head}, 0.0, rig, 20.0, record_rate_hz=1000.0,
-                                             position_pct=pos, **extra))
+        one, c1 = timed(lambda: fit_prepared(prepare_record(t, head, 0.0, rig, 20.0, record_rate_hz=1000.0,
+                                                           position_pct=pos), rig, FitOptions.of(**extra)))
+        two, c2 = timed(lambda: fit_record(t, head, 0.0, rig, 20.0, record_rate_hz=1000.0, position_pct=pos, **extra))
         d1, d2 = row(one, a_true, c1), row(two, a_true, c2)
         rounds = [n for n in two.notes if "refined again" in n or "under the closure refined with its own" in n]
         print(f"{label:>8}: {cell(d1)} | {cell(d2)}" + (f"  [stack: {'; '.join(rounds)}]" if rounds else ""),

@@ -5,10 +5,9 @@ Each case records material A on the simulated rig (quadratic friction) in real t
 the run going on for ``--after`` seconds past the fit window (the recorder keeps acquiring at the
 full rate while the fit runs, as in a normal run), then re-fits the run file with
 ``velab.fitting.fit_run`` (what ``velab fit`` does) and checks that the result is the online one.
-The fit path runs a lead fit on the window's first half (velab.fitting.lead): the recorder starts it
-while the rest of the window is recorded, so the latency is the continuation's time; offline, the
-fit computes both (a best model marked "(lead not used)" means the online fit had to compute its lead
-after the window closed).
+The final fit is the whole fit of the window, started when it closes (a record as a stack of one part,
+velab.fitting.recordfit; until the twenty-fifth round a lead fit ran on the window's first half while the
+rest was recorded).
 Latency = the recorder's ``fit_latency_s``; the ratio (median over runs of latency / that run's offline
 fit time) says how much of the latency is the fit itself (1.0: all of it). ``--fit both`` (the default)
 runs every recording twice in turn, the fit in its own process (the default setting) and in the
@@ -81,9 +80,7 @@ def one(folder: str, rate: float, window_s: float, after_s: float, bench, clock:
     t_off = time.perf_counter() - t0
     same = offline.best.name == online.best.name and all(
         a.F == b.F and a.wave_speed_m_s == b.wave_speed_m_s for a, b in zip(online.models, offline.models))
-    lead = online.settings.get("lead") or {}
-    used = bool(lead) and not lead.get("computed_in_this_fit", True)  # the lead ran before the window closed
-    return float(summary.fit_latency_s), t_off, same, online.best.name + ("" if used else " (lead not used)")
+    return float(summary.fit_latency_s), t_off, same, online.best.name
 
 
 def main(argv=None) -> int:

@@ -97,7 +97,7 @@ def test_device_layer_does_not_import_the_application():
 # What the processes that never fit import (issue 51, start-up): the recorder with the simulated rig (its commands
 # and engine), velab synth, the catalogue extractor's child and the run-file reader, and the stored fit's
 # presentation: no scipy (the model transforms with numpy.fft) and none of the fitter's scipy modules (the
-# recorder takes the fit path's light policy modules, velab.fitting.options, lead and window; a stored fit's
+# recorder takes the fit path's light policy modules, velab.fitting.options and window; a stored fit's
 # results and presentation are numpy only). The fit path itself does not import scipy.signal (velab.filters),
 # whose import pulls in scipy.stats (~1.5 s).
 _LOADED = "import importlib, sys\nfor m in sys.argv[1:]:\n    importlib.import_module(m)\nprint(' '.join(sys.modules))"

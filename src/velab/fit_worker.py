@@ -11,9 +11,9 @@ multiprocessing: a lab script without an ``if __name__ == "__main__"`` guard mus
 Frames on the child's stdin/stdout: an 8-byte big-endian length, then a pickle (parent and child
 are the same program of the same user).
 
-    parent -> child   ("fit", job, call, kwargs)  fit_record(**kwargs) (call "record"), fit_lead(**kwargs)
-                                               ("lead"; velab.fitting.entry) or the fit service's
-                                               execute(request=FitRequest) ("request"; velab.fitservice)
+    parent -> child   ("fit", job, call, kwargs)  fit_record(**kwargs) (call "record"; velab.fitting.entry)
+                                               or the fit service's execute(request=FitRequest)
+                                               ("request"; velab.fitservice)
                       ("cancel", job)          end that job at its next progress call
                       ("exit",)
     child -> parent   ("ready", pid)           imports done, the time-domain kernel loaded
@@ -92,9 +92,9 @@ def _warm_up() -> None:
 def serve(inp, out) -> int:
     """The child's loop: jobs one at a time; cancels read on a thread of their own."""
     from velab.fitservice.execute import execute  # the fit service's one call into the fitter
-    from velab.fitting.entry import fit_lead, fit_record  # the one fit path
+    from velab.fitting.entry import fit_record  # the one fit path
 
-    calls = {"record": fit_record, "lead": fit_lead, "request": execute}
+    calls = {"record": fit_record, "request": execute}
 
     _warm_up()
     lock = threading.Lock()
@@ -214,8 +214,7 @@ class FitProcess:
 
     # ---------------------------------------------------------------- jobs
     def submit(self, call: str = "record", *, on_progress=None, **kwargs) -> tuple[int, Future]:
-        """Queue ``fit_record(**kwargs)`` (``call`` "record"), ``fit_lead(**kwargs)`` ("lead") or the fit
-        service's ``execute(request=...)`` ("request"); (job id, Future). The Future fails with WorkerDied
+        """Queue ``fit_record(**kwargs)`` (``call`` "record") or the fit service's ``execute(request=...)`` ("request"); (job id, Future). The Future fails with WorkerDied
         if the process dies, Cancelled if the job is cancelled, FitFailed (a RuntimeError: "Type:
         message", ``error`` the user error itself where it was one) with the fit's own error.
         ``on_progress(done, total, name)`` is called on the reply thread after each model."""

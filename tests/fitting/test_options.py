@@ -48,7 +48,7 @@ def test_options_normalise_and_change_by_name():
     assert FitOptions.of(None, polish=False) == FitOptions(polish=False)
     with pytest.raises(Exception):
         o.method = "evolution"  # frozen
-    # what a lead was made for: every choice but the threads (which do not change the result)
+    # what a fit was made with: every choice but the threads (which do not change the result)
     assert o.key() == o.replace(threads=1).key() != o.replace(seed=1).key()
 
 

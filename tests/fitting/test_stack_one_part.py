@@ -31,8 +31,9 @@ def test_an_elastic_pipes_record_is_el_in_the_stack_as_in_the_single_path():
     assert b.name == "EL" and b.support == "substantial", format_report(r, elements=False)
     assert r.settings["manoeuvre"]["refined_with"] == "EL"
     assert abs(b.wave_speed_m_s - 420.0) <= 2.0 * b.wave_speed_se_m_s
-    # S1 is EL plus an element on the lower tau bound (a model error), not support for creep
-    assert r["S1"].support == "model error", format_report(r, elements=False)
+    # S1 is EL plus an element that is negligible or on the lower tau bound (a model error): no support for creep
+    s1 = r["S1"]
+    assert s1.equivalent_to == "EL" or s1.support == "model error", format_report(r, elements=False)
 
 
 def test_the_imperial_rigs_s1_truth_is_s1_in_the_stack():

@@ -1,5 +1,5 @@
 """velab.recording.online_fit alone: the scheduling of the online fit around a stand-in fitter (the
-fit path's fit_record / fit_lead replaced, in this process): the final fit's result and latency, a
+fit path's fit_record replaced, in this process): the final fit's result and latency, a
 quick fit skipped while another runs, a halt during a fit, a failing fit, a refusal said once; the final
 outcome delivered once as a message (FitOutcome); and on the real fit service (velab.fitservice): the fit in
 its process is fit_record of the same samples bit for bit, a process killed during the final fit hands it
@@ -23,7 +23,7 @@ H = np.full(T.size, 30.0)
 
 
 class StandInFitter:
-    """fit_record / fit_lead: returns at once, or blocks until ``release`` (calling ``progress`` as a
+    """fit_record: returns at once, or blocks until ``release`` (calling ``progress`` as a
     real fit does between models), or raises ``error``."""
 
     def __init__(self, block=False, error=None):
@@ -46,7 +46,6 @@ def fitter(monkeypatch):
     def use(**kw):
         f = StandInFitter(**kw)
         monkeypatch.setattr(entry, "fit_record", f)
-        monkeypatch.setattr(entry, "fit_lead", f)
         return f
     return use
 
@@ -64,7 +63,7 @@ def test_the_final_fit_gives_the_result_its_latency_and_one_event(fitter):
     fit.start(T, H, 0.0, 2.0, final=True)
     assert fit.wait(5.0) and fit.result is not None and fit.latency_s >= 0.0 and not fit.error
     assert [(k, d["final"], d["window_s"]) for k, d in events] == [("fit", True, 2.0)]
-    assert f.calls[0]["window_s"] == 2.0 and f.calls[0]["options"].models == (1, 2, 3) and f.calls[0]["lead"] is True
+    assert f.calls[0]["window_s"] == 2.0 and f.calls[0]["options"].models == (1, 2, 3)
 
 
 def test_a_quick_fit_is_skipped_while_another_runs_and_gives_way_to_the_final(fitter):
@@ -110,8 +109,6 @@ def test_a_rig_with_several_sections_fits_them_all_in_the_final_fit_only(fitter)
     s = RecordSettings(fit=True, fit_process=False, fit_window_s=20.0, fit_models=(1, 2, 3))
     events = []
     fit = OnlineFit(load_rig("perugia_two_sections"), s, 1000.0, lambda k, d: events.append((k, d)), lambda m: None)
-    assert fit.lead_window_s() is None  # the sections' fit has no lead part
-    assert OnlineFit(load_rig("perugia"), s, 1000.0, None, None).lead_window_s() is not None
     fit.start(T, H, 0.0, 0.5, final=False, section_heads={"mid": H + 1})  # no quick variant: skipped
     assert not f.calls and not fit.busy
     fit.start(T, H, 0.0, 2.0, final=True, section_heads={"mid": H + 1})
@@ -189,7 +186,7 @@ def test_the_online_fit_in_its_process_is_fit_record_of_the_same_samples_bit_for
         fit.close()
     (o,) = delivered
     assert o.result is not None, o.error
-    here = entry.fit_record(t, h, pre, rig, 3.0, record_rate_hz=1000.0, models=[0, 1], method="auto", lead=True)
+    here = entry.fit_record(t, h, pre, rig, 3.0, record_rate_hz=1000.0, models=[0, 1], method="auto")
     for a, b in zip(o.result.models, here.models):
         assert a.F == b.F and a.wave_speed_m_s == b.wave_speed_m_s and np.array_equal(a.tau_s, b.tau_s)
     assert not messages

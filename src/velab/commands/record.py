@@ -215,7 +215,7 @@ class _Progress:
 
     def _on_fit(self, d) -> None:
         r = d["result"]
-        tag = "final" if d["final"] else "lead" if d.get("lead") else "intermediate"
+        tag = "final" if d["final"] else "intermediate"
         self.line(f"fit ({tag}, {d['window_s']:g} s window): best {r.best.name}, a = {r.best.wave_speed_m_s:.2f} m/s")
 
     # each engine event kind (velab.recording.types.RecorderEvent) -> its line or status update

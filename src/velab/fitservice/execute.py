@@ -3,7 +3,7 @@
 :func:`execute` is what every backend of the fit service runs (a thread of this process, the fit
 process of velab.fit_worker, a Dask worker): the same function with the same request, so a fit
 gives the same result bit for bit wherever it runs. It calls only the fitter's public entry points
-(velab.fitting.entry.fit_record / fit_lead / fit_run, velab.fitting.joint.fit_joint) with the request's
+(velab.fitting.entry.fit_record / fit_run, velab.fitting.joint.fit_joint) with the request's
 FitOptions, and reads run files read-only: it never writes one (the caller saves).
 
 A run file's request checks what ``velab fit`` checks before fitting: the bounded work of the window
@@ -46,7 +46,7 @@ def save_note(run) -> str:
 def execute(request: FitRequest, progress=None, sources=None):
     """Run the fit ``request`` describes here; ``progress(done, total, name)`` after each model (it may
     raise to stop the fit). Returns the SweepResult (a RunFile or a Record: a sections result for a rig
-    with several transducers; None for a lead stage whose window has no lead) or the JointResult
+    with several transducers) or the JointResult
     (RunFiles). Raises the fitter's DataError (one line) for bad data or choices.
 
     ``sources``: a RunFiles request's runs already read in this process (velab.jointfiles.read_sources of
@@ -72,9 +72,7 @@ def _record(request: FitRequest, src: Record, opts, progress):
 
     args = dict(t_s=src.t_s, head_m=src.head_m, trigger_time_s=src.trigger_time_s, rig=src.rig,
                 window_s=request.window_s, record_rate_hz=src.record_rate_hz, position_pct=src.position_pct)
-    if request.stage == "lead":
-        return entry.fit_lead(progress=progress, options=opts, **args)
-    return entry.fit_record(progress=progress, lead=request.lead, options=opts,
+    return entry.fit_record(progress=progress, options=opts,
                             section_heads=dict(src.section_heads) or None, **args)
 
 

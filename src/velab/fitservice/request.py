@@ -10,7 +10,7 @@ What to fit (``source``), one of:
 * :class:`RunFile` -- a run file (``velab.fitting.entry.fit_run``, every section of its rig);
 * :class:`RunFiles` -- two or more run files of one pipe, fitted jointly (``velab.fitting.joint.fit_joint``);
 * :class:`Record` -- a recorded head record in memory, as the recorder holds it
-  (``velab.fitting.entry.fit_record``, or ``fit_lead`` with ``stage="lead"``).
+  (``velab.fitting.entry.fit_record``).
 
 The choices are the fitter's own FitOptions (light: no scipy), passed as they are to every entry point.
 """
@@ -19,14 +19,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
 from velab.errors import DataError
 from velab.fitting.options import FitOptions
-
-STAGES = ("fit", "lead")
 
 
 # ------------------------------------------------------------------------------------------ sources
@@ -91,16 +88,11 @@ class Record:
 @dataclass(frozen=True, eq=False)
 class FitRequest:
     """One fit: ``source`` (RunFile, RunFiles or Record), ``window_s`` after the trigger (None: the whole
-    record), ``choices``. For a Record only: ``stage`` "lead" is the lead fit of a ``window_s`` fit
-    (velab.fitting.lead; its result is None when that window has none), and ``lead`` is what the fit
-    continues from (a lead SweepResult; True: computed in this fit; False: one step). ``label`` names
-    the fit in messages and thread names."""
+    record), ``choices``; ``label`` names the fit in messages and thread names."""
 
     source: RunFile | RunFiles | Record
     window_s: float | None = 20.0
     choices: FitOptions = field(default_factory=FitOptions)
-    stage: str = "fit"
-    lead: Any = True
     label: str = ""
 
     def __post_init__(self):
@@ -111,10 +103,6 @@ class FitRequest:
         w = self.window_s
         if w is not None and not (isinstance(w, (int, float)) and math.isfinite(w) and w > 0):
             raise DataError(f"window {w!r}: seconds after the trigger, above 0 (None: the whole record)")
-        if self.stage not in STAGES:
-            raise DataError(f"stage {self.stage!r}: one of {', '.join(STAGES)}")
-        if self.stage == "lead" and (not isinstance(self.source, Record) or w is None):
-            raise DataError("a lead fit is of a recorded Record, for a given window")
 
     @property
     def entry(self) -> str:
@@ -123,7 +111,7 @@ class FitRequest:
             return "joint"
         if isinstance(self.source, RunFile):
             return "run"
-        return "lead" if self.stage == "lead" else "record"
+        return "record"
 
 
 @dataclass(frozen=True)

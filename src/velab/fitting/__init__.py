@@ -19,14 +19,14 @@ from __future__ import annotations
 
 from velab.lazy import lazy_exports
 
-# the public names and their modules, imported on first use (PEP 562): the recorder reads the fit
-# path's policy (velab.fitting.lead) without loading scipy, which only the fit itself needs
+# the public names and their modules, imported on first use (PEP 562): the recorder and the GUI read the
+# options (velab.fitting.options) without loading scipy, which only the fit itself needs
 _EXPORTS = {
     "SELECTIONS": "selection", "ModelFit": "results", "SweepResult": "results", "support_category": "selection",
     "format_report": "report",
     "METHODS": "options", "FitOptions": "options", "parse_models": "options",
     "fit_sweep": "sweep", "SweepContext": "sweep",
-    "PreparedRecord": "prepare", "prepare_record": "prepare", "fit_record": "entry", "fit_lead": "entry",
+    "PreparedRecord": "prepare", "prepare_record": "prepare", "fit_record": "entry",
     "fit_run": "entry",
 }
 __all__ = list(_EXPORTS)

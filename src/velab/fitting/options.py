@@ -1,8 +1,8 @@
 """What a user chooses for a fit: ``FitOptions``, checked at the door, the same for every kind of fit.
 
 A single record, a record's several sections and a campaign of runs take one ``FitOptions``; what the fit
-derives from the record (the flow at the valve, the lead fit, the steady head's prior, the closure's
-marginalisation) is not a choice and is not here (velab.fitting.sweep.SweepContext).
+derives from the record (the flow at the valve, the steady head's prior, the closure's marginalisation) is not a
+choice and is not here.
 
     FitOptions(models=(1, 2, 3), selection="white")      # frozen; FitOptions.of(**choices) from keywords
     opts.replace(window_s=8.0)
@@ -141,12 +141,12 @@ class FitOptions:
 
     @property
     def default_search(self) -> bool:
-        """The default sweep (method "auto", the polish, every start): the one with a lead fit."""
+        """The default search: method "auto", the polish, every start."""
         return self.method == "auto" and self.polish and self.starts is None
 
     def key(self) -> str:
-        """What a fit was made with, as a string (a lead fit's ``lead_for``): every choice but ``threads``
-        (which does not change the result)."""
+        """What a fit was made with, as a string: every choice but ``threads`` (which does not change the
+        result)."""
         d = asdict(self)
         d.pop("threads")
         return repr(sorted(d.items()))

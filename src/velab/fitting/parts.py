@@ -23,9 +23,7 @@ from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate
 from velab.fitting.engine import HeadEvaluator
 from velab.fitting.friction import TimeDomainModel, equivalent_friction, fit_rig
-from velab.fitting.lead import lead_window_s
 from velab.fitting.manoeuvre import CLOSURE_SHAPE, valve_input
-from velab.fitting.options import FitOptions
 from velab.fitting.nuisance import closure_models, rows_at
 from velab.fitting.params import creep_const
 from velab.fitting.prepare import prepare_record
@@ -36,6 +34,14 @@ from velab.moc import moc_head
 from velab.rig import Rig
 
 POLISH_RATE_PER_BAND = 8.0  # the polish runs on each part's record decimated to this multiple of its band
+# the window's first part, on which a fitted closure is first refined (``Record.refine``): this share of the window,
+# or MIN_FIRST_PART_PERIODS wave periods 4 L / a (nominal) if that is longer, and none (the whole window) if those
+# periods are more than MAX_FIRST_PART_SHARE of it. Half the window: the single path's lead fit had refined its
+# closure there, and the stack refined first on the whole window had named S1 on an elastic pipe's record
+# (docs/decisions.md, "One engine")
+FIRST_PART_SHARE = 0.5
+MAX_FIRST_PART_SHARE = 0.8
+MIN_FIRST_PART_PERIODS = 5.0
 
 
 class SharedTime:
@@ -178,7 +184,8 @@ class Record:
         valve_rec = recs[at_valve[0]]
         self.vi = valve_input(valve_rec.t, valve_rec.h, rig, valve_rec.window_s, position_pct=valve_rec.position,
                               mode=manoeuvre, shape=CLOSURE_SHAPE)
-        self.moved_with = ""  # the model whose wall's refinement last moved the fitted closure (``refine``)
+        # the model whose wall's refinement over the whole window last moved the fitted closure (``refine``)
+        self.moved_with = ""
         self.shared = SharedTime(rig, valve_rec.t, self.vi.flow, [s.position_m for s in sections])
         self.parts = [Part(self, s.name, s.position_m, recs[s.name], i) for i, s in enumerate(sections)]
         self.valve = self.parts[names.index(at_valve[0])]
@@ -215,8 +222,8 @@ class Record:
         moved = self.vi.params != old.params
         if not moved and old.refined_with:
             return False
-        if moved:
-            self.moved_with = wall.name
+        if moved:  # (a refinement on the first part is not the wall's own closure over the window)
+            self.moved_with = "" if n < rec.t.size else wall.name
         self.shared.set_flow(self.vi.flow)
         for p in self.parts:
             p.set_flow(self.vi)
@@ -240,7 +247,8 @@ class Record:
 
 
 def first_part_s(rig: Rig, window_s: float) -> float:
-    """The window's first part on which a closure is first refined (``Record.refine``): the single path's lead
-    window (velab.fitting.lead.lead_window_s of the default search), the whole window if that has none."""
-    lw = lead_window_s(rig, window_s, FitOptions())
-    return window_s if lw is None else lw
+    """The window's first part on which a closure is first refined (``Record.refine``; FIRST_PART_SHARE)."""
+    shortest = MIN_FIRST_PART_PERIODS * 4.0 * rig.pipe.length_m / rig.nominal_wave_speed_m_s
+    if window_s * MAX_FIRST_PART_SHARE < shortest:
+        return window_s
+    return max(window_s * FIRST_PART_SHARE, shortest)

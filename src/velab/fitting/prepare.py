@@ -58,10 +58,6 @@ CLOSURE_ROUNDS = 2
 # there than the named model under its own, it is the fit's answer. A closure refined with the S3 wall had given
 # S2 (the truth) 6 AIC units behind S3 on two records of six; under its own closure S2 gained 15 in n ln F
 RIVAL_DAIC = 20.0
-# a lead fit only seeds its continuation, which polishes on the time-domain model every model that competes
-# on the whole window: polishing the lead's as well (the continuation's starts) moved no model's F by 1e-8 on
-# the default record and cost a tenth of the fit (benchmarks/fit_speed.py's switch)
-LEAD_TIME_DOMAIN_POLISH = False
 
 
 @dataclass(frozen=True)
@@ -191,53 +187,41 @@ def _window_position(position_pct, t: np.ndarray, i0: int, i1: int, q: int, n: i
     return decimate_head(pw, q)[:n], []
 
 
-def fit_prepared(rec: PreparedRecord, rig: Rig, options: FitOptions | None = None, *, lead: SweepResult | None = None,
-                 refine: str = "continue", progress=None) -> SweepResult:
+def fit_prepared(rec: PreparedRecord, rig: Rig, options: FitOptions | None = None, *, progress=None) -> SweepResult:
     """``fit_sweep`` on a prepared record, driven by the flow at the valve built from it
     (velab.fitting.manoeuvre; ``options.manoeuvre``: "auto", "fitted" or "rig"); the preparation goes into
-    the result (``options.window_s`` is the record's: it is prepared).
+    the result (``options.window_s`` is the record's: it is prepared). The single sweep's path, for the
+    reduced models (velab.fitting.entry.fit_record); every other fit of a record is a stack
+    (velab.fitting.recordfit).
 
-    A fitted closure is refined on the whole window with the best model's wall
-    (velab.fitting.refine). ``refine``: "continue" -- then every model is calibrated again
-    from its optimum under the refined closure (a continuation); "only" -- the refined closure is
-    stored for the continuation of this lead fit (``settings["manoeuvre_refined"]``). A continuation
-    (``lead`` given) takes the closure its lead refined. When the continuation names another model
-    than the one the closure was refined with, the closure is refined again with that model's wall and
-    every model continued once more (``CLOSURE_ROUNDS``): the closure is the named model's."""
+    A fitted closure is refined on the whole window with the best model's wall (velab.fitting.refine), then
+    every model is calibrated again from its optimum under the refined closure (a continuation). When the
+    continuation names another model than the one the closure was refined with, the closure is refined again
+    with that model's wall and every model continued once more (``CLOSURE_ROUNDS``): the closure is the named
+    model's."""
     opts = (options if options is not None else FitOptions()).replace(window_s=None)
-    closure = None
-    if isinstance(lead, SweepResult):
-        closure = lead.settings.get("manoeuvre_refined") or lead.settings.get("manoeuvre")
     frig = fit_rig(rig, opts.friction, opts.friction_unsteady)
     vi = valve_input(rec.t, rec.h, frig, rec.window_s, position_pct=rec.position, mode=opts.manoeuvre,
-                     closure=closure, shape=CLOSURE_SHAPE)
-    # a closure still to be refined: this sweep only seeds a continuation (the lead's, or this fit's
-    # own), which makes the time-domain polish; so does a lead fit (LEAD_TIME_DOMAIN_POLISH)
-    refining = vi.source == "fitted" and closure is None
-    seeding = refining or (refine == "only" and not LEAD_TIME_DOMAIN_POLISH)
-    # every model fits the steady head's offset, the baseline its prior (velab.fitting.offset);
-    # a continuation under a closure its lead refined: the lead's early-window closure had taken up
-    # what a fast element does, so what vanished there is searched again
-    ctx = SweepContext(lead=lead, flow=vi.flow, time_domain_polish=not seeding,
+                     shape=CLOSURE_SHAPE)
+    # a closure still to be refined: this sweep only seeds the continuation, which makes the time-domain polish;
+    # every model fits the steady head's offset, the baseline its prior (velab.fitting.offset)
+    refining = vi.source == "fitted"
+    ctx = SweepContext(flow=vi.flow, time_domain_polish=not refining,
                        marginalise=None if refining else marginalise_single(frig, rec.t, rec.h, vi),
-                       trust_lead=vi.source != "fitted", baseline_n=rec.steady_samples)
+                       trust_lead=not refining, baseline_n=rec.steady_samples)
     result = fit_sweep(rec.t, rec.h, rig, opts, progress=progress, context=ctx)
     if refining and result.models:
         refined = refine_closure(rec.t, rec.h, frig, vi, result.best, _bounds(result))
-        if refine == "only":
-            result.settings = result.settings.replace(manoeuvre_refined=refined.describe())
-        else:
-            result, vi = _continue(rec, rig, frig, refined, result, None, opts, progress), refined
-    if refine != "only":
-        for _ in range(CLOSURE_ROUNDS):
-            if not (vi.source == "fitted" and vi.refined_with and result.models and result.best.name != vi.refined_with):
-                break
-            refined = refine_closure(rec.t, rec.h, frig, vi, result.best, _bounds(result))
-            if refined.params == vi.params:  # (the refinement found no better closure for that model)
-                vi = refined
-                break
-            result, vi = _continue(rec, rig, frig, refined, result, result.settings["lead"], opts), refined
-    if refine != "only" and vi.source == "fitted" and vi.refined_with and result.models:
+        result, vi = _continue(rec, rig, frig, refined, result, opts, progress), refined
+    for _ in range(CLOSURE_ROUNDS):
+        if not (vi.source == "fitted" and vi.refined_with and result.models and result.best.name != vi.refined_with):
+            break
+        refined = refine_closure(rec.t, rec.h, frig, vi, result.best, _bounds(result))
+        if refined.params == vi.params:  # (the refinement found no better closure for that model)
+            vi = refined
+            break
+        result, vi = _continue(rec, rig, frig, refined, result, opts), refined
+    if vi.source == "fitted" and vi.refined_with and result.models:
         result, vi = _own_closures(rec, rig, frig, vi, result, opts)
     result.settings = result.settings.replace(manoeuvre=vi.describe())
     result.notes.append(vi.text)
@@ -266,7 +250,7 @@ def _own_closures(rec: PreparedRecord, rig: Rig, frig: Rig, vi, result: SweepRes
     refined = refine_closure(rec.t, rec.h, frig, vi, rival, _bounds(result))
     if refined.params == vi.params:
         return result, vi
-    again = _continue(rec, rig, frig, refined, result, result.settings["lead"], opts)
+    again = _continue(rec, rig, frig, refined, result, opts)
     if again.best.name == rival.name and criterion(again.best, again.selection) < criterion(best, result.selection):
         again.notes.append(f"{rival.name} under the closure refined with its own wall is better than {best.name} "
                            f"under its own: the closure is {rival.name}'s")
@@ -275,14 +259,14 @@ def _own_closures(rec: PreparedRecord, rig: Rig, frig: Rig, vi, result: SweepRes
     return result, vi
 
 
-def _continue(rec: PreparedRecord, rig: Rig, frig: Rig, vi, result: SweepResult, lead_settings, opts: FitOptions,
+def _continue(rec: PreparedRecord, rig: Rig, frig: Rig, vi, result: SweepResult, opts: FitOptions,
               progress=None) -> SweepResult:
     """Every model of ``result`` calibrated again from its optimum under the refined closure ``vi``; the
-    result says ``lead_settings`` (None: this fit had no lead) and counts both sweeps' time and work."""
+    result counts both sweeps' time and work."""
     ctx = SweepContext(lead=result, flow=vi.flow, marginalise=marginalise_single(frig, rec.t, rec.h, vi),
                        trust_lead=False, baseline_n=rec.steady_samples)
     again = fit_sweep(rec.t, rec.h, rig, opts, progress=progress, context=ctx)
-    again.settings = again.settings.replace(lead=lead_settings)
+    again.settings = again.settings.replace(lead=None)
     again.duration_s += result.duration_s
     again.evaluations += result.evaluations
     return again

@@ -13,17 +13,14 @@ closure counted once. A joint fit of several runs stacks every section of every 
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 from velab.fitting.adequacy import bound_message, model_error_message
 from velab.fitting.campaignrun import run_heads
-from velab.fitting.joint import (StackedSweep, assess_parts, closure_groups, pool_baseline, refine_closures,
-                                 search_notes, search_options, search_settings)
-from velab.fitting.params import derive_bounds
+from velab.fitting.joint import assess_parts, pool_baseline, search_notes, search_settings
 from velab.fitting.parts import Record
+from velab.fitting.recordfit import stack_record
 from velab.fitting.results import SweepResult
-from velab.fitting.selection import apply_criteria
 from velab.fitting.options import FitOptions, stacked_search
 from velab.rig import Rig
 
@@ -51,25 +48,12 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
     at the valve, or what fit_record refuses."""
     opts = stacked_search(FitOptions.of(options, **choices).replace(window_s=window_s),
                           f"the rig has {len(rig.sections)} transducers")
-    ms, selection, manoeuvre = list(opts.models), opts.selection, opts.manoeuvre
-    tau_min_s, tau_max_s, friction, friction_unsteady = opts.tau_min_s, opts.tau_max_s, opts.friction, opts.friction_unsteady
-    t0 = time.perf_counter()
     record = Record("", t_s, heads, trigger_time_s, rig, window_s, record_rate_hz=record_rate_hz,
-                    position_pct=position_pct, manoeuvre=manoeuvre, friction=friction, friction_unsteady=friction_unsteady)
-    runs, valve_rec = record.parts, record.valve.rec
-    bounds = derive_bounds(record.rig, float(valve_rec.t[1] - valve_rec.t[0]), valve_rec.window_s,
-                           tau_min_s=tau_min_s, tau_max_s=tau_max_s)
-    sw = StackedSweep(runs, bounds, selection, progress, **search_options(opts))
-    sw.sweep(ms, progress)
-    # the fitted closure refined on the valve's whole window with the best wall, then every model continued (and
-    # again with the named model's wall, and a smaller rival under its own: refine_closures)
-    refine_closures(sw, [record], ms)
-    top = min(sw.final.values(), key=lambda f: f.loglik(runs))
-    sw.reweight(top)
-    vi = record.vi
-    groups = closure_groups(runs, [record], top)  # one closure for every section: one block over all of them
-    fits = [sw.summarise(m, sw.final[m], vi.k, groups) for m in ms]
-    apply_criteria(fits, selection, (bounds.tau_min_s, bounds.tau_max_s))
+                    position_pct=position_pct, manoeuvre=opts.manoeuvre, friction=opts.friction,
+                    friction_unsteady=opts.friction_unsteady)
+    st = stack_record(record, opts, progress)
+    sw, bounds, fits, ms, selection = st.sweep, st.bounds, st.fits, list(opts.models), opts.selection
+    runs, valve_rec, vi = record.parts, record.valve.rec, record.vi
     result = SectionsResult(n=fits[0].n, window_s=valve_rec.window_s, sample_rate_hz=valve_rec.fit_rate_hz,
                             method="sections", settings={}, models=fits, selection=selection)
     best = result.best
@@ -93,7 +77,7 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
                         f"one wall, one flow at the valve ({vi.source}), each section's noise its own")
     result.notes.extend(search_notes(sw))
     result.notes.extend(sw.closure_notes)
-    result.duration_s = time.perf_counter() - t0
+    result.duration_s = st.duration_s
     result.evaluations = 0
     return result
 

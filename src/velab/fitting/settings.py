@@ -65,9 +65,9 @@ class FitSettings(Mapping):
     time_domain_polish: object = UNSET
     # what the fit path adds: the flow at the valve, the record's preparation, the lead's purpose
     manoeuvre: object = UNSET  # velab.fitting.manoeuvre.ValveInput.describe()
-    manoeuvre_refined: object = UNSET  # a lead fit's refined closure, for its continuation
+    manoeuvre_refined: object = UNSET  # (a lead fit of an earlier version: its refined closure)
     record: object = UNSET  # velab.fitting.prepare.PreparedRecord.describe()
-    lead_for: object = UNSET  # a lead fit: what it was made for (velab.fitting.lead.options_key)
+    lead_for: object = UNSET  # (a lead fit of an earlier version: what it was made for)
     window_s_requested: object = UNSET  # the window asked for (None: the whole record)
     # a stacked fit (several sections, several runs: velab.fitting.joint)
     method: object = UNSET  # its coarse search (options.METHODS; the result's method is "joint"/"sections")

@@ -86,12 +86,12 @@ def refit_request(path, opts: RefitOptions):
 
 def joint_request(paths, opts: RefitOptions):
     """The fit service's request for the joint fit of the runs (``velab fit --joint`` with the Re-fit settings'
-    models and window)."""
+    models, window and search: method, starts, polish). DataError for bad options."""
     from velab.fitting.options import FitOptions
     from velab.fitservice.request import FitRequest, RunFiles
 
-    return FitRequest(RunFiles(tuple(str(p) for p in paths)), opts.window_s, FitOptions(models=opts.models),
-                      label="joint")
+    choices = FitOptions(models=opts.models, method=opts.method, starts=opts.starts, polish=opts.polish)
+    return FitRequest(RunFiles(tuple(str(p) for p in paths)), opts.window_s, choices, label="joint")
 
 
 def store_refit(path, result, opts: RefitOptions) -> RefitOutcome:

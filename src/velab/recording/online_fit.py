@@ -5,15 +5,12 @@ Everything here is scheduling; every fit is a :class:`velab.fitservice.FitReques
 ``velab fit`` of the run file makes too (velab.fitservice.execute -> velab.fitting.entry.fit_record):
 
 * intermediate quick fits (no polish, two starts) on the growing window while the fitter is idle,
-  cancelled when the lead or the final fit starts;
-* the fit path's lead fit (velab.fitting.lead: the sweep of the window's first part) as soon as that
-  part is in, while the rest is being recorded;
-* the final fit as soon as the window closes, continuing from the lead (or computing it, if it failed
-  or does not match); the latency from the window closing to the result.
+  cancelled when the final fit starts;
+* the final fit as soon as the window closes; the latency from the window closing to the result.
 
 A rig with several transducers (velab.recording.transducers) is fitted on every section at once: the same
 request with the other transducers' heads, which takes the sections path (velab.fitting.sections), as
-``velab fit`` of the run file does; that fit has no lead and no quick variant, so only the final fit runs.
+``velab fit`` of the run file does; that fit has no quick variant, so only the final fit runs.
 
 With ``settings.fit_process`` (the default) the fits run on the service's worker-process backend (one
 fit process of velab.fit_worker, started when the manoeuvre is commanded so that its imports are done
@@ -21,7 +18,7 @@ by the time the window closes; at its lower priority it never starves the record
 result is the same bit for bit. If that process cannot start or dies, the final fit runs on the
 in-process backend instead, and the run says so. A halt kills the process at once.
 
-Threads: ``start``/``start_lead`` are called from the acquisition thread, ``refuse``/``cancel``/``close``
+Threads: ``start`` is called from the acquisition thread, ``refuse``/``cancel``/``close``
 from the control thread (``cancel`` also from a halting caller), the fits' outcomes arrive on the
 service's threads. All state is under one lock; the final outcome (:class:`FitOutcome`) is delivered
 once, through ``deliver`` (the run posts it to the control thread), and nothing of this object needs
@@ -41,7 +38,6 @@ from velab.fitservice.errors import FitCancelled, FitFailed, FitWorkerDied
 from velab.fitting.options import FitOptions
 from velab.fitservice.request import FitRequest, Record
 from velab.fitservice.service import FitService
-from velab.fitting.lead import lead_window_s
 from velab.rig import Rig
 
 log = logging.getLogger(__name__)
@@ -63,7 +59,7 @@ class FitOutcome:
 
 
 def run_choices(settings) -> FitOptions:
-    """The fit choices of a recording's settings (its final and lead fits; quick fits add ``QUICK``)."""
+    """The fit choices of a recording's settings (its final fit; quick fits add ``QUICK``)."""
     return FitOptions(models=tuple(settings.fit_models), method=settings.fit_method)
 
 
@@ -84,10 +80,8 @@ class OnlineFit:
         self._here = FitService.in_thread()
         self._lock = threading.Lock()
         self._proc: FitService | None = None  # the worker-process backend (start_process)
-        self._running: set = set()  # futures of the fits running (quick, lead, final)
+        self._running: set = set()  # futures of the fits running (quick, final)
         self._quick: set = set()
-        self._lead = None  # the lead fit's future
-        self._lead_result = None  # the lead fit, when it has ended with one
         self._final_started = False
         self._closed_at: float | None = None
         self._window_s: float | None = None
@@ -111,12 +105,6 @@ class OnlineFit:
             return
         with self._lock:
             self._proc = proc
-
-    def lead_window_s(self) -> float | None:
-        """The fit path's lead part of the final window (velab.fitting.lead) for this run's fit options."""
-        if not (self.s.fit and self.s.online_fit) or self.sections:
-            return None
-        return lead_window_s(self.rig, self.s.fit_window_s, FitOptions(method=self.s.fit_method))
 
     @property
     def busy(self) -> bool:
@@ -150,11 +138,10 @@ class OnlineFit:
         return o.latency_s if o is not None else None
 
     # ------------------------------------------------------------------ starting fits
-    def _request(self, t, h, trigger_time_s, window_s, kind, position=None, section_heads=None, lead=True):
+    def _request(self, t, h, trigger_time_s, window_s, kind, position=None, section_heads=None):
         choices = replace(self.choices, **QUICK) if kind == "quick" else self.choices
         src = Record(t, h, trigger_time_s, self.rig, self.fs, position_pct=position, section_heads=section_heads or ())
-        return FitRequest(src, window_s, choices, stage="lead" if kind == "lead" else "fit", lead=lead,
-                          label="recorder-" + kind)
+        return FitRequest(src, window_s, choices, label="recorder-" + kind)
 
     def _service(self, final: bool) -> FitService:
         """The process backend while its process lives, else this process (the final fit says so)."""
@@ -169,7 +156,7 @@ class OnlineFit:
                     self._proc = None
             proc.close()
             return self._here
-        return proc  # (a quick or lead fit on a lost process fails at once: the final fit computes the lead)
+        return proc  # (a quick fit on a lost process fails at once)
 
     def start(self, t: np.ndarray, h: np.ndarray, trigger_time_s: float, window_s: float, *, final: bool,
               position=None, section_heads: dict | None = None) -> None:
@@ -196,27 +183,10 @@ class OnlineFit:
             self._final_started = True
             self._closed_at = time.perf_counter()
             self._window_s = window_s
-            quick, lead = list(self._quick), self._lead
+            quick = list(self._quick)
         for f in quick:
             f.cancel_fit()  # the final fit gets the CPU (a quick fit in the process ends at its next model)
-        args = (t, h, trigger_time_s, window_s, position, section_heads)
-        if hasattr(lead, "done") and not lead.done():
-            lead.add_done_callback(lambda _f: self._start_final(*args))  # continues from the lead
-        else:
-            self._start_final(*args)
-
-    def start_lead(self, t: np.ndarray, h: np.ndarray, trigger_time_s: float, window_s: float, position=None) -> None:
-        """Start the lead fit of a ``window_s`` fit: (t, h) reach the end of the lead's part of the window."""
-        with self._lock:
-            if self._lead is not None or self._final_started or self._halted:
-                return
-            quick = list(self._quick)
-            self._lead = True  # (reserved)
-        for f in quick:
-            f.cancel_fit()  # a quick fit still running gives way
-        fut = self._submit("lead", self._request(t, h, trigger_time_s, window_s, "lead", position))
-        with self._lock:
-            self._lead = fut
+        self._start_final(t, h, trigger_time_s, window_s, position, section_heads)
 
     def _submit(self, kind: str, request: FitRequest, service: FitService | None = None):
         fut = (service or self._service(kind == "final")).submit(request)
@@ -234,12 +204,11 @@ class OnlineFit:
 
     def _start_final(self, t, h, trigger_time_s, window_s, position, section_heads) -> None:
         with self._lock:
-            halted, lead = self._halted, self._lead_result
+            halted = self._halted
         if halted:
             self._settle(FitOutcome(error=HALTED, window_s=window_s))
             return
-        self._submit("final", self._request(t, h, trigger_time_s, window_s, "final", position, section_heads,
-                                            lead=lead if lead is not None else True))
+        self._submit("final", self._request(t, h, trigger_time_s, window_s, "final", position, section_heads))
 
     # ------------------------------------------------------------------ outcomes (the service's threads)
     def _ended(self, kind: str, request: FitRequest, fut) -> None:
@@ -252,16 +221,7 @@ class OnlineFit:
             self._final_ended(request, fut, exc, halted)
             return
         if exc is None:
-            r = fut.result()
-            if kind == "lead":
-                with self._lock:
-                    self._lead_result = r
-                if r is None:
-                    return  # (this window has no lead fit)
-            self.emit("fit", {"result": r, "final": False, "lead": kind == "lead",
-                              "window_s": r.window_s if kind == "lead" else request.window_s})
-        elif kind == "lead" and not isinstance(exc, FitCancelled):
-            log.info("lead fit failed (%s): the final fit computes it", exc)
+            self.emit("fit", {"result": fut.result(), "final": False, "window_s": request.window_s})
         else:
             log.debug("%s fit ended: %s: %s", kind, type(exc).__name__, exc)
 
@@ -271,7 +231,7 @@ class OnlineFit:
             r = fut.result()
             with self._lock:
                 latency = time.perf_counter() - self._closed_at
-            self.emit("fit", {"result": r, "final": True, "window_s": window, "lead": False})
+            self.emit("fit", {"result": r, "final": True, "window_s": window})
             self._settle(FitOutcome(r, latency_s=latency, window_s=window))
         elif isinstance(exc, FitCancelled) or halted:
             self._settle(FitOutcome(error=HALTED, window_s=window))

@@ -192,7 +192,6 @@ class Run:
         self.timeline = Timeline(s, fs, (beta, gamma, end), ceiling, source.pressure_channel, source.valve_channel,
                                   self.hooks, write, self._window_closed,
                                   on_baseline=lambda: self.rec.submit(lambda: None),
-                                  lead_window_s=self.fit.lead_window_s(), on_lead=self._lead_ready,
                                   others=transducers[1:], clock_scale=self.rec.clock_scale)
         valve = self.rec.devices[self.rec.roles["valve"]]
         rec = self.rec
@@ -340,18 +339,6 @@ class Run:
                 return
             self._end_request = (status, reason)
         self.rec.submit(lambda: self.end(status, reason))
-
-    def _lead_ready(self) -> None:
-        """From the acquisition thread: the lead's part of the window is in: its fit starts now,
-        while the rest is recorded (the final fit then continues from it)."""
-        fit, tl = self.fit, self.timeline
-        if fit is None or self.halt_ev.is_set() or self.ending() is not None or tl.lead_window_s is None:
-            return
-        try:
-            r = tl.fit_window(tl.lead_window_s)
-        except ValueError:
-            return  # (the final fit says why there is no fit)
-        fit.start_lead(r.t, r.head, r.trigger_time_s, self.settings.fit_window_s, position=r.position)
 
     def _window_closed(self, window_s: float, final: bool) -> None:
         """From the acquisition thread: the fit window (or a quick fit's part of it) is in."""

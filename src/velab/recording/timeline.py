@@ -110,7 +110,7 @@ class Timeline:
 
     def __init__(self, settings, fs: float, manoeuvre: tuple[float, float, float], ceiling_m: float,
                  pressure_channel: str, valve_channel: str | None, hooks, write, on_window_closed,
-                 on_baseline=lambda: None, lead_window_s: float | None = None, on_lead=lambda: None,
+                 on_baseline=lambda: None,
                  others: tuple[TransducerChannel, ...] = (), clock_scale: float = 1.0, now=time.monotonic):
         self.s = settings
         self.fs = fs
@@ -122,16 +122,8 @@ class Timeline:
         self.write = write  # write(velab.recording.ops message) -> the writer stage
         self.on_window_closed = on_window_closed
         self.on_baseline = on_baseline  # wakes the control thread: a queued trigger goes out at once
-        # the fit's lead part of the window (velab.fitting.lead): on_lead() when it is in, clean
-        self.lead_window_s = lead_window_s
-        self.on_lead = on_lead
-        self._lead_sent = False
-        # quick fits at these instants after the trigger; with a lead, only those well before its end
-        # (the lead would cancel them)
-        quick = [f * settings.fit_window_s for f in QUICK_FRACTIONS]
-        if lead_window_s is not None:
-            quick = [w for w in quick if w <= lead_window_s - 0.1 * settings.fit_window_s]
-        self._quick_windows = quick
+        # quick fits at these instants after the trigger
+        self._quick_windows = [f * settings.fit_window_s for f in QUICK_FRACTIONS]
         self.n_pre = int(round(settings.pretrigger_s * fs))
         self.gidx = 0  # global index of the next sample (gaps included)
         self.n_written = 0
@@ -448,9 +440,6 @@ class Timeline:
                     and after >= quick[self._quick_next]:
                 self._quick_next += 1
                 self.on_window_closed(quick[self._quick_next - 1], final=False)
-            if self.lead_window_s is not None and not self._lead_sent and after >= self.lead_window_s:
-                self._lead_sent = True
-                self.on_lead()
 
     def _keep_pre(self, t, head, o_heads) -> None:
         pb = self._pre_blocks
