@@ -8,17 +8,24 @@ its flag, the JSON keeps it, the full models are those of the fit without the re
 lists the models fit_sweep lists."""
 
 import json
+from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from test_sections_fit import FS
 from test_stack_options import MODELS, W, _campaign, _sections, record, runs  # noqa: F401 (fixtures)
 
-from velab.config import REDUCED_RETARDATION_TIMES_S
+from velab.config import REDUCED_RETARDATION_TIMES_S, load_material, load_rig
 from velab.fitting.entry import fit_record
+from velab.fitting.flows import ValveInput
 from velab.fitting.jointresult import JointResult
 from velab.fitting.report import format_report
 from velab.fitting.sections import SectionsResult, fit_sections
+from velab.fitting.stackreduced import name_wall
+from velab.model import creep_scale
+from velab.moc import moc_head
+from velab.valvelaw import commanded_position_pct
 
 FITS = {"sections": _sections, "campaign": _campaign}
 NAMES = ["EL", "S1", "S2", "S1r", "S2r"]
@@ -54,7 +61,9 @@ def test_the_reduced_models_are_fitted_with_their_taus_fixed(kind, fits):
 
 @pytest.mark.parametrize("kind", ["sections", "campaign"])
 def test_a_reduced_model_fits_no_better_than_what_contains_it(kind, fits):
-    """S(m) contains S(m)r (its taus free), S(m)r contains S(m-1)r (S1r: EL), by the nesting guard."""
+    """S(m) contains S(m)r (its taus free) where the fixed taus are in S(m)'s box (here S1r's 0.01 s is below it,
+    tau_min 0.0137 s, but far from describing these records; see the next test for one it describes), S(m)r
+    contains S(m-1)r (S1r: EL), by the nesting guard."""
     r, _ = fits[kind]
     F = {f.name: f.F for f in r.models}
     for m in (1, 2):
@@ -109,3 +118,56 @@ def test_a_one_part_stack_lists_the_models_fit_sweep_lists(record):  # noqa: F81
         if a.reduced:  # (measured: 4e-5 and 1e-4; S1r's tau 0.01 s is far from this wall's, a 662 m/s in both)
             assert a.F == pytest.approx(b.F, rel=1e-3), (a.name, a.F, b.F)
     assert stack.best.F == pytest.approx(single.best.F, rel=1e-5)
+
+
+def test_a_reduced_model_named_gets_the_closure_refined_with_its_wall():
+    """A record whose creep is at the reduced model's taus (material A's compliance in two elements at 0.01 and
+    0.1 s; the time-domain model, the real valve, quadratic friction, sigma 0.1 m, head only, 4 s), one-part stack:
+    S2r is named, the closure refined with its wall and said so by its name (velab.fitting.stackreduced.name_wall:
+    parts.Record.refine names a wall by its elements), as the single path names it (F within 1e-6; measured 4e-8).
+    S2 fits worse than S2r here: its box (tau >= 0.0137 s) does not hold S2r's 0.01 s."""
+    rig = load_rig("perugia")
+    A = load_material("A")
+    a = A.wave_speed_m_s
+    J = creep_scale(rig, a) * np.array([e.J_per_pa for e in A.elements])
+    J2, tau2 = np.array([J[0], J[1:].sum()]), np.array(REDUCED_RETARDATION_TIMES_S[:2])
+    t = np.arange(-int(0.6 * FS), int((W + 0.1) * FS)) / FS
+    m = rig.manoeuvre
+    h = moc_head(rig, a, J2, tau2, t, position=lambda x: commanded_position_pct(x, m.beta_per_s, m.gamma))
+    head = rig.steady_head_m + h + np.random.default_rng(3).normal(0, 0.1, t.size)
+    stack = fit_sections(t, {rig.head_section.name: head}, 0.0, rig, W, record_rate_hz=FS, models=[1, 2],
+                         reduced=True, threads=1)
+    b = stack.best
+    assert b.name == "S2r" and b.reduced, format_report(stack, elements=False)
+    closure = stack.settings["manoeuvre"]
+    assert closure["refined_with"] == "S2r" and "with the wall (S2r)" in closure["text"], closure
+    assert abs(b.wave_speed_m_s - a) <= 2.0 * b.wave_speed_se_m_s
+    single = fit_record(t, head, 0.0, rig, W, record_rate_hz=FS, models=[1, 2], reduced=True, threads=1)
+    assert single.best.name == "S2r" and single.settings["manoeuvre"]["refined_with"] == "S2r"
+    assert b.F == pytest.approx(single.best.F, rel=1e-6)
+
+
+def test_a_reduced_wall_is_named_in_what_its_refinement_wrote():
+    """name_wall: Record.refine wrote "S2" for S2r's wall -- renamed in refined_with, the text's last mention and
+    moved_with (if this refinement moved the closure); a refinement that did not run, or a full wall, renames
+    nothing; an earlier full S2's mention and move stay S2's."""
+    flow = np.zeros(3)
+    old = ValveInput("fitted", flow, {"beta_per_s": 30.0}, text="closure fitted with the wall (S2)", refined_with="S2")
+    rec = SimpleNamespace(vi=old, moved_with="S2")
+    name_wall(rec, old, (2, True))  # (the refinement did not run: the same ValveInput)
+    assert rec.vi is old and rec.moved_with == "S2"
+    kept = replace(old, text=old.text + " (refined over the whole window with the S2 wall: it fitted the record no "
+                                        "better, so this closure was kept)")
+    rec.vi = kept
+    name_wall(rec, old, (2, True))  # (not moved: S2's move and first mention are S2's)
+    assert rec.vi.refined_with == "S2r" and rec.moved_with == "S2"
+    assert rec.vi.text == ("closure fitted with the wall (S2) (refined over the whole window with the S2r wall: it "
+                           "fitted the record no better, so this closure was kept)")
+    moved = replace(old, params={"beta_per_s": 31.0}, text="closure refined with the wall (S2); its shape held")
+    rec = SimpleNamespace(vi=moved, moved_with="S2")
+    name_wall(rec, old, (2, True))
+    assert (rec.vi.refined_with, rec.moved_with) == ("S2r", "S2r")
+    assert rec.vi.text == "closure refined with the wall (S2r); its shape held" and rec.vi.flow is flow
+    rec = SimpleNamespace(vi=moved, moved_with="S2")
+    name_wall(rec, old, (2, False))
+    assert rec.vi is moved and rec.moved_with == "S2"
