@@ -99,7 +99,7 @@ def test_fit_of_the_run_file_uses_both_sections(two):
 
 def test_velab_fit_of_a_run_with_two_sections(two, capsys):
     """velab fit of the run file: the fit path (velab.fitting.entry.fit_run) takes every section; the JSON
-    has `sections`; a single sweep's search option is refused in one line."""
+    has `sections`; the reduced models are fitted there too (every search option is the stacked sweep's)."""
     import json
 
     d, rig, path = two
@@ -108,9 +108,10 @@ def test_velab_fit_of_a_run_with_two_sections(two, capsys):
     assert [s["name"] for s in doc["sections"]] == ["valve", "mid"] and doc["method"] == "sections"
     assert doc["adequacy"]["baseline_samples"] > 0 and doc["best"] == "S3"
     assert abs(next(m for m in doc["models"] if m["name"] == "S3")["wave_speed"] - 353.73) < 0.5
-    assert main(["fit", str(path), "--window", "6", "--models", "3", "--reduced", "--no-save"]) == 2
-    err = capsys.readouterr().err.strip()
-    assert "not for a fit of several sections" in err and "\n" not in err, err
+    assert main(["fit", str(path), "--window", "6", "--models", "3", "--reduced", "--json", "--no-save"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [(m["name"], m["reduced"]) for m in doc["models"]] == [("S3", False), ("S3r", True)]
+    assert doc["method"] == "sections" and doc["settings"]["reduced"] is True
 
 
 def test_velab_info_shows_a_saved_sections_fit(two, tmp_path, capsys):

@@ -38,8 +38,10 @@ def read_sources(paths, window_s: float | None) -> list[CampaignRun]:
     return sources
 
 
-def default_name(window_s: float) -> str:
-    return f"joint_w{window_s:g}s"
+def default_name(window_s: float, reduced: bool = False) -> str:
+    """A joint fit's fit group's name: the window, and "_reduced" with the reduced models (as a single fit's,
+    velab.runfiles.fits.default_fit_name: a fit with them does not overwrite one without)."""
+    return f"joint_w{window_s:g}s" + ("_reduced" if reduced else "")
 
 
 def save_joint(result, sources: list[CampaignRun], name: str) -> list[str]:

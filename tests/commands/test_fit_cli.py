@@ -270,6 +270,25 @@ def test_a_joint_fit_reads_each_run_once(two_runs, tmp_path, capsys):
     assert fit == once and figure.read_bytes()[:4] == b"\x89PNG"
 
 
+def test_a_joint_fit_takes_the_reduced_models(two_runs, tmp_path, capsys):
+    """`velab fit A B --joint --reduced` (the stacked sweep takes every search option, the reduced models too): exit
+    0, the JSON lists S1r with its flag after S1, and the fit is saved into both runs under the joint default name
+    with "_reduced" (as a single fit's: it does not overwrite the fit without them)."""
+    import shutil
+
+    runs = [str(shutil.copy(p, tmp_path / os.path.basename(p))) for p in two_runs]
+    capsys.readouterr()
+    assert main(["fit", *runs, "--joint", "--reduced", "--models", "1", "--window", "1.5", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [(m["name"], m["reduced"]) for m in doc["models"]] == [("S1", False), ("S1r", True)]
+    assert doc["settings"]["reduced"] is True and doc["fit_name"] == "joint_w1.5s_reduced"
+    from velab.runfiles.summary import read_fits
+
+    for path in runs:  # (the run file's fit group keeps each model's flag)
+        stored = read_fits(path)["joint_w1.5s_reduced"]
+        assert [(m["name"], bool(m["reduced"])) for m in stored["models"]] == [("S1", False), ("S1r", True)]
+
+
 def test_execute_fits_the_runs_it_is_given_only_for_their_request(two_runs):
     """The runs passed to execute must be the request's, in its order: another request's are refused, not fitted."""
     from velab.fitservice.execute import execute

@@ -279,8 +279,8 @@ def test_bad_input_is_one_line_naming_the_file_and_nothing_is_written(campaign, 
         assert main(["fit", *argv, "--joint", "--window", str(WINDOW)]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and named in err, err
-    assert main(["fit", str(runs[0]), str(runs[1]), "--joint", "--reduced"]) == 2
-    assert "--reduced" in capsys.readouterr().err
+    assert main(["fit", str(runs[0]), str(runs[1]), "--joint", "--jobs", "2"]) == 2  # (--reduced it takes now)
+    assert "--jobs does not apply to a joint fit" in capsys.readouterr().err
     assert {p: _file_sha(p) for p in files} == shas
 
 

@@ -9,7 +9,7 @@ import pickle
 import pytest
 
 from velab.errors import DataError
-from velab.fitting.options import FitOptions, stacked_search
+from velab.fitting.options import FitOptions
 from velab.fitting.results import SweepResult
 from velab.fitting.settings import UNSET, FitSettings
 
@@ -50,16 +50,6 @@ def test_options_normalise_and_change_by_name():
         o.method = "evolution"  # frozen
     # what a fit was made with: every choice but the threads (which do not change the result)
     assert o.key() == o.replace(threads=1).key() != o.replace(seed=1).key()
-
-
-def test_a_stacked_fit_names_the_search_choice_it_cannot_honour():
-    assert stacked_search(FitOptions(models=(1, 2)), "2 runs").models == (1, 2)
-    # every method, a cap on the starts, no polish: the stacked sweep's too (issue 51)
-    for choice in (dict(method="evolution"), dict(method="nelder-mead"), dict(method="least-squares"),
-                   dict(starts=2), dict(polish=False)):
-        assert stacked_search(FitOptions(**choice), "2 runs") == FitOptions(**choice)
-    with pytest.raises(DataError, match="reduced = True: not for a fit of several sections or runs \\(2 runs; .*S1r"):
-        stacked_search(FitOptions(reduced=True), "2 runs")
 
 
 def test_settings_are_typed_frozen_and_their_json_is_the_dict_they_were_made_from():

@@ -3,13 +3,12 @@
 (velab.fitting.sections.fit_sections) and on a campaign of two runs (velab.fitting.joint.fit_joint). Short windows
 and EL..S2 (tests/fitting/test_sections_fit.py's record: the time-domain model with the real valve and quadratic
 friction, sigma 0.1 m, the closure fitted): the nesting order holds, the settings say the search, and a search that
-is not the default names the default's model on these easy records. Only the reduced models are still refused."""
+is not the default names the default's model on these easy records. The reduced models: test_stack_reduced.py."""
 
 import pytest
 from test_sections_fit import FS, two_section_record
 
 import velab.fitting.joint as joint
-from velab.errors import DataError
 from velab.fitting.campaignrun import CampaignRun, head_sha256
 from velab.fitting.joint import fit_joint
 from velab.fitting.report import format_report
@@ -118,9 +117,3 @@ def test_a_stacked_fit_without_the_polish(kind, record, runs, defaults):
         for run, run_d in zip(r.runs, d.runs):
             assert run["own"]["F"] == pytest.approx(run_d["own"]["F"], rel=1e-3), (run["own"], run_d["own"])
 
-
-def test_the_reduced_models_are_still_refused_in_one_line(record, runs):
-    for fit, data in ((_sections, record), (_campaign, runs)):
-        with pytest.raises(DataError, match="reduced = True: not for a fit of several sections or runs") as e:
-            fit(data, reduced=True)
-        assert "\n" not in str(e.value) and "S1r" in str(e.value)

@@ -63,8 +63,7 @@ def register(sub) -> None:
     p.add_argument("--joint", action="store_true",
                    help="calibrate ONE wall on all the runs together (runs of one pipe: a campaign): each run keeps "
                    "its steady state, manoeuvre, friction at its Q0 and noise; the fit is saved into every run, naming "
-                   "the others (docs/fitting.md, 'Joint fits'); takes --method, --starts and --no-polish, not "
-                   "--reduced")
+                   "the others (docs/fitting.md, 'Joint fits'); takes --method, --reduced, --starts and --no-polish")
     p.add_argument("--jobs", type=int_range(1, 256), default=1, help="runs fitted in parallel (processes; default 1)")
     p.add_argument("--scheduler", type=scheduler_address, default=None, metavar="ADDRESS",
                    help="fit the runs on a Dask cluster, e.g. tcp://10.0.0.5:8786 (needs the velab[cluster] extra; "
@@ -233,10 +232,9 @@ def _run_batch(args, opts: dict) -> int:
     return report.exit_code(batch)
 
 
-# options of a single fit that a joint fit does not take (--method, --starts and --no-polish it does: the stacked
-# search takes them as a single fit's; the reduced models it does not fit, velab.fitting.options.stacked_search)
-_NOT_JOINT = (("reduced", "--reduced", ": the stacked sweep has no reduced models S1r..S5r"),
-              ("scheduler", "--scheduler", ""))
+# options of a single fit that a joint fit does not take (--method, --reduced, --starts and --no-polish it does: the
+# stacked search takes them as a single fit's, velab.fitting.joint.search_options)
+_NOT_JOINT = (("scheduler", "--scheduler", ""),)
 
 
 def _joint_sources(args, window_s):
@@ -274,7 +272,7 @@ def _run_joint(args, opts: dict) -> int:
         result = execute(request, cb, sources=sources)  # the runs read once: fitted, saved and drawn
     name = None
     if opts["save"]:
-        name = opts["name"] or default_name(opts["window_s"])
+        name = opts["name"] or default_name(opts["window_s"], opts["reduced"])
         save_joint(result, sources, name)  # into every run, naming the others
     if opts["plot"]:
         from velab.fitting.campaign import campaign_figure

@@ -9,7 +9,6 @@ every transducer's) are calibrated together by the stacked sweep (velab.fitting.
 from __future__ import annotations
 
 from velab.fitting.options import FitOptions
-from velab.fitting.prepare import fit_prepared, prepare_record
 from velab.fitting.recordfit import fit_single
 from velab.fitting.results import SweepResult
 from velab.fitting.sections import fit_run_sections, fit_sections
@@ -26,19 +25,14 @@ def fit_record(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | N
     ``position_pct``: the recorded valve position on ``t_s`` (or None). The record's sections are the parts
     of the stacked sweep (velab.fitting.recordfit): one for a rig with one transducer (a SweepResult), all of
     them for a rig with several (``head_m`` the valve's, ``rig.head_section``, ``section_heads`` the others'
-    by name: a SectionsResult, as ``fit_run`` gives). The reduced models (``reduced=True``) are fitted by the
-    single sweep (velab.fitting.prepare.fit_prepared) on a record of one section."""
+    by name: a SectionsResult, as ``fit_run`` gives)."""
     opts = FitOptions.of(options, **choices).replace(window_s=window_s)
     if len(rig.sections) > 1:
         heads = {rig.head_section.name: head_m, **(section_heads or {})}
         return fit_sections(t_s, heads, trigger_time_s, rig, window_s, opts, record_rate_hz=record_rate_hz,
                             position_pct=position_pct, progress=progress)
-    if not opts.reduced:
-        return fit_single(t_s, head_m, trigger_time_s, rig, window_s, opts, record_rate_hz=record_rate_hz,
-                          position_pct=position_pct, progress=progress)
-    rec = prepare_record(t_s, head_m, trigger_time_s, rig, window_s, record_rate_hz=record_rate_hz,
-                         position_pct=position_pct)
-    return fit_prepared(rec, rig, opts, progress=progress)
+    return fit_single(t_s, head_m, trigger_time_s, rig, window_s, opts, record_rate_hz=record_rate_hz,
+                      position_pct=position_pct, progress=progress)
 
 
 def fit_run(run, window_s: float | None, options: FitOptions | None = None, *, progress=None,

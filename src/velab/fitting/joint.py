@@ -31,6 +31,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from velab.config import REDUCED_RETARDATION_TIMES_S
 from velab.errors import DataError
 from velab.fitting.adequacy import assess, bound_message, model_error_message
 from velab.fitting.campaignrun import CampaignRun, check_same_pipe
@@ -52,9 +53,10 @@ from velab.fitting.solvers import Sol, Stage
 from velab.fitting.starts import (RACE_KEEP, cap_starts, coarse_search, continues_by_lsq, distinct, nested_starts,
                                   reduced_then_full, scan_wave_speed, tau_grids)
 from velab.fitting.stacked import StackedEvaluator
+from velab.fitting.stackreduced import below, jobs, name_wall, sweep_reduced
 from velab.fitting.stats import ar1_innovation_var, lag1
 from velab.fitting.summary import summarise
-from velab.fitting.options import FitOptions, stacked_search
+from velab.fitting.options import FitOptions
 
 # time-domain (friction) refreshes of each model's optimum, at most; each polish stops at a refresh that gains less
 # than REFRESH_GAIN in sum n ln F. Three had stopped S1 of tests/fitting/test_fit_truths.py's imperial S1 truth (the
@@ -120,17 +122,19 @@ class StackedSweep:
     The search (velab.fitting.options.FitOptions, as the single sweep's): ``method`` the coarse local solver
     (velab.fitting.starts.coarse_search; "least-squares": one start), ``starts`` at most this many coarse starts a
     model, ``seed`` the evolution's (plus m), ``polish`` False: each model's wall polished, refreshed and
-    reweighted on the coarse grid, not the polish grid ("m")."""
+    reweighted on the coarse grid, not the polish grid ("m"); ``reduced``: also S1r..S5r (tau fixed,
+    velab.fitting.stackreduced). ``final`` is keyed (m, reduced), as the single sweep's jobs."""
 
     def __init__(self, runs: list[Part], bounds, selection: str, progress=None, *, method: str = "auto",
-                 starts: int | None = None, seed: int = 0, polish: bool = True):
+                 starts: int | None = None, seed: int = 0, polish: bool = True, reduced: bool = False):
         self.runs, self.bounds, self.selection, self.progress = runs, bounds, selection, progress
-        self.method, self.seed, self.polish_full = method, seed, polish
+        self.method, self.seed, self.polish_full, self.reduced = method, seed, polish, reduced
         self.max_starts = 1 if method == "least-squares" else starts
         self.polish_grid = "m" if polish else "c"
-        self.final: dict[int, _Model] = {}
-        self.not_searched: list[int] = []
-        self.not_continued: list[int] = []  # models not polished after the closures' last refinement (refine_closures)
+        self.final: dict[tuple[int, bool], _Model] = {}
+        self.not_searched: list[int] = []  # (full models only, as the single sweep's)
+        # models (m, reduced) not polished after the closures' last refinement (refine_closures)
+        self.not_continued: list[tuple[int, bool]] = []
         self.closure_notes: list[str] = []  # what the closures' rounds and the rival's comparison did (refine_closures)
         dt = min(float(r.rec.t[1] - r.rec.t[0]) * r.qc for r in runs)
         window = max(r.rec.window_s for r in runs)
@@ -180,18 +184,26 @@ class StackedSweep:
         return _Model(sol, heads, F)
 
     # ------------------------------------------------------------ models
+    def jobs(self, ms) -> list[tuple[int, bool]]:
+        """The models (m, reduced) a fit of ``ms`` reports, in fit_sweep's order (the full, then the reduced)."""
+        return jobs(ms, self.reduced)
+
     def sweep(self, ms: list[int], progress=None) -> None:
-        """EL, S1, ... up to the largest of ``ms``, each from the one before (``final``);
-        ``progress(done, total, name)`` after each model of ``ms``."""
+        """EL, S1, ... up to the largest of ``ms``, each from the one before (``final``), then with ``reduced``
+        S1r, ... (velab.fitting.stackreduced.sweep_reduced); ``progress(done, total, name)`` after each model
+        reported (``jobs``)."""
+        total = len(self.jobs(ms))
         base = self.start()
         for m in range(0, max(ms) + 1):
             fin = base if m == 0 else self.fit_model(m, base)
             if m == 0:
                 fin = self.polish(ParamMap(0, self.bounds), base.sol.x, base)
-            self.final[m] = fin
+            self.final[(m, False)] = fin
             base = fin
             if progress is not None and m in ms:
-                progress(ms.index(m) + 1, len(ms), model_name(m))
+                progress(ms.index(m) + 1, total, model_name(m))
+        if self.reduced:
+            sweep_reduced(self, ms, progress)
 
     def start(self) -> _Model:
         pm0 = ParamMap(0, self.bounds)
@@ -203,7 +215,7 @@ class StackedSweep:
 
     def fit_model(self, m: int, base: _Model) -> _Model:
         pm = ParamMap(m, self.bounds)
-        ref = self.final.get(m - 1)
+        ref = self.final.get((m - 1, False))
         if ref is not None and m >= 4 and self.saturated(m):
             self.not_searched.append(m)
             return self.embedded(pm, ref)
@@ -229,9 +241,12 @@ class StackedSweep:
         x = sols[0].x
         if continues_by_lsq(self.method, pm):
             x = coarse.lsq(pm, x, max_nfev=150, ftol=1e-12).x
-        fin = self.polish(pm, x, base)
+        return self.nest(pm, self.polish(pm, x, base), ref)
+
+    def nest(self, pm: ParamMap, fin: _Model, ref: _Model | None) -> _Model:
+        """The nesting guard: S(m) contains ``ref``, the model below (an element can vanish); if ``fin`` fits
+        worse, S(m) is polished from ``ref`` plus a vanished element, or is that embedding."""
         if ref is not None and fin.loglik(self.runs) > ref.loglik(self.runs):
-            # the nesting guard: S(m) contains S(m-1) (an element can vanish)
             emb = self.polish(pm, pm.embed(ref.sol.pm, ref.sol.x), ref)
             fin = min((fin, emb, self.embedded(pm, ref)), key=lambda f: f.loglik(self.runs))
         return fin
@@ -259,22 +274,24 @@ class StackedSweep:
                 break
         return best
 
-    def continue_model(self, m: int, old: _Model, start: _Model | None = None) -> _Model:
-        """After the runs' closures were refined: the model polished from its previous optimum (no search),
-        not above the model it contains. ``start``: ``old``'s wall evaluated under the refined closures."""
+    def continue_model(self, job: tuple[int, bool], old: _Model, start: _Model | None = None) -> _Model:
+        """After the runs' closures were refined: the model ``job`` = (m, reduced) polished from its previous
+        optimum (no search), not above the model it contains. ``start``: ``old``'s wall evaluated under the
+        refined closures."""
         pm = old.sol.pm
-        if m in self.not_searched:
-            return self.embedded(pm, self.final[m - 1])
+        if job in self.not_searched_jobs():
+            return self.embedded(pm, self.final[below(job)])
         start = start if start is not None else self.evaluate(old.sol)
         self.reweight(start)  # (its own weights: the polish's result does not depend on the model polished before)
         fin = self.polish(pm, old.sol.x, start, first_nfev=25)
         if start.loglik(self.runs) < fin.loglik(self.runs):
             fin = start  # (a polish accepts only steps that lower its objective, whose weights moved)
-        return self.guarded(m, fin)
+        return self.guarded(job, fin)
 
-    def guarded(self, m: int, fin: _Model) -> _Model:
-        """``fin``, or the model below with a vanished element if that fits better (S(m) contains S(m-1))."""
-        ref = self.final.get(m - 1)
+    def guarded(self, job: tuple[int, bool], fin: _Model) -> _Model:
+        """``fin``, or the model below with a vanished element if that fits better (S(m) contains S(m-1), S(m)r
+        S(m-1)r, S1r EL)."""
+        ref = self.final.get(below(job))
         if ref is not None and fin.loglik(self.runs) > ref.loglik(self.runs):
             return self.embedded(fin.sol.pm, ref)
         return fin
@@ -282,8 +299,11 @@ class StackedSweep:
     def embedded(self, pm: ParamMap, ref: _Model) -> _Model:
         return _Model(Sol(pm.embed(ref.sol.pm, ref.sol.x), ref.sol.F, pm), ref.heads, ref.F_runs)
 
+    def not_searched_jobs(self) -> list[tuple[int, bool]]:
+        return [(m, False) for m in self.not_searched]
+
     def saturated(self, m: int) -> bool:
-        f1, f2 = self.final.get(m - 1), self.final.get(m - 2)
+        f1, f2 = self.final.get((m - 1, False)), self.final.get((m - 2, False))
         if f1 is None or f2 is None:
             return False
         return not pays(f2.loglik(self.runs) - f1.loglik(self.runs))
@@ -317,7 +337,7 @@ class StackedSweep:
             return aic_ar1(n_tot, k, innovation_var, rho)
         return aic_of(fin.loglik(self.runs), k)
 
-    def summarise(self, m: int, fin: _Model, k_nuisance: int, nuisance=None) -> ModelFit:
+    def summarise(self, job: tuple[int, bool], fin: _Model, k_nuisance: int, nuisance=None) -> ModelFit:
         """The ModelFit of the joint wall: standard errors from the stacked weighted Jacobian at the fit
         rate (weights 1/F_r; inflated for the residuals' lag-1 as for one run), marginalised over the records'
         fitted closures (``nuisance``: per record, its parts' indices -- consecutive -- and each part's closure
@@ -330,7 +350,7 @@ class StackedSweep:
         evaluations, jacobians = st.ev.evaluations, st.ev.jacobians  # (before the summary's own evaluation)
         # the stacked head and Jacobian at the fit rate, once: the summary's and the closures' marginalisation
         st_head, st_jac = st.ev.head_jac_x(*fin.sol.pm.unpack(fin.sol.x), fin.sol.pm.tau_free)
-        f = summarise(st, fin.sol, model_name(m), self.runs[0].rig, self.bounds,
+        f = summarise(st, fin.sol, model_name(*job), self.runs[0].rig, self.bounds,
                       evaluations=evaluations, jacobians=jacobians, head_jac=(st_head, st_jac))
         n_tot = sum(r.n for r in self.runs)
         blocks, slices = [], []
@@ -359,13 +379,13 @@ class StackedSweep:
 def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options: FitOptions | None = None, *,
               progress=None, **choices) -> JointResult:
     """Calibrate one wall on several runs of one pipe (see the module docstring), every section of each.
-    ``sources``: the runs (``CampaignRun``), two or more; ``options`` / ``choices`` as ``fit_record`` (the
-    stacked search: velab.fitting.options.stacked_search). Raises DataError (one line, naming the run) for runs
+    ``sources``: the runs (``CampaignRun``), two or more; ``options`` / ``choices`` as ``fit_record`` (every
+    search option: ``search_options``). Raises DataError (one line, naming the run) for runs
     of different pipes, a window a run does not hold, bad options, a run whose heads do not match its rig's
     transducers."""
     if len(sources) < 2:
         raise DataError("a joint fit needs two or more runs")
-    opts = stacked_search(FitOptions.of(options, **choices).replace(window_s=window_s), f"{len(sources)} runs")
+    opts = FitOptions.of(options, **choices).replace(window_s=window_s)
     ms, selection, manoeuvre = list(opts.models), opts.selection, opts.manoeuvre
     tau_min_s, tau_max_s, friction, friction_unsteady = opts.tau_min_s, opts.tau_max_s, opts.friction, opts.friction_unsteady
     check_same_pipe(sources)
@@ -391,14 +411,14 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options
     sw.reweight(top)
     k_nuis = sum(r.vi.k for r in records)
     groups = closure_groups(parts, records, top)  # (at the top wall: once, not once a model)
-    fits = [sw.summarise(m, sw.final[m], k_nuis, groups) for m in ms]
+    fits = [sw.summarise(job, sw.final[job], k_nuis, groups) for job in sw.jobs(ms)]
     apply_criteria(fits, selection, (bounds.tau_min_s, bounds.tau_max_s))
     result = JointResult(n=fits[0].n, window_s=max(p.rec.window_s for p in parts),
                          sample_rate_hz=min(p.rec.fit_rate_hz for p in parts), method="joint", settings={},
                          models=fits, selection=selection)
     best = result.best
     result.settings = _settings(records, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s)
-    result.runs, result.warnings = _per_run(records, sources, sw, sw.final[best.m], best, bounds)
+    result.runs, result.warnings = _per_run(records, sources, sw, sw.final[(best.m, best.reduced)], best, bounds)
     if all(r["disagrees"] for r in result.runs):
         # every run beyond its noise: the model (or the rig files), not one run, does not describe them
         result.warnings.insert(0, {"code": "misfit", "message": f"the best model {best.name} leaves residuals above "
@@ -424,7 +444,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options
                             + ": not searched, the model below plus vanished elements (its element did not pay "
                               "its AIC price)")
     if sw.not_continued:
-        result.notes.append(", ".join(model_name(m) for m in sw.not_continued)
+        result.notes.append(", ".join(model_name(*job) for job in sw.not_continued)
                             + f": not polished again after the closures' refinement (behind the best by more than "
                               f"{continue_margin(parts):.0f} in AIC): the wall before it under the refined closures")
     result.notes.extend(search_notes(sw))
@@ -445,7 +465,9 @@ def refine_closures(sw: StackedSweep, records: list[Record], ms) -> None:
     refined with, they are refined again with its wall and every model continued, at most CLOSURE_ROUNDS times
     and only while a closure moves; and the nearest smaller rival within RIVAL_DAIC of the named model is
     compared under the closures refined with its own wall (``_own_closures``). What they did:
-    ``sw.closure_notes``."""
+    ``sw.closure_notes``. The reduced models take part as in the single path: one can be the first pass's best
+    or the model named (the closures then refined with its wall), not a rival (velab.fitting.prepare._own_closures
+    compares full models only)."""
     if not any(r.vi.source == "fitted" for r in records):
         return
     for _ in range(REFINE_PASSES):
@@ -453,49 +475,60 @@ def refine_closures(sw: StackedSweep, records: list[Record], ms) -> None:
     k_nuis = sum(r.vi.k for r in records)
     for _ in range(CLOSURE_ROUNDS):
         named = _named(sw, ms, k_nuis)
-        if all(r.vi.source != "fitted" or not r.vi.refined_with or r.vi.refined_with == model_name(named)
+        if all(r.vi.source != "fitted" or not r.vi.refined_with or r.vi.refined_with == model_name(*named)
                for r in records):
             break
         before = records[0].vi.refined_with if len(records) == 1 else "another model"
-        if not _refine_and_continue(sw, records, ms, sw.final[named]):
+        if not _refine_and_continue(sw, records, ms, named):
             break  # (the refinement found no better closure for that model)
         sw.closure_notes.append(f"the closure{'s' if len(records) > 1 else ''} refined again with the "
-                                f"{model_name(named)} wall (the model named under those refined with {before}'s), "
+                                f"{model_name(*named)} wall (the model named under those refined with {before}'s), "
                                 f"every model continued")
     _own_closures(sw, records, ms, k_nuis)
 
 
-def _named(sw: StackedSweep, ms, k_nuis: int) -> int:
-    """The model the fit names: the least selection criterion of ``ms`` (ties to the smaller), as summarised."""
-    return min(sorted(ms), key=lambda m: sw.criterion(sw.final[m], k_nuis))
+def _named(sw: StackedSweep, ms, k_nuis: int) -> tuple[int, bool]:
+    """The model (m, reduced) the fit names: the least selection criterion of those it reports (``sw.jobs``;
+    ties to the first: the smaller, a full model before a reduced one), as summarised."""
+    return min(sw.jobs(ms), key=lambda job: sw.criterion(sw.final[job], k_nuis))
 
 
-def _refine_and_continue(sw: StackedSweep, records: list[Record], ms, wall: _Model, always: bool = False,
+def _refine_and_continue(sw: StackedSweep, records: list[Record], ms, job: tuple[int, bool], always: bool = False,
                          first_part: bool = False) -> bool:
-    """Each record's fitted closure refined with the wall of ``wall`` (on its window's first part:
+    """Each record's fitted closure refined with the wall of the model ``job`` (on its window's first part:
     velab.fitting.parts.Record.refine) and, if one moved (or ``always``), every model continued under them
     (``_continue_all``); whether one moved."""
+    wall = sw.final[job]
     p = wall.sol.pm.unpack(wall.sol.x)
-    moved = any(map_each(lambda r: r.refine(p, sw.bounds, first_part), records))
+
+    def refine(r):
+        before = r.vi
+        moved = r.refine(p, sw.bounds, first_part)
+        name_wall(r, before, job)  # (a reduced wall by its own name)
+        return moved
+
+    moved = any(map_each(refine, records))
     if moved or always:
-        _continue_all(sw, ms)
+        _continue_all(sw)
     return moved
 
 
-def _continue_all(sw: StackedSweep, ms) -> None:
-    """Every model within CONTINUE_MARGIN of the best (white AIC at its wall under the records' present
-    closures) polished again from its optimum, the others evaluated there (``sw.not_continued``)."""
-    top = max(ms)
-    at = {m: sw.evaluate(sw.final[m].sol) for m in range(top + 1) if m not in sw.not_searched}
+def _continue_all(sw: StackedSweep) -> None:
+    """Every model fitted (the full family, then the reduced: each after the one it contains) within
+    CONTINUE_MARGIN of the best (white AIC at its wall under the records' present closures) polished again from
+    its optimum, the others evaluated there (``sw.not_continued``)."""
+    order = sorted(sw.final, key=lambda job: (job[1], job[0]))
+    skip = sw.not_searched_jobs()
+    at = {job: sw.evaluate(sw.final[job].sol) for job in order if job not in skip}
     best = min(f.white_aic(sw.runs) for f in at.values())
     margin = continue_margin(sw.runs)
     sw.not_continued = []
-    for m in range(0, top + 1):
-        if m in at and at[m].white_aic(sw.runs) > best + margin:
-            sw.not_continued.append(m)
-            sw.final[m] = sw.guarded(m, at[m])
+    for job in order:
+        if job in at and at[job].white_aic(sw.runs) > best + margin:
+            sw.not_continued.append(job)
+            sw.final[job] = sw.guarded(job, at[job])
         else:
-            sw.final[m] = sw.continue_model(m, sw.final[m], at.get(m))
+            sw.final[job] = sw.continue_model(job, sw.final[job], at.get(job))
 
 
 def _own_closures(sw: StackedSweep, records: list[Record], ms, k_nuis: int) -> None:
@@ -505,22 +538,24 @@ def _own_closures(sw: StackedSweep, records: list[Record], ms, k_nuis: int) -> N
     The rival wins when the continuation under its closures names it and its criterion there is below the
     named model's under its own: then every model stays under the rival's closures; else all is put back. Not
     tried when the closures are the rival's own already (last moved by a refinement with its wall: the named
-    model was better under them)."""
-    crit = {m: sw.criterion(sw.final[m], k_nuis) for m in ms}
-    named = min(sorted(ms), key=crit.get)
-    rivals = [m for m in ms if m < named and math.isfinite(crit[m]) and crit[m] - crit[named] < RIVAL_DAIC]
+    model was better under them). The named model may be a reduced one, a rival is not (the single path's rule)."""
+    jobs_ = sw.jobs(ms)
+    crit = {job: sw.criterion(sw.final[job], k_nuis) for job in jobs_}
+    named = min(jobs_, key=crit.get)
+    rivals = [job for job in jobs_ if not job[1] and job[0] < named[0] and math.isfinite(crit[job])
+              and crit[job] - crit[named] < RIVAL_DAIC]
     fitted_ = [r for r in records if r.vi.source == "fitted" and r.vi.refined_with]
     if not rivals or not fitted_:
         return
     rival = min(rivals, key=crit.get)
-    if all(r.moved_with == model_name(rival) for r in fitted_):
+    if all(r.moved_with == model_name(*rival) for r in fitted_):
         return
     saved = (dict(sw.final), list(sw.not_continued), [r.var for r in sw.runs], [r.state() for r in records])
-    if _refine_and_continue(sw, records, ms, sw.final[rival]):
+    if _refine_and_continue(sw, records, ms, rival):
         again = _named(sw, ms, k_nuis)
         if again == rival and sw.criterion(sw.final[rival], k_nuis) < crit[named]:
-            sw.closure_notes.append(f"{model_name(rival)} under the closure refined with its own wall is better than "
-                                    f"{model_name(named)} under its own: the closure is {model_name(rival)}'s")
+            sw.closure_notes.append(f"{model_name(*rival)} under the closure refined with its own wall is better "
+                                    f"than {model_name(*named)} under its own: the closure is {model_name(*rival)}'s")
             return
     sw.final, sw.not_continued = saved[0], saved[1]
     for r, v in zip(sw.runs, saved[2]):
@@ -556,9 +591,10 @@ def pool_baseline(result: SweepResult, parts) -> None:
     result.adequacy = {"baseline_samples": int(sum(p.rec.baseline_samples for p in parts)), "misfit_bound": None}
 
 
-def _first_pass_best(sw: StackedSweep, ms) -> _Model:
-    """The model of the first pass with the least white AIC (sum n_r ln F_r + 2 (2m + 1))."""
-    return min((sw.final[m] for m in ms), key=lambda f: f.white_aic(sw.runs))
+def _first_pass_best(sw: StackedSweep, ms) -> tuple[int, bool]:
+    """The model (m, reduced) of the first pass with the least white AIC (sum n_r ln F_r + 2 k, k the wall's
+    2m + 1, m + 1 for a reduced one), of those reported."""
+    return min(sw.jobs(ms), key=lambda job: sw.final[job].white_aic(sw.runs))
 
 
 def _settings(records, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s) -> dict:
@@ -566,8 +602,9 @@ def _settings(records, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s) 
     return {"models": ms, **search_settings(sw), "selection": selection, "joint": True,
             "bounds": bounds.to_dict(), "tau_min_s": tau_min_s, "tau_max_s": tau_max_s,
             "tau_start_range_s": [sw.tau_lo, sw.tau_hi], "not_searched": [model_name(m) for m in sw.not_searched],
-            "not_continued": [model_name(m) for m in sw.not_continued],
-            "k_shared": "2m + 1", "k_nuisance": k_nuis, "sections": sum(len(r.parts) for r in records),
+            "not_continued": [model_name(*job) for job in sw.not_continued],
+            "k_shared": "2m + 1" + (" (m + 1 for S1r..S5r)" if sw.reduced else ""), "k_nuisance": k_nuis,
+            "sections": sum(len(r.parts) for r in records),
             "likelihood": "sum over runs (and their sections) of n_r ln F_r (Gaussian, each one's own variance "
                           "profiled out)",
             "friction": {"steady": tm.steady, "unsteady": tm.unsteady, "time_domain": tm.active,
@@ -577,14 +614,16 @@ def _settings(records, ms, bounds, selection, sw, k_nuis, tau_min_s, tau_max_s) 
 
 
 def search_options(opts: FitOptions) -> dict:
-    """The StackedSweep's search keywords from a fit's options (what velab.fitting.options.stacked_search let
-    through)."""
-    return {"method": opts.method, "starts": opts.starts, "seed": opts.seed, "polish": opts.polish}
+    """The StackedSweep's search keywords from a fit's options: every search option of the single sweep."""
+    return {"method": opts.method, "starts": opts.starts, "seed": opts.seed, "polish": opts.polish,
+            "reduced": opts.reduced}
 
 
 def search_settings(sw: StackedSweep) -> dict:
-    """What the stacked fit's settings say of its search: the method, the starts' cap, the seed, the polish."""
-    return {"reduced": False, "polish": sw.polish_full, "starts": sw.max_starts, "seed": sw.seed, "method": sw.method}
+    """What the stacked fit's settings say of its search: the reduced models, the polish, the starts' cap, the
+    seed, the method."""
+    return {"reduced": sw.reduced, "polish": sw.polish_full, "starts": sw.max_starts, "seed": sw.seed,
+            "method": sw.method}
 
 
 def search_notes(sw: StackedSweep) -> list[str]:
@@ -599,6 +638,11 @@ def search_notes(sw: StackedSweep) -> list[str]:
                    + " (EL: the wave-speed scan, as every method)")
     if sw.max_starts is not None and sw.method != "least-squares":
         out.append(f"at most {sw.max_starts} coarse start{'s' if sw.max_starts > 1 else ''} a model")
+    reduced = sorted(m for m, red in sw.final if red)
+    if reduced:
+        out.append(f"reduced models S1r..S{reduced[-1]}r: retardation times fixed at "
+                   f"{', '.join(f'{t:g}' for t in REDUCED_RETARDATION_TIMES_S[:reduced[-1]])} s, the wave speed and "
+                   f"the compliances fitted, each from the one below (S1r from EL)")
     if not sw.polish_full:
         q = sorted({r.qc for r in sw.runs})
         out.append("no polish: each model's wall is fitted (its time-domain refreshes and weights too) on the "
@@ -634,7 +678,7 @@ def _per_run(records, sources, sw: StackedSweep, fin: _Model, best: ModelFit, bo
     first = [0]
     for r in records[:-1]:
         first.append(first[-1] + len(r.parts))
-    owns = map_each(lambda k: _own_wall(sw, list(range(first[k], first[k] + len(records[k].parts))), fin, best.m,
+    owns = map_each(lambda k: _own_wall(sw, list(range(first[k], first[k] + len(records[k].parts))), fin, best.name,
                                         bounds), list(range(len(records))))
     for k, rec in enumerate(records):
         secs = assess_parts(best, rec.parts, fin, first[k], "joint")
@@ -676,11 +720,11 @@ def _pooled_ratio(secs: list[dict]):
     return math.exp(sum(s["n"] * math.log(s["noise_ratio"]) for s in secs) / sum(s["n"] for s in secs))
 
 
-def _own_wall(sw: StackedSweep, idx: list[int], fin: _Model, m: int, bounds) -> ModelFit:
-    """The best model's wall fitted on one run alone -- its parts ``idx``, every section of it -- from the
-    joint wall (polish grids -- the coarse ones without the polish, ``sw.polish_grid`` --, the time-domain
-    correction at the joint wall, one refresh, each section weighted by its joint F), summarised at the fit rate;
-    its F pooled over the sections as the joint F is."""
+def _own_wall(sw: StackedSweep, idx: list[int], fin: _Model, name: str, bounds) -> ModelFit:
+    """The best model's wall (``name``'s; a reduced one's taus stay fixed) fitted on one run alone -- its parts
+    ``idx``, every section of it -- from the joint wall (polish grids -- the coarse ones without the polish,
+    ``sw.polish_grid`` --, the time-domain correction at the joint wall, one refresh, each section weighted by its
+    joint F), summarised at the fit rate; its F pooled over the sections as the joint F is."""
     parts = [sw.runs[i] for i in idx]
     weights = [1.0] if len(parts) == 1 else [1.0 / math.sqrt(float(fin.F_runs[i])) for i in idx]
     pm = fin.sol.pm
@@ -705,7 +749,7 @@ def _own_wall(sw: StackedSweep, idx: list[int], fin: _Model, m: int, bounds) -> 
         heads = [r.model_head(pm.unpack(x)) for r in parts]
     st = StackedEvaluator([r.ev_f for r in parts], weights)
     f = summarise(Stage(st, st.stack(data("f", heads, x)), baseline_blocks(parts, st)), Sol(x, math.nan, pm),
-                  model_name(m), parts[0].rig, bounds)
+                  name, parts[0].rig, bounds)
     if len(parts) == 1:
         return f
     n = sum(r.n for r in parts)

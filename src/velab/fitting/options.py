@@ -158,19 +158,5 @@ class FitOptions:
 
 
 NAMES = frozenset(f.name for f in fields(FitOptions))
-# the stacked sweep (velab.fitting.joint: several sections, several runs) takes every method, a cap on the starts and
-# polish=False (issue 51); what it cannot honour, at its default here, and why
-STACKED_DEFAULTS = {"reduced": False}
-STACKED_WHY = {"reduced": "the stacked sweep fits EL, S1..S6 only, not the reduced models S1r..S5r (tau fixed)"}
-
-
-def stacked_search(options: FitOptions, why: str) -> FitOptions:
-    """``options`` if the stacked sweep can honour them (every option but those of ``STACKED_DEFAULTS`` at other
-    values), else one line (DataError) naming the option, ``why`` the fit is stacked ("the rig has 3 transducers")
-    and why the stacked sweep cannot (``STACKED_WHY``)."""
-    for key, default in STACKED_DEFAULTS.items():
-        value = getattr(options, key)
-        if value != default:
-            raise DataError(f"{key} = {value!r}: not for a fit of several sections or runs ({why}; "
-                            f"{STACKED_WHY[key]})")
-    return options
+# (every option is every fit's: the stacked sweep, velab.fitting.joint, takes each of them as the single sweep does,
+# the reduced models too -- issue 51)

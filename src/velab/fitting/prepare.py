@@ -190,8 +190,8 @@ def _window_position(position_pct, t: np.ndarray, i0: int, i1: int, q: int, n: i
 def fit_prepared(rec: PreparedRecord, rig: Rig, options: FitOptions | None = None, *, progress=None) -> SweepResult:
     """``fit_sweep`` on a prepared record, driven by the flow at the valve built from it
     (velab.fitting.manoeuvre; ``options.manoeuvre``: "auto", "fitted" or "rig"); the preparation goes into
-    the result (``options.window_s`` is the record's: it is prepared). The single sweep's path, for the
-    reduced models (velab.fitting.entry.fit_record); every other fit of a record is a stack
+    the result (``options.window_s`` is the record's: it is prepared). The single sweep on a prepared record (the
+    baseline of benchmarks/fit_speed.py and one_engine.py); the fit path's fit of a record is a stack
     (velab.fitting.recordfit).
 
     A fitted closure is refined on the whole window with the best model's wall (velab.fitting.refine), then

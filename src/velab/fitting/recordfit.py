@@ -51,7 +51,7 @@ def stack_record(record: Record, opts: FitOptions, progress=None) -> Stacked:
     top = min(sw.final.values(), key=lambda f: f.loglik(parts))
     sw.reweight(top)
     groups = closure_groups(parts, [record], top)  # (at the top wall: once, not once a model)
-    fits = [sw.summarise(m, sw.final[m], record.vi.k, groups) for m in ms]
+    fits = [sw.summarise(job, sw.final[job], record.vi.k, groups) for job in sw.jobs(ms)]
     apply_criteria(fits, opts.selection, (bounds.tau_min_s, bounds.tau_max_s))
     return Stacked(record, sw, bounds, fits, time.perf_counter() - t0)
 
@@ -68,7 +68,7 @@ def fit_single(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | N
     sw, part = st.sweep, record.parts[0]
     rec = part.rec
     # each model's steady head offset (velab.fitting.offset): the stacked summary leaves it in the parts
-    fits = [replace(f, steady_head_offset_m=offset(sw.final[f.m].heads[0] - rec.h, part.steady_n)) for f in st.fits]
+    fits = [replace(f, steady_head_offset_m=offset(sw.final[(f.m, f.reduced)].heads[0] - rec.h, part.steady_n)) for f in st.fits]
     result = SweepResult(n=rec.h.size, window_s=rec.window_s, sample_rate_hz=rec.fit_rate_hz, method=opts.method,
                          settings=_settings(st, opts), models=fits, selection=opts.selection)
     result.evaluations = sum(e.evaluations for e in (part.ev_c, part.ev_m, part.ev_f))

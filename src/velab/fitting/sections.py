@@ -21,7 +21,7 @@ from velab.fitting.joint import assess_parts, pool_baseline, search_notes, searc
 from velab.fitting.parts import Record
 from velab.fitting.recordfit import stack_record
 from velab.fitting.results import SweepResult
-from velab.fitting.options import FitOptions, stacked_search
+from velab.fitting.options import FitOptions
 from velab.rig import Rig
 
 
@@ -43,11 +43,10 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
                  **choices) -> SectionsResult:
     """Calibrate one wall on every section of one record. ``heads``: transducer name -> absolute head on
     ``t_s`` (one per ``rig.sections``, named as in the rig; one at the valve, whose head drives the valve's
-    orifice law); ``options`` / ``choices`` as ``velab.fitting.entry.fit_record`` (the stacked search:
-    ``stacked_search``). DataError (one line) for a missing or unknown section, a rig without a transducer
-    at the valve, or what fit_record refuses."""
-    opts = stacked_search(FitOptions.of(options, **choices).replace(window_s=window_s),
-                          f"the rig has {len(rig.sections)} transducers")
+    orifice law); ``options`` / ``choices`` as ``velab.fitting.entry.fit_record`` (every search option, the
+    reduced models too). DataError (one line) for a missing or unknown section, a rig without a transducer at
+    the valve, or what fit_record refuses."""
+    opts = FitOptions.of(options, **choices).replace(window_s=window_s)
     record = Record("", t_s, heads, trigger_time_s, rig, window_s, record_rate_hz=record_rate_hz,
                     position_pct=position_pct, manoeuvre=opts.manoeuvre, friction=opts.friction,
                     friction_unsteady=opts.friction_unsteady)
@@ -57,7 +56,7 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
     result = SectionsResult(n=fits[0].n, window_s=valve_rec.window_s, sample_rate_hz=valve_rec.fit_rate_hz,
                             method="sections", settings={}, models=fits, selection=selection)
     best = result.best
-    result.sections, result.warnings = _per_section(runs, sw.final[best.m], best)
+    result.sections, result.warnings = _per_section(runs, sw.final[(best.m, best.reduced)], best)
     tm = record.shared.tm
     result.settings = {"models": ms, **search_settings(sw), "selection": selection, "sections": True,
                        "bounds": bounds.to_dict(),
@@ -86,8 +85,7 @@ def fit_run_sections(run, window_s: float | None, options: FitOptions | None = N
                      **choices) -> SectionsResult:
     """:func:`fit_sections` on a run read back from its file, every transducer of its rig (velab.fitting.entry
     .fit_run calls it for a rig with several)."""
-    opts = stacked_search(FitOptions.of(options, **choices), f"{run.path}: its rig has {len(run.rig.sections)} "
-                                                              f"transducers")
+    opts = FitOptions.of(options, **choices)
     run.fit_window(window_s)  # the reader's own checks of the window (gaps, NaN), with the file's name
     return fit_sections(run.time_s, run_heads(run), run.trigger_time_s, run.rig, window_s, opts,
                         record_rate_hz=run.sample_rate_hz, position_pct=run.channels.get("valve_position"),

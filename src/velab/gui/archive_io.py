@@ -76,22 +76,26 @@ class RefitOutcome:
 def refit_request(path, opts: RefitOptions):
     """The fit service's request for a re-fit of the run at ``path`` (velab.fitservice; the run is saved into
     afterwards, unless it is still being written: :func:`store_refit`). DataError for bad options."""
-    from velab.fitting.options import FitOptions
     from velab.fitservice.request import FitRequest, RunFile
 
-    choices = FitOptions(models=opts.models, method=opts.method, reduced=opts.reduced, starts=opts.starts,
-                         polish=opts.polish)
-    return FitRequest(RunFile(str(path)), opts.window_s, choices, label=f"refit-{Path(path).name}")
+    return FitRequest(RunFile(str(path)), opts.window_s, _choices(opts), label=f"refit-{Path(path).name}")
+
+
+def _choices(opts: RefitOptions):
+    """The fit's options from the Re-fit settings (a re-fit's and a joint fit's: every search option is both's)."""
+    from velab.fitting.options import FitOptions
+
+    return FitOptions(models=opts.models, method=opts.method, reduced=opts.reduced, starts=opts.starts,
+                      polish=opts.polish)
 
 
 def joint_request(paths, opts: RefitOptions):
     """The fit service's request for the joint fit of the runs (``velab fit --joint`` with the Re-fit settings'
-    models, window and search: method, starts, polish). DataError for bad options."""
-    from velab.fitting.options import FitOptions
+    models, window and search: the method, the reduced models, the starts, the polish). DataError for bad
+    options."""
     from velab.fitservice.request import FitRequest, RunFiles
 
-    choices = FitOptions(models=opts.models, method=opts.method, starts=opts.starts, polish=opts.polish)
-    return FitRequest(RunFiles(tuple(str(p) for p in paths)), opts.window_s, choices, label="joint")
+    return FitRequest(RunFiles(tuple(str(p) for p in paths)), opts.window_s, _choices(opts), label="joint")
 
 
 def store_refit(path, result, opts: RefitOptions) -> RefitOutcome:
@@ -120,7 +124,7 @@ def store_joint(paths, result, opts: RefitOptions) -> str | None:
 
     if not opts.save:
         return None
-    name = opts.name or default_name(opts.window_s)
+    name = opts.name or default_name(opts.window_s, opts.reduced)
     save_joint(result, read_sources(paths, opts.window_s), name)
     return name
 

@@ -224,7 +224,7 @@ class FitController(QGroupBox):
 
     # ------------------------------------------------------------------ several runs, together
     def fit_together(self, paths: list[str]) -> None:
-        """The joint fit of the runs (one wall for all) with the form's models and window, saved into each."""
+        """The joint fit of the runs (one wall for all) with the form's models, window and search, saved into each."""
         if len(paths) < 2 or self.busy:
             return
         opts = self.options()
