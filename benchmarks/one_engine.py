@@ -31,6 +31,7 @@ from velab.fitting import fit_sweep
 from velab.fitting.entry import fit_record
 from velab.fitting.options import FitOptions
 from velab.fitting.prepare import fit_prepared, prepare_record
+from velab.fitting.sections import fit_sections
 from velab.synth import SynthSettings, synthesise, with_valve_law
 
 from honesty import case as honesty_case, seeds  # (the sibling script: run from benchmarks/ or as a path)

@@ -8,8 +8,6 @@ its flag, the JSON keeps it, the full models are those of the fit without the re
 lists the models fit_sweep lists."""
 
 import json
-from dataclasses import replace
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,12 +15,11 @@ from test_sections_fit import FS
 from test_stack_options import MODELS, W, _campaign, _sections, record, runs  # noqa: F401 (fixtures)
 
 from velab.config import REDUCED_RETARDATION_TIMES_S, load_material, load_rig
-from velab.fitting.entry import fit_record
-from velab.fitting.flows import ValveInput
+from velab.fitting.options import FitOptions
+from velab.fitting.prepare import fit_prepared, prepare_record
 from velab.fitting.jointresult import JointResult
 from velab.fitting.report import format_report
 from velab.fitting.sections import SectionsResult, fit_sections
-from velab.fitting.stackreduced import name_wall
 from velab.model import creep_scale
 from velab.moc import moc_head
 from velab.valvelaw import commanded_position_pct
@@ -98,9 +95,9 @@ def test_the_json_round_trips(kind, fits):
 
 
 def test_a_one_part_stack_lists_the_models_fit_sweep_lists(record):  # noqa: F811
-    """The valve's head alone: the one-part stack (fit_sections with the rig's one transducer) and the single path
-    (fit_record: fit_sweep) list the same models, in one order, with the same k (the wall's), and name the same one. Their F
-    are compared loosely: the engines differ (the single path's lead fit and full-band polish, the stack's polish
+    """The valve's head alone: the one-part stack (fit_sections with the rig's one transducer) and the single sweep
+    (prepare.fit_prepared: fit_sweep) list the same models, in one order, with the same k (the wall's), and name the same one. Their F
+    are compared loosely: the engines differ (the single sweep's full-band polish, the stack's polish
     grid at 8 x the band): the reduced models' F agree to 1e-3 (a full S1 there differs by 0.9 %, the engines'
     own difference before the reduced models), the named model's to 1e-5."""
     rig, t, heads = record
@@ -108,7 +105,7 @@ def test_a_one_part_stack_lists_the_models_fit_sweep_lists(record):  # noqa: F81
     head = heads["valve"]
     stack = fit_sections(t, {rig.head_section.name: head}, 0.0, rig, W, record_rate_hz=FS, models=MODELS,
                          reduced=True, threads=1)
-    single = fit_record(t, head, 0.0, rig, W, record_rate_hz=FS, models=MODELS, reduced=True, threads=1)
+    single = _single_sweep(t, head, rig, models=MODELS)
     k_nuis = stack.settings["k_nuisance"]  # (the stack counts the closure in k; the single path marginalises it)
     assert [(f.name, f.reduced, f.k - k_nuis) for f in stack.models] == [(f.name, f.reduced, f.k)
                                                                          for f in single.models]
@@ -123,8 +120,8 @@ def test_a_one_part_stack_lists_the_models_fit_sweep_lists(record):  # noqa: F81
 def test_a_reduced_model_named_gets_the_closure_refined_with_its_wall():
     """A record whose creep is at the reduced model's taus (material A's compliance in two elements at 0.01 and
     0.1 s; the time-domain model, the real valve, quadratic friction, sigma 0.1 m, head only, 4 s), one-part stack:
-    S2r is named, the closure refined with its wall and said so by its name (velab.fitting.stackreduced.name_wall:
-    parts.Record.refine names a wall by its elements), as the single path names it (F within 1e-6; measured 4e-8).
+    S2r is named, the closure refined with its wall and said so by its name (parts.Record.refine takes
+    the wall's name), as the single sweep names it (F within 1e-6; measured 4e-8).
     S2 fits worse than S2r here: its box (tau >= 0.0137 s) does not hold S2r's 0.01 s."""
     rig = load_rig("perugia")
     A = load_material("A")
@@ -142,32 +139,12 @@ def test_a_reduced_model_named_gets_the_closure_refined_with_its_wall():
     closure = stack.settings["manoeuvre"]
     assert closure["refined_with"] == "S2r" and "with the wall (S2r)" in closure["text"], closure
     assert abs(b.wave_speed_m_s - a) <= 2.0 * b.wave_speed_se_m_s
-    single = fit_record(t, head, 0.0, rig, W, record_rate_hz=FS, models=[1, 2], reduced=True, threads=1)
+    single = _single_sweep(t, head, rig, models=[1, 2])
     assert single.best.name == "S2r" and single.settings["manoeuvre"]["refined_with"] == "S2r"
     assert b.F == pytest.approx(single.best.F, rel=1e-6)
 
 
-def test_a_reduced_wall_is_named_in_what_its_refinement_wrote():
-    """name_wall: Record.refine wrote "S2" for S2r's wall -- renamed in refined_with, the text's last mention and
-    moved_with (if this refinement moved the closure); a refinement that did not run, or a full wall, renames
-    nothing; an earlier full S2's mention and move stay S2's."""
-    flow = np.zeros(3)
-    old = ValveInput("fitted", flow, {"beta_per_s": 30.0}, text="closure fitted with the wall (S2)", refined_with="S2")
-    rec = SimpleNamespace(vi=old, moved_with="S2")
-    name_wall(rec, old, (2, True))  # (the refinement did not run: the same ValveInput)
-    assert rec.vi is old and rec.moved_with == "S2"
-    kept = replace(old, text=old.text + " (refined over the whole window with the S2 wall: it fitted the record no "
-                                        "better, so this closure was kept)")
-    rec.vi = kept
-    name_wall(rec, old, (2, True))  # (not moved: S2's move and first mention are S2's)
-    assert rec.vi.refined_with == "S2r" and rec.moved_with == "S2"
-    assert rec.vi.text == ("closure fitted with the wall (S2) (refined over the whole window with the S2r wall: it "
-                           "fitted the record no better, so this closure was kept)")
-    moved = replace(old, params={"beta_per_s": 31.0}, text="closure refined with the wall (S2); its shape held")
-    rec = SimpleNamespace(vi=moved, moved_with="S2")
-    name_wall(rec, old, (2, True))
-    assert (rec.vi.refined_with, rec.moved_with) == ("S2r", "S2r")
-    assert rec.vi.text == "closure refined with the wall (S2r); its shape held" and rec.vi.flow is flow
-    rec = SimpleNamespace(vi=moved, moved_with="S2")
-    name_wall(rec, old, (2, False))
-    assert rec.vi is moved and rec.moved_with == "S2"
+def _single_sweep(t, head, rig, **choices):
+    """The single sweep (velab.fitting.sweep, one step) on the record prepared as the fit path prepares it."""
+    rec = prepare_record(t, head, 0.0, rig, W, record_rate_hz=FS)
+    return fit_prepared(rec, rig, FitOptions(reduced=True, threads=1, **choices))

@@ -119,12 +119,9 @@ def test_a_rig_with_several_sections_fits_them_all_in_the_final_fit_only(fitter)
     assert [(k, d["final"]) for k, d in events] == [("fit", True)]
 
 
-def test_the_fit_paths_sections_search_refuses_the_single_sweeps_options():
+def test_the_fit_paths_sections_search_says_which_head_is_missing():
     from velab.errors import DataError
 
-    with pytest.raises(DataError, match="reduced = True: not for a fit of several sections"):
-        entry.fit_record(T, H, 0.0, load_rig("perugia_two_sections"), 1.0, record_rate_hz=1000.0,
-                           section_heads={"mid": H}, reduced=True)
     with pytest.raises(DataError, match="sections: no head for mid"):  # (velab.fitting.sections says which)
         entry.fit_record(T, H, 0.0, load_rig("perugia_two_sections"), 1.0, record_rate_hz=1000.0)
 

@@ -53,7 +53,7 @@ from velab.fitting.solvers import Sol, Stage
 from velab.fitting.starts import (RACE_KEEP, cap_starts, coarse_search, continues_by_lsq, distinct, nested_starts,
                                   reduced_then_full, scan_wave_speed, tau_grids)
 from velab.fitting.stacked import StackedEvaluator
-from velab.fitting.stackreduced import below, jobs, name_wall, sweep_reduced
+from velab.fitting.stackreduced import below, jobs, sweep_reduced
 from velab.fitting.stats import ar1_innovation_var, lag1
 from velab.fitting.summary import summarise
 from velab.fitting.options import FitOptions
@@ -501,13 +501,7 @@ def _refine_and_continue(sw: StackedSweep, records: list[Record], ms, job: tuple
     wall = sw.final[job]
     p = wall.sol.pm.unpack(wall.sol.x)
 
-    def refine(r):
-        before = r.vi
-        moved = r.refine(p, sw.bounds, first_part)
-        name_wall(r, before, job)  # (a reduced wall by its own name)
-        return moved
-
-    moved = any(map_each(refine, records))
+    moved = any(map_each(lambda r: r.refine(p, sw.bounds, first_part, model_name(*job)), records))
     if moved or always:
         _continue_all(sw)
     return moved

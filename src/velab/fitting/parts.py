@@ -190,7 +190,7 @@ class Record:
         self.parts = [Part(self, s.name, s.position_m, recs[s.name], i) for i, s in enumerate(sections)]
         self.valve = self.parts[names.index(at_valve[0])]
 
-    def refine(self, params, bounds, first_part: bool = False) -> bool:
+    def refine(self, params, bounds, first_part: bool = False, name: str = "") -> bool:
         """The fitted closure refined on the valve section's whole window with the wall ``params`` = (a, J',
         tau) as the start (velab.fitting.refine: the wall is free there, only the closure is kept); every
         part then driven by it, with its linear friction stand-in at that wall. Whether the closure moved (False
@@ -208,7 +208,7 @@ class Record:
             return False
         a, J, tau = params
         E = creep_const(self.rig) * a * a / np.asarray(J)
-        wall = ModelFit(name=model_name(len(J)), m=len(J), k=1 + 2 * len(J), reduced=False, n=self.valve.n,
+        wall = ModelFit(name=name or model_name(len(J)), m=len(J), k=1 + 2 * len(J), reduced=False, n=self.valve.n,
                         F=math.nan, wave_speed_m_s=a, E_pa=tuple(E), eta_pa_s=tuple(E * np.asarray(tau)),
                         lag1_autocorr=0.0)
         old = self.vi

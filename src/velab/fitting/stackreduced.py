@@ -11,7 +11,6 @@ Functions of a StackedSweep (duck-typed: this module does not import velab.fitti
 
 from __future__ import annotations
 
-from dataclasses import replace
 
 import numpy as np
 
@@ -79,27 +78,3 @@ def sweep_reduced(sw, ms, progress=None) -> None:
         base = sw.final[(m, True)] = fit_reduced(sw, m, base)
         if progress is not None and (m, True) in reported:
             progress(reported.index((m, True)) + 1, len(reported), model_name(m, True))
-
-
-def name_wall(record, before, job: tuple[int, bool]) -> None:
-    """The record's closure said refined with ``job``'s wall by its own name: velab.fitting.parts.Record.refine
-    names a wall by its number of elements (S2), so a reduced wall (S2r) is renamed in what the refinement
-    wrote -- ``refined_with``, its text's last mention, ``moved_with``. ``before``: the record's ValveInput
-    before the refinement (nothing is renamed if the refinement did not run)."""
-    m, red = job
-    vi = record.vi
-    if not red or vi is before:
-        return
-    short, name = model_name(m), model_name(m, True)
-    if vi.refined_with == short:
-        vi = replace(vi, refined_with=name)
-    text = vi.text
-    # (refine.py's two phrasings; the last one written is this refinement's)
-    at = max(((text.rfind(old), old, new) for old, new in ((f"with the {short} wall", f"with the {name} wall"),
-                                                            (f"with the wall ({short})", f"with the wall ({name})"))),
-             key=lambda c: c[0])
-    if at[0] >= 0:
-        vi = replace(vi, text=text[: at[0]] + at[2] + text[at[0] + len(at[1]):])
-    if vi.params != before.params and record.moved_with == short:  # (moved by this refinement)
-        record.moved_with = name
-    record.vi = vi
