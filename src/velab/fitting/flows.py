@@ -185,7 +185,7 @@ def closure_coupling(t, d, rig: Rig, model: dict | None, measured=None) -> np.nd
 
 def _coupling(t: np.ndarray, d: np.ndarray, rig: Rig) -> np.ndarray:
     """The head rise the orifice coupling takes: ``coupling_head`` over a span that does not depend on
-    the window's length (a lead fit and the final fit of one record see the same closure); after it
+    the window's length (a first part and the whole window of one record see the same closure); after it
     the valve is shut and the coupling idle."""
     span = int(np.searchsorted(t, COUPLING_SPAN_FACTOR * early_window_s(rig, math.inf)))
     hc = np.asarray(d, dtype=float).copy()

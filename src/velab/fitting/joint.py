@@ -456,7 +456,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options
 
 def refine_closures(sw: StackedSweep, records: list[Record], ms) -> None:
     """The fitted closures refined with the first pass's best wall on each record's window's first part (the
-    single path's lead window, velab.fitting.parts.Record.refine: that wall was calibrated under the early-window
+    velab.fitting.parts.first_part_s, Record.refine: that wall was calibrated under the early-window
     closure, and refined from it on the whole window the closure made up for the wall's error), driving the
     whole window; then every model within CONTINUE_MARGIN of the best continued from its optimum under them (the
     others evaluated there: ``sw.not_continued``). The rounds below refine on the whole window (every wave front

@@ -3,7 +3,7 @@
 ``"position"``: the record holds the valve position and the rig describes the valve: the opening from the
 recorded position (velab.fitting.flows). ``"fitted"``: no position record: the closure fitted as nuisance
 parameters (velab.fitting.closurefit). ``"rig"``: the rig's commanded sigmoid imposed as the flow (the
-paper's model). A closure fitted once (a lead fit's) drives the continuation as it is.
+paper's model). A closure fitted once (``closure``: a refined one) drives the window as it is.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def valve_input(t, d, rig: Rig, window_s: float, *, position_pct=None, mode: str
     ``mode`` "auto" -- from the recorded position if there is one, else the fitted closure;
     "fitted" -- the fitted closure even with a position record; "rig" -- the rig's commanded sigmoid
     imposed as the flow (the paper's model: no coupling, nothing fitted). ``closure``: a closure
-    already fitted on this record's first part (a lead fit's ``settings["manoeuvre"]``): its
+    already fitted on this record's first part (a refinement's, velab.fitting.parts.Record.refine): its
     parameters drive this window too, and the closure is not fitted again. ``shape``: "fitted" (the closure's
     shape fitted), "auto" (``choose_closure``: the rig's valve's shape unless the record shows another)."""
     if mode not in MODES:

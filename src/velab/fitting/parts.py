@@ -197,13 +197,10 @@ class Record:
         for a flow not fitted; a closure refined before that this wall does not move keeps its flow and parts,
         and says it was refined with this wall too, as the single path's rounds do).
 
-        ``first_part``: refined on the window's first part only (``first_part_s``: the single path's lead
-        window) and then driving the whole window, as the single path's lead refines the closure its
-        continuation takes (velab.fitting.prepare). The first refinement of a closure fitted on the early
-        window starts from a wall calibrated under that closure, off by several standard errors; refined from
-        there on the whole window, the closure had made up for the wall's error in its beta and tail (an elastic
-        pipe's record: every model 3-8 in n ln F short of its fit under the closure refined on the first half,
-        and an element at the lower tau bound named; docs/decisions.md, "One engine")."""
+        ``first_part``: refined on the window's first part only (``first_part_s``) and then driving the whole
+        window: the first refinement starts from a wall calibrated under the early-window closure, and refined
+        from it on the whole window the closure makes up for that wall's error (docs/decisions.md, "One engine").
+        ``name``: the wall's (a reduced model's "S2r"; default: by its number of elements)."""
         if self.vi.source != "fitted":
             return False
         a, J, tau = params

@@ -1,7 +1,7 @@
 """What a fit was made with and what it derived: ``FitSettings``, the result's typed, frozen settings.
 
 One record of every key a fit stores (its JSON ``settings`` object, the run file's fit group): the user's
-choices (FitOptions' values), what the sweep derived (decimation, the retardation-time box, the lead, the
+choices (FitOptions' values), what the sweep derived (decimation, the retardation-time box, the
 models not searched), the flow at the valve (``manoeuvre``), the record's preparation (``record``), and what a
 joint or sections fit adds. A field never set is absent from ``to_dict`` (the JSON of every kind of fit is
 what it was before the settings were typed); a key this version does not know, read from a newer document,
@@ -63,7 +63,7 @@ class FitSettings(Mapping):
     not_searched: object = UNSET
     friction: object = UNSET  # {"steady", "unsteady", "time_domain", ...}
     time_domain_polish: object = UNSET
-    # what the fit path adds: the flow at the valve, the record's preparation, the lead's purpose
+    # what the fit path adds: the flow at the valve, the record's preparation
     manoeuvre: object = UNSET  # velab.fitting.manoeuvre.ValveInput.describe()
     manoeuvre_refined: object = UNSET  # (a lead fit of an earlier version: its refined closure)
     record: object = UNSET  # velab.fitting.prepare.PreparedRecord.describe()
