@@ -126,8 +126,14 @@ FIT_PATH = ["velab.fitting.entry", "velab.fitservice.execute", "velab.fit_worker
             "velab.fitting.sweep", "velab.commands.fit"]
 
 
-def test_the_fit_path_does_not_import_scipy_signal():
-    loaded = _loaded(FIT_PATH)
+@pytest.fixture(scope="module")
+def fit_path_loaded() -> set[str]:
+    """The fit path's modules imported in one fresh interpreter; the two tests below only read what it loaded."""
+    return _loaded(FIT_PATH)
+
+
+def test_the_fit_path_does_not_import_scipy_signal(fit_path_loaded):
+    loaded = fit_path_loaded
     assert "velab.fitting.prepare" in loaded and "velab.filters" in loaded
     assert not [m for m in loaded if m.startswith(("scipy.signal", "scipy.stats"))]
 
@@ -135,8 +141,8 @@ def test_the_fit_path_does_not_import_scipy_signal():
 # scipy.optimize (~0.2-0.4 s of start-up, with scipy.sparse, scipy.spatial, scipy.constants) is imported by the
 # options that use it only (--method nelder-mead, evolution; Brunone's friction): a default fit's one scipy.optimize
 # call, the equivalent friction's bounded search, is velab.fitting.bounded (scipy's steps: tests/fitting/test_bounded.py)
-def test_the_fit_path_does_not_import_scipy_optimize():
-    loaded = _loaded(FIT_PATH)
+def test_the_fit_path_does_not_import_scipy_optimize(fit_path_loaded):
+    loaded = fit_path_loaded
     assert "velab.fitting.friction" in loaded and "velab.fitting.solvers" in loaded
     assert not [m for m in loaded if m.startswith(("scipy.optimize", "scipy.sparse", "scipy.spatial"))]
 
