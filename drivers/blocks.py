@@ -186,7 +186,12 @@ class SampleBlock:
     @property
     def host_times_s(self) -> np.ndarray:
         """Host epoch time of every sample, from the last sample's host time and the device rate."""
-        return self.host_time_s - (self.n - 1 - np.arange(self.n)) / self.rate_hz
+        return self.host_times_at(self.rate_hz)
+
+    def host_times_at(self, host_rate_hz: float) -> np.ndarray:
+        """Host epoch time of every sample, the samples ``host_rate_hz`` apart in host time: the device rate at a
+        bench, the rate times the clock scale on a simulated rig's fast clock (its samples come that much faster)."""
+        return self.host_time_s - (self.n - 1 - np.arange(self.n)) / host_rate_hz
 
     # ---- values
     def column(self, channel: str) -> np.ndarray:

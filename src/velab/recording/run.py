@@ -196,7 +196,7 @@ class Run:
         valve = self.rec.devices[self.rec.roles["valve"]]
         rec = self.rec
         self.slow = SlowChannels(valve, rec.roles["valve"], rec.devices[rec.roles["flowmeter"]], self.hooks,
-                                 self.writer.put, lambda: self.timeline.now_axis,
+                                 self.writer.put, lambda: self.timeline.device_axis,
                                  lambda: self.timeline.triggered, s.stall_timeout_s,
                                  # the valve's state reaches the control thread as a message
                                  on_valve=lambda st: (rec.submit(lambda: rec.note_valve(st)), mon.valve(st)),

@@ -61,10 +61,11 @@ def trigger_from_position(t: np.ndarray, pos_pct: np.ndarray, beta: float, gamma
     return float(np.median(np.asarray(t, dtype=float)[sel] - commanded_time_s(p[sel], beta, gamma)))
 
 
-def slice_block(b, k: int):
+def slice_block(b, k: int, host_rate_hz: float):
+    """The block's first ``k`` samples; its samples ``host_rate_hz`` apart in host time (``Block.host_times_at``)."""
     sq = None if b.sample_quality is None else b.sample_quality[:k]
     return replace(b, raw=b.raw[:k], signal=b.signal[:k], values=b.values[:k], sample_quality=sq,
-                   host_time_s=b.host_time_s - (b.n - k) / b.rate_hz)
+                   host_time_s=b.host_time_s - (b.n - k) / host_rate_hz)
 
 
 QUICK_FRACTIONS = (0.25, 0.5, 0.75)  # intermediate quick fits at these fractions of the fit window
@@ -163,6 +164,14 @@ class Timeline:
     def now_axis(self) -> float:
         with self._lock:
             return (self.gidx - self.n_pre) / self.fs
+
+    @property
+    def device_axis(self) -> float:
+        """The axis time of the sample the device is making now (``_index_now``: the block that waited least,
+        plus the samples made since; never before the samples processed): what a slow channel's reading taken
+        now is stamped with, right through a stall of the samples' processing."""
+        with self._lock:
+            return (self._index_now() - self.n_pre) / self.fs
 
     @property
     def baseline_s(self) -> float:
@@ -313,7 +322,7 @@ class Timeline:
             keep = t < self._stroke_by() + s.duration_s - 0.5 / fs
             if not keep.all():
                 n = int(keep.sum())
-                b, g, t = slice_block(b, n), g[:n], t[:n]
+                b, g, t = slice_block(b, n, self._rate), g[:n], t[:n]
                 p_codes = p_codes[:n]
                 v_codes = None if v_codes is None else v_codes[:n]
                 o_codes = [c[:n] for c in o_codes]
@@ -328,7 +337,7 @@ class Timeline:
         vq = v_codes if v_codes is not None else np.zeros(n, np.uint8)
         channels = {
             "head": head, "valve_position": pos, "pressure": b.values[:, pi], "pressure_raw": b.raw[:, pi].astype(np.int32),
-            "valve_position_raw": pos_raw, "sample_index": g, "host_time": b.host_times_s,
+            "valve_position_raw": pos_raw, "sample_index": g, "host_time": b.host_times_at(self._rate),
             "pressure_quality": p_codes, "valve_position_quality": vq,
         }
         o_heads = []
