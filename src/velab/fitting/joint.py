@@ -67,7 +67,7 @@ REFRESHES = 8
 REFRESH_GAIN = 0.05
 # closure refinements (each run's, with the joint wall) followed by a continuation of every model; a
 # second pass was measured to change nothing that matters (J(0.05 s) moved 0.1 %, a 0.003 m/s) for 1.5 x the time
-REFINE_PASSES = 1  # ... stopped when one gains less than this in sum n ln F
+REFINE_PASSES = 1
 # a model's basins are searched on this many parts, those the model below describes best (relative to their own
 # noise): the wall is one, so a few runs find its basin; the search's best starts are then ranked and solved on
 # every part (the search on all five runs of a campaign was a sixth of the joint fit)
