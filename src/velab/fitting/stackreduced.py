@@ -1,16 +1,16 @@
-"""The stacked sweep's reduced family S1r..S5r (velab.fitting.joint.StackedSweep with ``reduced=True``).
+"""The reduced family S1r..S5r: its jobs, parameter map and starts, for both sweeps (velab.fitting.sweep's
+``fit_sweep`` and velab.fitting.joint.StackedSweep with ``reduced=True``), and the stacked sweep's fit of it.
 
-By the single sweep's rules (velab.fitting.sweep: ``fit_model`` with ``red``, ``starts``, ``fit_sweep``'s jobs):
-a reduced model's retardation times are fixed at REDUCED_RETARDATION_TIMES_S[:m], only the wave speed and the
+A reduced model's retardation times are fixed at REDUCED_RETARDATION_TIMES_S[:m], only the wave speed and the
 compliances are fitted; the family is fitted after the full one, each model from the one before (S1r from EL),
 and guarded by it (it contains it: its last compliance can vanish). Models are keyed (m, reduced) as the single
 sweep's jobs, named by velab.fitting.results.model_name(m, reduced).
 
-Functions of a StackedSweep (duck-typed: this module does not import velab.fitting.joint).
+``fit_reduced`` and ``sweep_reduced`` take a StackedSweep (duck-typed: this module does not import
+velab.fitting.joint, which imports it).
 """
 
 from __future__ import annotations
-
 
 import numpy as np
 
@@ -20,7 +20,7 @@ from velab.fitting.results import model_name
 from velab.fitting.starts import cap_starts, coarse_search, continues_by_lsq
 
 MAX_REDUCED = len(REDUCED_RETARDATION_TIMES_S)  # S5r
-# the starts' total compliance J'_1 + ... + J'_m spread evenly (the single sweep's, velab.fitting.sweep._Sweep.starts)
+# the starts' total compliance J'_1 + ... + J'_m spread evenly (``starts``)
 TOTALS = (0.1, 0.5)
 
 
@@ -45,7 +45,7 @@ def param_map(m: int, bounds) -> ParamMap:
 
 
 def starts(pm: ParamMap, base) -> list[np.ndarray]:
-    """S(m)r's coarse starts from ``base`` (S(m-1)r's or EL's solution, a Sol), the single sweep's: the model
+    """S(m)r's coarse starts from ``base`` (S(m-1)r's or EL's solution, a Sol), in both sweeps: the model
     below plus a small element (J' 1e-3), then the nominal totals of TOTALS at the wave speed they stiffen."""
     a = base.pm.unpack(base.x)[0]
     out = [pm.clip(pm.embed(base.pm, base.x, J_new=1e-3))] if base.pm.m else []

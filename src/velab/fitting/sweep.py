@@ -36,7 +36,6 @@ from typing import Callable
 
 import numpy as np
 
-from velab.config import REDUCED_RETARDATION_TIMES_S
 from velab.rig import Rig
 from velab.errors import DataError
 from velab.fitting.data import lowpass_decimate, prepare_window
@@ -52,6 +51,7 @@ from velab.fitting.solvers import Sol, Stage, levenberg_marquardt
 from velab.fitting.starts import (cap_starts, coarse_search, continues_by_lsq, fan_out, nested_starts, reduced_then_full,
                                   scan_wave_speed, split_all, tau_grids)
 from velab.fitting.nesting import hand_back
+from velab.fitting import stackreduced
 from velab.fitting.summary import summarise
 from velab.model import manoeuvre_band_hz
 
@@ -248,8 +248,7 @@ class _Sweep:
         return None
 
     def fit_model(self, m: int, red: bool) -> tuple[_Final, int]:
-        fixed = tuple(REDUCED_RETARDATION_TIMES_S[:m]) if red and m else None
-        pm = ParamMap(m, self.bounds, fixed)
+        pm = stackreduced.param_map(m, self.bounds) if red and m else ParamMap(m, self.bounds)
         ref = self.reference(m, red)
         if ref is not None and not red and self.nothing_left(m):
             self.not_searched.append(m)
@@ -338,10 +337,7 @@ class _Sweep:
             return cands
         a_base = base.pm.unpack(base.x)[0]  # EL's optimum seeds S1
         if red:
-            if base.pm.m:
-                cands.append(pm.clip(pm.embed(base.pm, base.x, J_new=1e-3)))
-            for tot in (0.1, 0.5):
-                cands.append(pm.clip(pm.pack(a_base * (1 + tot) ** 0.5, np.full(m, tot / m))))
+            cands.extend(stackreduced.starts(pm, base))
         else:
             # S(m-1) with an element split or a small element added (the exact embedding, S(m-1)
             # plus a vanished element, is the guard's start in calibrate: it only matters when
@@ -562,9 +558,7 @@ def fit_sweep(t_s, h_m, rig: Rig, options: FitOptions | None = None, *,
     sw = _Sweep(t, d, rig, bounds, method, polish, starts, seed, threads, initial, lead, flow, baseline_n)
     sw.trust_lead = trust_lead
 
-    jobs = [(m, False) for m in ms]
-    if reduced:
-        jobs += [(m, True) for m in ms if 1 <= m <= len(REDUCED_RETARDATION_TIMES_S)]
+    jobs = stackreduced.jobs(ms, reduced)  # (the reduced family's facts: one place for both engines)
     order = sorted(jobs, key=lambda j: (j[1], j[0]))
     spent: dict = {}
     for done, job in enumerate(order, 1):
