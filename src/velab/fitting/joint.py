@@ -439,16 +439,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options
                         + (", each section its own noise" if n_sec > len(records) else "")
                         + "; -2 ln L = sum over runs" + (" and sections" if n_sec > len(records) else "")
                         + " of n_r ln F_r (each one's variance its own)")
-    if sw.not_searched:
-        result.notes.append(", ".join(model_name(m) for m in sw.not_searched)
-                            + ": not searched, the model below plus vanished elements (its element did not pay "
-                              "its AIC price)")
-    if sw.not_continued:
-        result.notes.append(", ".join(model_name(*job) for job in sw.not_continued)
-                            + f": not polished again after the closures' refinement (behind the best by more than "
-                              f"{continue_margin(parts):.0f} in AIC): the wall before it under the refined closures")
-    result.notes.extend(search_notes(sw))
-    result.notes.extend(sw.closure_notes)
+    result.notes.extend(sweep_notes(sw, several=True))
     result.duration_s = time.perf_counter() - t0
     result.evaluations = 0
     return result
@@ -500,7 +491,6 @@ def _refine_and_continue(sw: StackedSweep, records: list[Record], ms, job: tuple
     (``_continue_all``); whether one moved."""
     wall = sw.final[job]
     p = wall.sol.pm.unpack(wall.sol.x)
-
     moved = any(map_each(lambda r: r.refine(p, sw.bounds, first_part, model_name(*job)), records))
     if moved or always:
         _continue_all(sw)
@@ -618,6 +608,23 @@ def search_settings(sw: StackedSweep) -> dict:
     seed, the method."""
     return {"reduced": sw.reduced, "polish": sw.polish_full, "starts": sw.max_starts, "seed": sw.seed,
             "method": sw.method}
+
+
+def sweep_notes(sw: StackedSweep, several: bool) -> list[str]:
+    """What the stacked sweep tells a reader of its fit: the models not searched, those not continued after the
+    closures' refinement, the search's options (``search_notes``) and what the closures' rounds did; ``several``:
+    the fit has several closures (a campaign's runs), else one (a record's)."""
+    closures, closures_of = ("closures", "closures'") if several else ("closure", "closure's")
+    out = []
+    if sw.not_searched:
+        out.append(", ".join(model_name(m) for m in sw.not_searched)
+                   + ": not searched, the model below plus vanished elements (its element did not pay its AIC price)")
+    if sw.not_continued:
+        out.append(", ".join(model_name(*job) for job in sw.not_continued)
+                   + f": not polished again after the {closures_of} refinement "
+                     f"(behind the best by more than {continue_margin(sw.runs):.0f} in AIC): the wall before it under "
+                     f"the refined {closures}")
+    return out + search_notes(sw) + sw.closure_notes
 
 
 def search_notes(sw: StackedSweep) -> list[str]:

@@ -14,8 +14,8 @@ import time
 from dataclasses import dataclass, replace
 
 from velab.fitting.adequacy import assess
-from velab.fitting.joint import (StackedSweep, closure_groups, continue_margin, refine_closures, search_notes,
-                                 search_options, search_settings)
+from velab.fitting.joint import (StackedSweep, closure_groups, refine_closures, search_options, search_settings,
+                                 sweep_notes)
 from velab.fitting.offset import offset
 from velab.fitting.options import FitOptions
 from velab.fitting.params import FitBounds, derive_bounds
@@ -29,18 +29,16 @@ from velab.rig import Rig
 @dataclass(frozen=True)
 class Stacked:
     """What ``stack_record`` made: the record, the sweep after its closures' refinement, the wall's box, the
-    summaries (ranked), and the seconds it took."""
+    summaries (ranked)."""
 
     record: Record
     sweep: StackedSweep
     bounds: FitBounds
     fits: list
-    duration_s: float
 
 
 def stack_record(record: Record, opts: FitOptions, progress=None) -> Stacked:
     """The record's parts calibrated together (module docstring) with the stacked search of ``opts``."""
-    t0 = time.perf_counter()
     ms = list(opts.models)
     parts, valve_rec = record.parts, record.valve.rec
     bounds = derive_bounds(record.rig, float(valve_rec.t[1] - valve_rec.t[0]), valve_rec.window_s,
@@ -53,7 +51,7 @@ def stack_record(record: Record, opts: FitOptions, progress=None) -> Stacked:
     groups = closure_groups(parts, [record], top)  # (at the top wall: once, not once a model)
     fits = [sw.summarise(job, sw.final[job], record.vi.k, groups) for job in sw.jobs(ms)]
     apply_criteria(fits, opts.selection, (bounds.tau_min_s, bounds.tau_max_s))
-    return Stacked(record, sw, bounds, fits, time.perf_counter() - t0)
+    return Stacked(record, sw, bounds, fits)
 
 
 def fit_single(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | None, opts: FitOptions, *,
@@ -61,6 +59,7 @@ def fit_single(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | N
     """A record of one head (a rig with one transducer) as a stack of one part: the SweepResult of a single fit
     (its settings a single fit's, its models' steady head offsets their own, the adequacy of
     velab.fitting.adequacy.assess on the prepared record). Raises DataError (one line) as prepare_record."""
+    t0 = time.perf_counter()  # (the record's preparation and its closure's fit included, as a sections fit's)
     record = Record("", t_s, {rig.head_section.name: head_m}, trigger_time_s, rig, window_s,
                     record_rate_hz=record_rate_hz, position_pct=position_pct, manoeuvre=opts.manoeuvre,
                     friction=opts.friction, friction_unsteady=opts.friction_unsteady)
@@ -68,17 +67,18 @@ def fit_single(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | N
     sw, part = st.sweep, record.parts[0]
     rec = part.rec
     # each model's steady head offset (velab.fitting.offset): the stacked summary leaves it in the parts
-    fits = [replace(f, steady_head_offset_m=offset(sw.final[(f.m, f.reduced)].heads[0] - rec.h, part.steady_n)) for f in st.fits]
+    fits = [replace(f, steady_head_offset_m=offset(sw.final[(f.m, f.reduced)].heads[0] - rec.h, part.steady_n))
+            for f in st.fits]
     result = SweepResult(n=rec.h.size, window_s=rec.window_s, sample_rate_hz=rec.fit_rate_hz, method=opts.method,
                          settings=_settings(st, opts), models=fits, selection=opts.selection)
-    result.evaluations = sum(e.evaluations for e in (part.ev_c, part.ev_m, part.ev_f))
+    result.evaluations = 0  # (not counted by the stacked engine: its parts' evaluators are replaced as it goes)
     result.record_rate_hz = rec.record_rate_hz
     result.anti_alias_filter = rec.filter
-    result.notes.extend(_notes(st))
+    result.notes.extend(sweep_notes(sw, several=False))
     result.notes.append(record.vi.text)
     result.notes.extend(rec.notes)
     assess(result, rec, rig)  # noise ratios and warnings (misfit, cavitation, bound, model error)
-    result.duration_s = st.duration_s
+    result.duration_s = time.perf_counter() - t0
     return result
 
 
@@ -88,24 +88,7 @@ def _settings(st: Stacked, opts: FitOptions) -> FitSettings:
     return FitSettings(
         models=list(opts.models), **search_settings(sw), tau_start_range_s=[sw.tau_lo, sw.tau_hi],
         tau_min_s=opts.tau_min_s, tau_max_s=opts.tau_max_s, bounds=st.bounds.to_dict(), selection=opts.selection,
-        not_searched=[model_name(m) for m in sw.not_searched], not_continued=[model_name(m) for m in sw.not_continued],
+        not_searched=[model_name(m) for m in sw.not_searched], not_continued=[model_name(*job) for job in sw.not_continued],
         friction={"steady": tm.steady, "unsteady": tm.unsteady, "time_domain": tm.active, "text": tm.describe()},
         manoeuvre=record.vi.describe(), k_nuisance=record.vi.k, record=record.valve.rec.describe())
-
-
-def _notes(st: Stacked) -> list[str]:
-    """What a reader of the single fit's report is told of the search: models not searched or not continued,
-    the search's options, the closure's rounds."""
-    sw = st.sweep
-    out = []
-    if sw.not_searched:
-        out.append(", ".join(model_name(m) for m in sw.not_searched)
-                   + ": not searched, the model below plus vanished elements (its element did not pay its AIC price)")
-    if sw.not_continued:
-        out.append(", ".join(model_name(m) for m in sw.not_continued)
-                   + f": not polished again after the closure's refinement (behind the best by more than "
-                     f"{continue_margin(sw.runs):.0f} in AIC): the wall before it under the refined closure")
-    out.extend(search_notes(sw))
-    out.extend(sw.closure_notes)
-    return out
 
