@@ -281,3 +281,29 @@ def test_a_flagged_transducer_after_the_trigger_is_said_once_and_shortens_every_
     assert set(r.section_heads) == {"mid"} and r.section_heads["mid"].shape == r.head.shape == r.t.shape
     after = r.t >= t0
     assert r.section_heads["mid"][after][0] == pytest.approx(31.015)  # the block at 1.5 s on the run's axis
+
+
+def test_a_slow_reading_is_stamped_with_the_devices_axis_through_a_stall_of_the_processing():
+    """velab.recording.slow stamps a reading with ``device_axis``: the sample the device makes now (the block that
+    waited least, plus the samples since), not the last sample processed (``now_axis``), which a stall of the
+    processing holds back (a loaded host: readings seconds off their host instant)."""
+    host = ManualClock()
+    tl, *_ = make(host=host)
+    for i in range(5):  # on time: block i's last sample made at host (100 i + 100) / FS
+        feed(tl, 100 * i, 100, host)
+    assert tl.device_axis == pytest.approx(tl.now_axis, abs=1.5 / FS)
+    host.set(1.3)  # 0.8 s of host time and no block processed: the device is at its sample 1300
+    assert tl.now_axis == pytest.approx(-0.5)
+    assert tl.device_axis == pytest.approx(0.3, abs=1.5 / FS)
+
+
+def test_the_samples_host_times_are_spaced_at_the_hosts_sample_rate():
+    """Within a block the samples' host times step by 1 / (rate x the clock's scale): on a simulated rig's fast
+    clock they come that much faster than the device's rate says (the run file's host_time)."""
+    scale = 12.0
+    host = ManualClock()
+    tl, _, ops, _, _ = make(host=host, clock_scale=scale)
+    feed(tl, 0, 100, host, arrival=0.1 / scale, host_time_s=1000.0)
+    (append,) = [op for op in ops if isinstance(op, Append)]
+    steps = np.diff(append.channels["host_time"])
+    assert append.channels["host_time"][-1] == 1000.0 and steps == pytest.approx(1.0 / (FS * scale))
