@@ -52,7 +52,7 @@ from velab.fitting.selection import aic_ar1, aic_of, apply_criteria, pays, poole
 from velab.fitting.solvers import Sol, Stage
 from velab.fitting.starts import (RACE_KEEP, cap_starts, coarse_search, continues_by_lsq, distinct, nested_starts,
                                   reduced_then_full, scan_wave_speed, tau_grids)
-from velab.fitting.stacked import StackedEvaluator
+from velab.fitting.stacked import Count, StackedEvaluator
 from velab.fitting.stackreduced import below, jobs, sweep_reduced
 from velab.fitting.stats import ar1_innovation_var, lag1
 from velab.fitting.summary import summarise
@@ -136,6 +136,7 @@ class StackedSweep:
         # models (m, reduced) not polished after the closures' last refinement (refine_closures)
         self.not_continued: list[tuple[int, bool]] = []
         self.closure_notes: list[str] = []  # what the closures' rounds and the rival's comparison did (refine_closures)
+        self.count = Count()  # the stacked model's evaluations over the whole sweep (the result's ``evaluations``)
         dt = min(float(r.rec.t[1] - r.rec.t[0]) * r.qc for r in runs)
         window = max(r.rec.window_s for r in runs)
         self.tau_lo = max(2 * dt, bounds.tau_min_s)
@@ -165,7 +166,7 @@ class StackedSweep:
                 p = base.sol.pm.unpack(base.sol.x)
                 dcorr = r.rec.h - base.heads[i]
                 parts.append((lowpass_decimate(dcorr, q) if q > 1 else dcorr) + ev.head(*p))
-        st = StackedEvaluator(evs, self.weights()[list(idx)])
+        st = StackedEvaluator(evs, self.weights()[list(idx)], self.count)
         return Stage(st, st.stack(parts), baseline_blocks([self.runs[i] for i in idx], st))
 
     def search_parts(self, base: _Model) -> list[int]:
@@ -347,7 +348,7 @@ class StackedSweep:
         for r, F in zip(self.runs, fin.F_runs):
             r.var = float(F)
         st = self.stage("f", fin)
-        evaluations, jacobians = st.ev.evaluations, st.ev.jacobians  # (before the summary's own evaluation)
+        evaluations = jacobians = 0  # (per model: not counted apart; the sweep's total is the result's)
         # the stacked head and Jacobian at the fit rate, once: the summary's and the closures' marginalisation
         st_head, st_jac = st.ev.head_jac_x(*fin.sol.pm.unpack(fin.sol.x), fin.sol.pm.tau_free)
         f = summarise(st, fin.sol, model_name(*job), self.runs[0].rig, self.bounds,
@@ -441,7 +442,7 @@ def fit_joint(sources: list[CampaignRun], window_s: float | None = 20.0, options
                         + " of n_r ln F_r (each one's variance its own)")
     result.notes.extend(sweep_notes(sw, several=True))
     result.duration_s = time.perf_counter() - t0
-    result.evaluations = 0
+    result.evaluations = sw.count.evaluations
     return result
 
 
@@ -745,10 +746,10 @@ def _own_wall(sw: StackedSweep, idx: list[int], fin: _Model, name: str, bounds) 
 
     grid = sw.polish_grid
     for _ in range(2):
-        st = StackedEvaluator([r.ev_m if grid == "m" else r.ev_c for r in parts], weights)
+        st = StackedEvaluator([r.ev_m if grid == "m" else r.ev_c for r in parts], weights, sw.count)
         x = Stage(st, st.stack(data(grid, heads, x)), baseline_blocks(parts, st)).lsq(pm, x, max_nfev=30, ftol=1e-10).x
         heads = [r.model_head(pm.unpack(x)) for r in parts]
-    st = StackedEvaluator([r.ev_f for r in parts], weights)
+    st = StackedEvaluator([r.ev_f for r in parts], weights, sw.count)
     f = summarise(Stage(st, st.stack(data("f", heads, x)), baseline_blocks(parts, st)), Sol(x, math.nan, pm),
                   name, parts[0].rig, bounds)
     if len(parts) == 1:

@@ -71,7 +71,7 @@ def fit_single(t_s, head_m, trigger_time_s: float, rig: Rig, window_s: float | N
             for f in st.fits]
     result = SweepResult(n=rec.h.size, window_s=rec.window_s, sample_rate_hz=rec.fit_rate_hz, method=opts.method,
                          settings=_settings(st, opts), models=fits, selection=opts.selection)
-    result.evaluations = 0  # (not counted by the stacked engine: its parts' evaluators are replaced as it goes)
+    result.evaluations = sw.count.evaluations  # (the stacked model's; the closure refinements' own fits apart)
     result.record_rate_hz = rec.record_rate_hz
     result.anti_alias_filter = rec.filter
     result.notes.extend(sweep_notes(sw, several=False))

@@ -79,7 +79,7 @@ def fit_sections(t_s, heads: dict, trigger_time_s: float, rig: Rig, window_s: fl
     result.notes.extend(search_notes(sw))
     result.notes.extend(sw.closure_notes)
     result.duration_s = time.perf_counter() - t0
-    result.evaluations = 0
+    result.evaluations = sw.count.evaluations
     return result
 
 

@@ -2,25 +2,53 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from velab.fitting.engine import HeadEvaluator
 from velab.fitting.parallel import both
 
 
+@dataclass
+class Count:
+    """Evaluations of the stacked model (a Jacobian counts as one evaluation and one Jacobian): one per sweep,
+    shared by the stacked evaluators it makes, each touched by one thread only (a fork counts on its own Count;
+    velab.fitting.starts.fan_out adds it back after the threads joined)."""
+
+    evaluations: int = 0
+    jacobians: int = 0
+
+
 class StackedEvaluator:
     """The heads of several runs at one wall, stacked: each run's rows weighted by w_r (its
     HeadEvaluator, on its own grid and flow). Quacks like a HeadEvaluator for velab.fitting.solvers
-    and velab.fitting.summary (``head``, ``head_jac_x``, ``n_t``, counters, ``fork``)."""
+    and velab.fitting.summary (``head``, ``head_jac_x``, ``n_t``, counters, ``fork``). ``count``: where its
+    evaluations are counted (a sweep's running total; its own if None)."""
 
-    def __init__(self, evs: list[HeadEvaluator], weights):
+    def __init__(self, evs: list[HeadEvaluator], weights, count: Count | None = None):
         self.evs = evs
         self.weights = np.asarray(weights, dtype=float)
         sizes = [e.n_t for e in evs]
         self.bounds = np.concatenate([[0], np.cumsum(sizes)])
         self.n_t = int(self.bounds[-1])
-        self.evaluations = 0
-        self.jacobians = 0
+        self.count = count if count is not None else Count()
+
+    @property
+    def evaluations(self) -> int:
+        return self.count.evaluations
+
+    @evaluations.setter
+    def evaluations(self, value: int) -> None:
+        self.count.evaluations = value
+
+    @property
+    def jacobians(self) -> int:
+        return self.count.jacobians
+
+    @jacobians.setter
+    def jacobians(self, value: int) -> None:
+        self.count.jacobians = value
 
     def slices(self):
         return [slice(int(a), int(b)) for a, b in zip(self.bounds[:-1], self.bounds[1:])]
@@ -48,7 +76,7 @@ class StackedEvaluator:
         both(lambda: [fill(*item) for item in items[:k]], lambda: [fill(*item) for item in items[k:]])
 
     def head(self, a, J_rel, tau, out=None):
-        self.evaluations += 1
+        self.count.evaluations += 1
         h = out if out is not None else np.empty(self.n_t)
 
         def fill(e, w, sl):
@@ -59,8 +87,8 @@ class StackedEvaluator:
         return h
 
     def head_jac_x(self, a, J_rel, tau, tau_free: bool = True, out=None):
-        self.evaluations += 1
-        self.jacobians += 1
+        self.count.evaluations += 1
+        self.count.jacobians += 1
         m = np.size(J_rel)
         rows = 2 + m + (m if tau_free else 0)
         if out is None:
