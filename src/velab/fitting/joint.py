@@ -348,11 +348,10 @@ class StackedSweep:
         for r, F in zip(self.runs, fin.F_runs):
             r.var = float(F)
         st = self.stage("f", fin)
-        evaluations = jacobians = 0  # (per model: not counted apart; the sweep's total is the result's)
         # the stacked head and Jacobian at the fit rate, once: the summary's and the closures' marginalisation
         st_head, st_jac = st.ev.head_jac_x(*fin.sol.pm.unpack(fin.sol.x), fin.sol.pm.tau_free)
-        f = summarise(st, fin.sol, model_name(*job), self.runs[0].rig, self.bounds,
-                      evaluations=evaluations, jacobians=jacobians, head_jac=(st_head, st_jac))
+        # (a model's own evaluations are not counted apart: the sweep's total, ``count``, is the result's)
+        f = summarise(st, fin.sol, model_name(*job), self.runs[0].rig, self.bounds, head_jac=(st_head, st_jac))
         n_tot = sum(r.n for r in self.runs)
         blocks, slices = [], []
         for idx, rows in nuisance or ():
